@@ -1,0 +1,3 @@
+"""Clustering: facial regions, per-region correlation, threshold clustering, layout methods."""
+
+__all__: list[str] = []

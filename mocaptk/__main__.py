@@ -1,0 +1,5 @@
+"""``python -m mocaptk`` — same as the ``mocaptk`` command."""
+
+from .cli import main
+
+main()

@@ -1,0 +1,38 @@
+"""Error types every stage raises for user mistakes.
+
+The CLI turns any :class:`MocaptkError` into one line on stderr and exit code 2;
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+class MocaptkError(Exception):
+    """A problem the user can fix (bad input, bad option); printed as one line."""
+
+    exit_code = 2
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))
+
+
+class InputFileError(MocaptkError):
+    """An input file is missing, unreadable or malformed.
+
+    The message always names the file: ``"<path>: <problem>"``.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
+        self.path = os.fspath(path)
+        self.problem = " ".join(str(problem).split())
+        super().__init__(f"{self.path}: {self.problem}")
+
+
+class OptionError(MocaptkError):
+    """A command-line option or parameter value is invalid."""
+
+
+class OutputError(MocaptkError):
+    """An output cannot be written (exists without --force, folder not writable...)."""
