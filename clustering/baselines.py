@@ -1,0 +1,117 @@
+"""Baseline layouts of a given size: random, farthest-point and k-means on trajectories.
+
+Every function returns sorted marker indices ``(count,) intp`` so layouts compare like for like.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import OptionError
+
+
+def _check_count(n_markers: int, count: int) -> None:
+    if not 1 <= count <= n_markers:
+        raise OptionError(f"layout size must be between 1 and {n_markers} markers, got {count}")
+
+
+def random_layout(n_markers: int, count: int, *, seed: int) -> np.ndarray:
+    """``count`` distinct markers drawn uniformly at random out of ``n_markers``."""
+    _check_count(n_markers, count)
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(n_markers, size=count, replace=False)).astype(np.intp)
+
+
+def farthest_point_layout(neutral: np.ndarray, count: int) -> np.ndarray:
+    """Farthest-point sampling of the neutral pose.
+
+    Parameters
+    ----------
+    neutral : (markers, 3) float, mm
+        Markers with NaN coordinates are never chosen.
+    count : int
+
+    Returns
+    -------
+    (count,) intp, sorted
+        Starts at the marker farthest from the centroid (deterministic), then repeatedly adds
+        the marker farthest from all chosen ones.
+    """
+    pts = np.asarray(neutral, dtype=np.float64)
+    valid = np.isfinite(pts).all(axis=1)
+    _check_count(int(valid.sum()), count)
+    centroid = pts[valid].mean(axis=0)
+    far = np.where(valid, np.linalg.norm(np.where(valid[:, None], pts, 0.0) - centroid, axis=1), -1.0)
+    chosen = [int(np.argmax(far))]
+    nearest = np.where(valid, np.linalg.norm(np.where(valid[:, None], pts, 0.0) - pts[chosen[0]],
+                                             axis=1), -1.0)
+    for _ in range(count - 1):
+        nxt = int(np.argmax(nearest))
+        chosen.append(nxt)
+        dist = np.linalg.norm(np.where(valid[:, None], pts, 0.0) - pts[nxt], axis=1)
+        nearest = np.where(valid, np.minimum(nearest, dist), -1.0)
+    return np.sort(np.array(chosen, dtype=np.intp))
+
+
+def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iterations: int = 50) -> np.ndarray:
+    """K-means on marker trajectories; per cluster the marker nearest its centre.
+
+    Parameters
+    ----------
+    displacements : (frames, markers, 3) float, mm
+        Displacement of each marker from its neutral position; NaN gaps count as 0 (at rest).
+    count : int
+        Number of clusters = layout size.
+    seed : int
+        Seeds the k-means++ initialisation.
+    iterations : int
+        Lloyd iterations (stops earlier when assignments settle).
+
+    Returns
+    -------
+    (count,) intp, sorted
+    """
+    disp = np.asarray(displacements, dtype=np.float64)
+    n_markers = disp.shape[1]
+    _check_count(n_markers, count)
+    feats = np.nan_to_num(disp, nan=0.0).transpose(1, 0, 2).reshape(n_markers, -1)
+    rng = np.random.default_rng(seed)
+    sq_norms = np.einsum("ij,ij->i", feats, feats)
+
+    def sq_dist(centres: np.ndarray) -> np.ndarray:
+        d = sq_norms[:, None] - 2.0 * feats @ centres.T + np.einsum("ij,ij->i", centres, centres)[None]
+        return np.maximum(d, 0.0)
+
+    # k-means++ initialisation
+    centres = [feats[rng.integers(n_markers)]]
+    closest = sq_dist(np.array(centres))[:, 0]
+    for _ in range(count - 1):
+        total = closest.sum()
+        pick = int(rng.choice(n_markers, p=closest / total)) if total > 0 else int(rng.integers(n_markers))
+        centres.append(feats[pick])
+        closest = np.minimum(closest, sq_dist(feats[pick][None])[:, 0])
+    centres_arr = np.array(centres)
+    assign = np.full(n_markers, -1)
+    for _ in range(iterations):
+        new_assign = np.argmin(sq_dist(centres_arr), axis=1)
+        if np.array_equal(new_assign, assign):
+            break
+        assign = new_assign
+        for k in range(count):
+            members = assign == k
+            if members.any():
+                centres_arr[k] = feats[members].mean(axis=0)
+    # one distinct marker per cluster: the member nearest the centre; empty clusters are filled
+    # with the markers worst represented by the chosen ones
+    dist = sq_dist(centres_arr)
+    chosen: list[int] = []
+    for k in range(count):
+        members = np.flatnonzero(assign == k)
+        if members.size:
+            chosen.append(int(members[np.argmin(dist[members, k])]))
+    if len(chosen) < count:
+        remaining = np.setdiff1d(np.arange(n_markers), chosen)
+        worst = dist[remaining].min(axis=1)
+        extra = remaining[np.argsort(-worst, kind="stable")[: count - len(chosen)]]
+        chosen.extend(int(i) for i in extra)
+    return np.sort(np.array(chosen, dtype=np.intp))

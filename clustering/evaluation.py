@@ -1,0 +1,262 @@
+"""Held-out reconstruction: how well a layout's markers predict every dense marker.
+
+Linear model: ridge regression of all markers' positions (3 coordinates each) from the layout
+markers' positions, with an intercept — equivalent to regressing displacements from any fixed
+neutral pose. Gaps: a test frame is predicted from the layout markers present in it (a model
+is fitted per presence pattern on the training frames where those markers are all present); each
+target coordinate is fitted on the training frames where that target is present. Layout markers
+present in a frame are reproduced exactly (they are measured). Errors are Euclidean distances, mm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import OptionError
+from ..trajectories import Take
+from .baselines import farthest_point_layout, kmeans_layout, random_layout
+from .neutral import neutral_pose
+
+#: Default ridge strength, relative to the mean diagonal of the input Gram matrix.
+DEFAULT_RIDGE = 1e-3
+
+
+def _ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ridge fit ``targets ≈ inputs @ W + b``; inputs finite (F, K), targets may hold NaN (F, T).
+
+    Columns of ``targets`` sharing a NaN pattern are solved together on their finite rows;
+    a column with fewer than 2 finite rows gets W = 0 and b = its mean (or 0).
+    """
+    n_in, n_out = inputs.shape[1], targets.shape[1]
+    coef = np.zeros((n_in, n_out))
+    intercept = np.zeros(n_out)
+    present = np.isfinite(targets)
+    patterns, inverse = np.unique(present.T, axis=0, return_inverse=True)
+    for p, rows in enumerate(patterns):
+        cols = np.flatnonzero(inverse.ravel() == p)
+        n_rows = int(rows.sum())
+        if n_rows == 0:
+            continue
+        x = inputs[rows]
+        y = targets[np.ix_(rows, cols)]
+        x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
+        intercept[cols] = y_mean
+        if n_rows < 2:
+            continue
+        xc = x - x_mean
+        gram = xc.T @ xc
+        lam = ridge * max(float(np.trace(gram)) / n_in, 1e-12)
+        w = np.linalg.solve(gram + lam * np.eye(n_in), xc.T @ (y - y_mean))
+        coef[:, cols] = w
+        intercept[cols] = y_mean - x_mean @ w
+    return coef, intercept
+
+
+@dataclass
+class ReconstructionModel:
+    """Ridge reconstruction of all markers from the layout markers, fitted on training frames.
+
+    Sub-models for frames where some layout markers are missing are fitted on demand and cached.
+    """
+
+    train: np.ndarray  # (F, M, 3) mm, NaN gaps
+    layout: np.ndarray  # (L,) intp
+    ridge: float = DEFAULT_RIDGE
+    _cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def submodel(self, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(W (3K, 3M), b (3M,)) using only the layout markers flagged in ``present`` (L,) bool."""
+        key = present.tobytes()
+        if key not in self._cache:
+            cols = self.layout[present]
+            x = self.train[:, cols].reshape(self.train.shape[0], -1)
+            rows = np.isfinite(x).all(axis=1)
+            y = self.train[rows].reshape(int(rows.sum()), -1)
+            self._cache[key] = _ridge_fit(x[rows], y, self.ridge)
+        return self._cache[key]
+
+
+def fit_reconstruction(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
+                       ridge: float = DEFAULT_RIDGE) -> ReconstructionModel:
+    """Prepare the reconstruction of all markers from ``layout_idx``.
+
+    Parameters
+    ----------
+    train : (frames, markers, 3) float, mm, NaN gaps
+    layout_idx : (L,) int
+        Indices of the layout markers (columns of ``train``).
+    ridge : float
+        Ridge strength relative to the mean input variance (scale-free).
+    """
+    layout = np.unique(np.asarray(layout_idx, dtype=np.intp))
+    train = np.asarray(train, dtype=np.float64)
+    if layout.size == 0 or layout[0] < 0 or layout[-1] >= train.shape[1]:
+        raise OptionError(f"layout indices must be in 0..{train.shape[1] - 1} and not empty")
+    if ridge < 0:
+        raise OptionError(f"ridge must be >= 0, got {ridge}")
+    return ReconstructionModel(train, layout, float(ridge))
+
+
+def reconstruct(model: ReconstructionModel, test: np.ndarray) -> np.ndarray:
+    """Predicted positions ``(frames, markers, 3)`` mm of ``test`` from its layout markers.
+
+    Frames with no layout marker present are NaN; present layout markers are copied.
+    """
+    test = np.asarray(test, dtype=np.float64)
+    n_frames, n_markers = test.shape[:2]
+    out = np.full(test.shape, np.nan)
+    present = np.isfinite(test[:, model.layout]).all(axis=2)  # (F, L)
+    patterns, inverse = np.unique(present, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    for p, pattern in enumerate(patterns):
+        if not pattern.any():
+            continue
+        frames = np.flatnonzero(inverse == p)
+        coef, intercept = model.submodel(pattern)
+        x = test[np.ix_(frames, model.layout[pattern])].reshape(frames.size, -1)
+        out[frames] = (x @ coef + intercept).reshape(frames.size, n_markers, 3)
+    observed = test[:, model.layout]
+    out[:, model.layout] = np.where(np.isfinite(observed), observed, out[:, model.layout])
+    return out
+
+
+def reconstruction_errors(model: ReconstructionModel, test: np.ndarray) -> np.ndarray:
+    """Per-point reconstruction error ``(frames, markers)`` mm; NaN where truth or prediction is missing."""
+    test = np.asarray(test, dtype=np.float64)
+    pred = reconstruct(model, test)
+    err = np.linalg.norm(pred - test, axis=2)
+    return np.where(np.isfinite(err), err, np.nan)
+
+
+def error_summary(errors: np.ndarray, *, regions: Mapping[str, Sequence[int]] | None = None) -> dict:
+    """RMSE and 95th-percentile error (mm) over all finite points, and per region.
+
+    Parameters
+    ----------
+    errors : (frames, markers) float, mm, NaN = not evaluated
+    regions : {name: marker indices}, optional
+    """
+    def stats(values: np.ndarray) -> dict:
+        finite = values[np.isfinite(values)]
+        if finite.size == 0:
+            return {"rmse_mm": float("nan"), "p95_mm": float("nan"), "points": 0}
+        return {"rmse_mm": float(np.sqrt(np.mean(finite ** 2))),
+                "p95_mm": float(np.percentile(finite, 95)), "points": int(finite.size)}
+
+    out = stats(np.asarray(errors))
+    if regions:
+        out["regions"] = {name: stats(errors[:, np.asarray(idx, dtype=np.intp)])
+                          for name, idx in sorted(regions.items())}
+    return out
+
+
+def holdout_splits(n_frames: int, takes: Sequence[Take] = (), *, split: str = "blocks",
+                   folds: int = 5) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Train/test frame indices for held-out evaluation.
+
+    ``split="blocks"``: every take (or the whole session without takes) is cut into ``folds``
+    contiguous blocks; fold *i* tests on block *i* of every take and trains on the rest.
+    ``split="takes"``: leave one take out (needs >= 2 takes).
+    """
+    segments = [(t.start, t.end) for t in takes] or [(0, n_frames)]
+    if split == "takes":
+        if len(segments) < 2:
+            raise OptionError("--split takes needs a session with at least 2 takes")
+        out = []
+        for start, end in segments:
+            test = np.arange(start, end)
+            out.append((np.setdiff1d(np.arange(n_frames), test), test))
+        return out
+    if split != "blocks":
+        raise OptionError(f"unknown split {split!r} (use 'blocks' or 'takes')")
+    if folds < 2:
+        raise OptionError(f"need at least 2 folds, got {folds}")
+    fold_of = np.full(n_frames, -1)
+    for start, end in segments:
+        edges = np.linspace(start, end, folds + 1).round().astype(int)
+        for i in range(folds):
+            fold_of[edges[i]:edges[i + 1]] = i
+    out = []
+    for i in range(folds):
+        test = np.flatnonzero(fold_of == i)
+        train = np.flatnonzero((fold_of != i) & (fold_of >= 0))
+        if test.size and train.size:
+            out.append((train, test))
+    if not out:
+        raise OptionError(f"too few frames ({n_frames}) for {folds} folds")
+    return out
+
+
+def heldout_errors(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray,
+                   splits: Sequence[tuple[np.ndarray, np.ndarray]], *,
+                   test: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE) -> np.ndarray:
+    """Errors ``(frames, markers)`` mm of held-out frames.
+
+    With ``test`` (a separate performance, same markers): fit on all of ``positions``, return the
+    errors on ``test``. Otherwise pool the test frames of every split (frames never tested stay NaN).
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if test is not None:
+        return reconstruction_errors(fit_reconstruction(positions, layout_idx, ridge=ridge), test)
+    errors = np.full(positions.shape[:2], np.nan)
+    for train_idx, test_idx in splits:
+        model = fit_reconstruction(positions[train_idx], layout_idx, ridge=ridge)
+        errors[test_idx] = reconstruction_errors(model, positions[test_idx])
+    return errors
+
+
+def baseline_layouts(positions: np.ndarray, count: int, *, n_random: int = 10, seed: int = 0,
+                     frame_step: int = 1) -> dict[str, list[np.ndarray]]:
+    """Baseline layouts of ``count`` markers chosen from a session ``(frames, markers, 3)`` mm.
+
+    ``random``: ``n_random`` seeds (``seed``, ``seed+1``, ...); ``farthest_point`` on the neutral
+    pose (per-marker median); ``kmeans`` on displacement trajectories sampled every ``frame_step``.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    n_markers = positions.shape[1]
+    neutral = neutral_pose(positions)
+    disp = positions[::frame_step] - neutral[None]
+    return {
+        "random": [random_layout(n_markers, count, seed=seed + i) for i in range(n_random)],
+        "farthest_point": [farthest_point_layout(neutral, count)],
+        "kmeans": [kmeans_layout(disp, count, seed=seed)],
+    }
+
+
+def compare_layouts(positions: np.ndarray, layouts: Mapping[str, Sequence[np.ndarray]],
+                    splits: Sequence[tuple[np.ndarray, np.ndarray]], *, test: np.ndarray | None = None,
+                    regions: Mapping[str, Sequence[int]] | None = None,
+                    ridge: float = DEFAULT_RIDGE) -> dict[str, dict]:
+    """Held-out error summary per named layout method.
+
+    ``layouts`` maps a method name to one or more layouts (e.g. random seeds). With several,
+    the summary holds the mean over them plus ``rmse_sd_mm`` / ``p95_sd_mm`` (sample sd).
+    """
+    out: dict[str, dict] = {}
+    for name, group in layouts.items():
+        summaries = [error_summary(heldout_errors(positions, idx, splits, test=test, ridge=ridge),
+                                   regions=regions) for idx in group]
+        out[name] = _mean_summary(summaries)
+        out[name]["count"] = int(np.unique(np.asarray(group[0])).size)
+        out[name]["layouts"] = len(group)
+    return out
+
+
+def _mean_summary(summaries: list[dict]) -> dict:
+    if len(summaries) == 1:
+        return summaries[0]
+    out: dict = {}
+    for key in ("rmse_mm", "p95_mm"):
+        values = np.array([s[key] for s in summaries])
+        out[key] = float(values.mean())
+        out[key.replace("_mm", "_sd_mm")] = float(values.std(ddof=1))
+    out["points"] = summaries[0]["points"]
+    if "regions" in summaries[0]:
+        out["regions"] = {
+            name: {key: float(np.mean([s["regions"][name][key] for s in summaries]))
+                   for key in ("rmse_mm", "p95_mm")}
+            for name in summaries[0]["regions"]}
+    return out
