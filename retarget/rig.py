@@ -6,16 +6,21 @@ Pure data with validation; no file I/O here (see ``export_json``, ``export_fbx``
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from mocaptk.jsonio import to_plain
+
 #: Side tags a joint name starts with (character's left = +X when the face looks down +Z).
 SIDES = ("L", "R", "C")
 #: Name of the joint that parents every marker joint.
 ROOT_NAME = "face_root"
+#: Decimals (of a millimetre) kept for vertex positions in the mesh hash and in rig.json.
+MESH_DIGITS = 6
 #: Tolerance on each weight row summing to 1.
 WEIGHT_SUM_TOL = 1e-6
 
@@ -54,7 +59,7 @@ class Rig:
         Joint indices of each vertex's influences.
     weight_value : (V, k) float64
         Matching weights in [0, 1]; rows sum to 1, at least one positive entry per row.
-        Unused slots hold weight 0 (their index is ignored).
+        Unused slots hold weight 0 (their index is stored as 0).
     """
 
     vertices: np.ndarray
@@ -112,6 +117,8 @@ class Rig:
         if np.any(np.diff(np.sort(used, axis=1), axis=1) == 0):
             raise RigError("a vertex lists the same joint twice among its influences")
 
+        index[value <= 0] = 0  # unused slots: weight 0, joint 0
+
         for name, array in (("vertices", vertices), ("faces", faces),
                             ("joint_positions", positions), ("joint_parents", parents),
                             ("weight_index", index), ("weight_value", value)):
@@ -141,11 +148,28 @@ class Rig:
         return int(np.flatnonzero(self.joint_parents < 0)[0])
 
     def mesh_sha256(self) -> str:
-        """SHA-256 (hex) of the vertices as little-endian float64 followed by faces as int64."""
-        digest = hashlib.sha256()
-        digest.update(np.ascontiguousarray(self.vertices, dtype="<f8").tobytes())
-        digest.update(np.ascontiguousarray(self.faces, dtype="<i8").tobytes())
-        return digest.hexdigest()
+        """SHA-256 (hex) identifying the mesh, robust to a JSON round trip.
+
+        Hash of the UTF-8 text ``{"faces":[[a,b,c],...],"vertices":[[x,y,z],...]}`` (no spaces,
+        vertices in mm rounded to :data:`MESH_DIGITS` decimals, as :mod:`mocaptk.jsonio` writes).
+        """
+        text = json.dumps({"faces": to_plain(self.faces),
+                           "vertices": to_plain(self.vertices, digits=MESH_DIGITS)},
+                          sort_keys=True, separators=(",", ":"), allow_nan=False)
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    def vertex_normals(self) -> np.ndarray:
+        """Unit area-weighted vertex normals ``(V, 3)``; ``+Z`` where a vertex has no area."""
+        corners = self.vertices[self.faces]
+        face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normals = np.zeros_like(self.vertices)
+        for corner in range(3):
+            np.add.at(normals, self.faces[:, corner], face_normals)
+        length = np.linalg.norm(normals, axis=1)
+        flat = length <= 1e-12 * max(1.0, float(length.max(initial=0.0)))
+        normals[flat] = (0.0, 0.0, 1.0)
+        length[flat] = 1.0
+        return normals / length[:, None]
 
     def dense_weights(self) -> np.ndarray:
         """Weights as a dense ``(V, J)`` float64 matrix."""

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Install the test-only readers that check our rig exports (never shipped, never imported by mocaptk):
+#   ufbx (PyPI), the FBX2glTF binary from npm fbx2gltf@0.9.7 (Autodesk FBX SDK inside),
+#   and the Khronos gltf-validator (npm). npm tools go to <repo>/.tools/ (git-ignored).
+# Usage: scripts/install-readers.sh        (idempotent; tests skip a reader that is missing)
+set -euo pipefail
+repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+tools="$repo/.tools"
+mkdir -p "$tools"
+
+python -c "import ufbx" 2>/dev/null || python -m pip install --quiet "ufbx>=0.0.5"
+
+if [ ! -x "$tools/fbx2gltf/bin/Linux/FBX2glTF" ]; then
+    work="$(mktemp -d)"
+    (cd "$work" && npm pack --silent fbx2gltf@0.9.7 >/dev/null && tar -xzf fbx2gltf-0.9.7.tgz)
+    rm -rf "$tools/fbx2gltf"
+    mv "$work/package" "$tools/fbx2gltf"
+    rm -rf "$work"
+    chmod +x "$tools/fbx2gltf/bin/Linux/FBX2glTF"
+fi
+
+if [ ! -f "$tools/node_modules/gltf-validator/package.json" ]; then
+    npm install --silent --no-save --no-audit --no-fund --prefix "$tools" gltf-validator@2.0.0-dev.3.10
+fi
+
+echo "readers installed: ufbx $(python -c 'import importlib.metadata as m; print(m.version("ufbx"))')," \
+     "FBX2glTF $tools/fbx2gltf/bin/Linux/FBX2glTF, gltf-validator $tools/node_modules/gltf-validator"
