@@ -1,0 +1,115 @@
+"""Per-axis Pearson correlation of marker positions and the consolidated matrix C = Cx + Cy + Cz.
+
+Gaps: pairwise-complete — each pair's correlation uses the frames where both markers are
+present (numpy.corrcoef semantics on those frames). Without gaps the whole matrix is one matrix
+product of the standardized, axis-stacked positions. An axis on which a marker (or a pair's
+common frames) has a standard deviation <= ``STATIC_SD_MM`` contributes 0 — correlation is
+undefined there — and a pair with fewer than 3 common frames correlates 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A standard deviation at or below this (mm) counts as no motion on that axis.
+STATIC_SD_MM = 1e-6
+#: Rows per block in the gap-aware computation (bounds the temporary memory).
+_BLOCK = 1024
+
+
+@dataclass(frozen=True)
+class Correlation:
+    """Consolidated correlation of one region.
+
+    ``matrix`` (M, M) float64, symmetric, in [-3, 3]; ``static_axes`` (M, 3) bool: marker has no
+    motion on that axis; ``static`` (M,) bool: no motion on any axis.
+    """
+
+    matrix: np.ndarray
+    static_axes: np.ndarray
+
+    @property
+    def static(self) -> np.ndarray:
+        return self.static_axes.all(axis=1)
+
+
+def consolidated_correlation(positions: np.ndarray) -> Correlation:
+    """Consolidated correlation of marker positions.
+
+    Parameters
+    ----------
+    positions : (frames, markers, 3) float
+        Millimetres, NaN gaps (already sampled, e.g. every 5th frame).
+
+    Returns
+    -------
+    Correlation
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    n_frames, n_markers = pos.shape[:2]
+    present = np.isfinite(pos).all(axis=2)  # a marker is present in a frame with all 3 coordinates
+    counts = present.sum(axis=0)
+    safe_counts = np.maximum(counts, 1)
+    centred = np.where(present[:, :, None], pos, 0.0)
+    centred -= centred.sum(axis=0) / safe_counts[:, None]
+    centred[~present] = 0.0
+    sd = np.sqrt((centred ** 2).sum(axis=0) / safe_counts[:, None])  # (M, 3)
+    static_axes = (sd <= STATIC_SD_MM) | (counts < 3)[:, None]
+    if present.all():
+        matrix = _complete_correlation(centred, sd, static_axes)
+    else:
+        matrix = _pairwise_correlation(centred, present, static_axes)
+    np.add(matrix, matrix.T, out=matrix)  # exact symmetry (BLAS results may differ in the last bit)
+    matrix *= 0.5
+    np.clip(matrix, -3.0, 3.0, out=matrix)
+    return Correlation(matrix, static_axes)
+
+
+def _complete_correlation(centred: np.ndarray, sd: np.ndarray, static_axes: np.ndarray) -> np.ndarray:
+    n_frames, n_markers = centred.shape[:2]
+    scale = np.zeros_like(sd)
+    np.divide(1.0, sd * np.sqrt(n_frames), out=scale, where=~static_axes)
+    z = (centred * scale[None]).transpose(2, 0, 1).reshape(3 * n_frames, n_markers)
+    return z.T @ z  # sum over the three axes of the per-axis Pearson matrices
+
+
+def _pairwise_correlation(centred: np.ndarray, present: np.ndarray, static_axes: np.ndarray) -> np.ndarray:
+    n_markers = centred.shape[1]
+    mask = present.astype(np.float64)
+    n_common = mask.T @ mask  # (M, M) frames where both are present
+    matrix = np.zeros((n_markers, n_markers))
+    min_var = STATIC_SD_MM ** 2
+    for axis in range(3):
+        x = centred[:, :, axis]
+        xx = x * x
+        moving = ~static_axes[:, axis]
+        for lo in range(0, n_markers, _BLOCK):
+            hi = min(lo + _BLOCK, n_markers)
+            n = n_common[lo:hi]
+            s_i = x[:, lo:hi].T @ mask  # sum of x_i over frames where j is present too
+            s_j = (mask[:, lo:hi].T @ x)  # sum of x_j over frames where i is present too
+            ss_i = xx[:, lo:hi].T @ mask
+            ss_j = mask[:, lo:hi].T @ xx
+            s_ij = x[:, lo:hi].T @ x
+            ok = (n >= 3) & moving[lo:hi, None] & moving[None, :]
+            inv_n = np.zeros_like(n)
+            np.divide(1.0, n, out=inv_n, where=ok)
+            cov = s_ij - s_i * s_j * inv_n
+            var_i = ss_i - s_i * s_i * inv_n
+            var_j = ss_j - s_j * s_j * inv_n
+            ok &= (var_i > min_var * n) & (var_j > min_var * n)
+            denom = np.sqrt(np.where(ok, var_i * var_j, 1.0))
+            r = np.zeros_like(cov)
+            np.divide(cov, denom, out=r, where=ok)
+            matrix[lo:hi] += np.clip(r, -1.0, 1.0)
+    return matrix
+
+
+def mean_off_diagonal(matrix: np.ndarray) -> float:
+    """Mean of the off-diagonal entries of a square matrix (NaN for fewer than 2 rows)."""
+    n = matrix.shape[0]
+    if n < 2:
+        return float("nan")
+    return float((matrix.sum() - np.trace(matrix)) / (n * (n - 1)))

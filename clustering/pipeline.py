@@ -1,0 +1,199 @@
+"""Session → layout: the single place where a layout is computed from a dense session.
+
+Steps: drop unusable (all-NaN) markers → stabilize (rigid head motion removed) → neutral pose →
+regions → takes per region → per region: sampled positions, consolidated correlation, threshold
+clustering + reassignment → sides, sagittal plane, mirroring → :class:`Layout`.
+Nothing here prints or writes files; problems the user should know about are returned as
+``notes`` (the CLI prints them as warnings).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import OptionError
+from ..trajectories import Take, Trajectories
+from .correlation import consolidated_correlation
+from .layout import Cluster, Layout, RegionResult
+from .neutral import max_displacement, neutral_pose
+from .regions import default_regions, unassigned
+from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters
+from .takes import all_frames, region_segments, sample_frames
+from .threshold import cluster_region
+
+#: Fewer sampled frames than this in a region make correlations meaningless.
+MIN_SAMPLES = 3
+
+
+@dataclass(frozen=True)
+class ClusterOptions:
+    """Options of :func:`cluster_session` (CLI flags of ``mocaptk cluster``).
+
+    ``regions``: ``{name: labels}`` (None: default regions); ``takes``: None = the session's
+    takes; ``mirror``: None = mirror when the labels show a half face + midline.
+    """
+
+    factor: float = 1.1
+    step: int = 5
+    stabilize: bool = True
+    mirror: bool | None = None
+    regions: dict[str, list[str]] | None = None
+    takes: list[Take] | None = None
+
+
+@dataclass
+class RegionMatrix:
+    """The consolidated correlation of one region (for heatmaps): labels in matrix order."""
+
+    labels: list[str]
+    matrix: np.ndarray
+    clusters: np.ndarray  # (M,) cluster number of each marker
+
+
+@dataclass
+class ClusterResult:
+    """A computed layout plus what the figures and summary need."""
+
+    layout: Layout
+    trajectories: Trajectories  # the (stabilized) session the layout was computed on
+    neutral: np.ndarray  # (M, 3) mm, neutral pose of ``trajectories``
+    matrices: dict[str, RegionMatrix]
+    notes: list[str] = field(default_factory=list)
+
+
+def stabilize(traj: Trajectories) -> tuple[Trajectories, dict[str, Any]]:
+    """Remove rigid head motion (acquisition stage); returns the session and a report."""
+    try:
+        from ..acquisition.stabilize import stabilize_head
+    except ImportError:
+        raise OptionError("head stabilization is not available in this installation; "
+                          "use --no-stabilize for already head-relative data") from None
+    result = stabilize_head(traj)
+    return result.trajectories, {"rigid_labels": list(result.rigid_labels),
+                                 "rms_residual_mm": float(result.rms_residual_mm)}
+
+
+def check_options(options: ClusterOptions, n_frames: int) -> None:
+    """Reject a factor <= 0 and a step outside 1..frames-1 (OptionError)."""
+    if not options.factor > 0:
+        raise OptionError(f"--factor must be > 0, got {options.factor}")
+    if options.step < 1:
+        raise OptionError(f"--step must be >= 1, got {options.step}")
+    if options.step >= n_frames:
+        raise OptionError(f"--step {options.step} is not smaller than the session's {n_frames} frames")
+
+
+def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOptions(),
+                    source: dict[str, Any] | None = None,
+                    progress: Callable[[str], None] | None = None) -> ClusterResult:
+    """Compute the layout of a dense session.
+
+    Parameters
+    ----------
+    traj : Trajectories
+        Dense session, mm.
+    options : ClusterOptions
+    source : dict
+        ``path``/``sha256`` of the input file, stored in the layout's ``source``.
+    progress : callable, optional
+        Called with a short description as each region is processed.
+    """
+    check_options(options, traj.n_frames)
+    notes: list[str] = []
+    # unusable markers: never seen
+    seen = np.isfinite(traj.positions).all(axis=2).any(axis=0)
+    excluded = [label for label, ok in zip(traj.labels, seen) if not ok]
+    if excluded:
+        notes.append(f"{len(excluded)} markers have no data at all and are left out: "
+                     + ", ".join(excluded[:8]) + (" ..." if len(excluded) > 8 else ""))
+        traj = traj.select([label for label, ok in zip(traj.labels, seen) if ok])
+    if traj.n_markers < 2:
+        raise OptionError(f"need at least 2 markers with data, the session has {traj.n_markers}")
+    stabilization: dict[str, Any] = {}
+    if options.stabilize:
+        if progress:
+            progress("stabilizing")
+        traj, stabilization = stabilize(traj)
+    labels = list(traj.labels)
+    neutral = neutral_pose(traj.positions)
+    displacement = max_displacement(traj.positions, neutral)
+
+    if options.regions is not None:
+        regions = {name: [m for m in members if m not in excluded]
+                   for name, members in options.regions.items()}
+        region_method = "regions file"
+    else:
+        regions, region_method = default_regions(labels, neutral, displacement)
+    loose = unassigned(regions, labels)
+    if loose:
+        notes.append(f"{len(loose)} markers are in no region and are not clustered: "
+                     + ", ".join(loose[:8]) + (" ..." if len(loose) > 8 else ""))
+
+    takes = options.takes if options.takes is not None else traj.takes
+    region_names = [name for name, members in regions.items() if members]
+    for name in regions:
+        if name not in region_names:
+            notes.append(f"region {name!r} has no markers with data; skipped")
+    segments = region_segments(takes, region_names, traj.n_frames)
+
+    mirror = is_half_capture(labels) if options.mirror is None else options.mirror
+    plane = estimate_sagittal_plane(labels, neutral, displacement, half=mirror)
+    sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
+
+    index = {label: i for i, label in enumerate(labels)}
+    region_results, clusters, matrices, static_markers = [], [], {}, []
+    for name in region_names:
+        if progress:
+            progress(f"clustering {name}")
+        idx = np.array([index[m] for m in regions[name]], dtype=np.intp)
+        frames = sample_frames(segments[name], options.step)
+        if frames.size < MIN_SAMPLES:
+            raise OptionError(f"region {name!r}: only {frames.size} frames sampled with --step "
+                              f"{options.step}; use a smaller step")
+        region_disp = max_displacement(traj.positions[all_frames(segments[name])][:, idx], neutral[idx])
+        corr = consolidated_correlation(traj.positions[frames][:, idx])
+        static = [regions[name][i] for i in np.flatnonzero(corr.static)]
+        static_markers.extend(static)
+        if static:
+            notes.append(f"region {name!r}: {len(static)} markers do not move (correlation 0): "
+                         + ", ".join(static[:8]) + (" ..." if len(static) > 8 else ""))
+        if idx.size < 2:
+            notes.append(f"region {name!r} has only 1 marker; it is its own representative")
+        result = cluster_region(corr.matrix, region_disp, factor=options.factor)
+        if idx.size >= 2 and result.mean_correlation <= 0:
+            notes.append(f"region {name!r}: mean correlation {result.mean_correlation:.3f} <= 0, so the "
+                         "factor's meaning flips (a larger factor gives fewer markers)")
+        elif idx.size >= 2 and result.threshold > 3:
+            notes.append(f"region {name!r}: threshold {result.threshold:.3f} = factor x mean correlation "
+                         "exceeds 3, so every marker becomes a representative")
+        member_labels = regions[name]
+        reps = [member_labels[r] for r in result.representatives]
+        for k, rep in enumerate(result.representatives):
+            members = np.flatnonzero(result.assignment == k)
+            members = np.concatenate([[rep], members[members != rep]])
+            clusters.append(Cluster(
+                representative=member_labels[rep], region=name,
+                members=tuple(member_labels[j] for j in members),
+                member_correlation={member_labels[j]: float(result.member_correlation[j]) for j in members},
+                position=tuple(float(x) for x in neutral[idx[rep]]), side=sides[member_labels[rep]]))
+        region_results.append(RegionResult(name, tuple(member_labels), result.mean_correlation,
+                                           result.threshold, int(frames.size), tuple(reps)))
+        matrices[name] = RegionMatrix(list(member_labels), corr.matrix, result.assignment)
+
+    mirrored: list[Cluster] = []
+    if mirror:
+        midline = {label for label, side in sides.items() if side == "C"}
+        mirrored = mirror_clusters(clusters, plane, labels, midline)
+    parameters = {"factor": options.factor, "step": options.step, "stabilized": options.stabilize,
+                  "mirror": mirror, "method": "paper", "regions_from": region_method,
+                  "takes": [t.as_dict() for t in takes]}
+    extra = {"stabilization": stabilization, "excluded_markers": excluded, "unassigned_markers": loose,
+             "static_markers": static_markers, "notes": notes,
+             "sagittal_plane": {"point": plane.point, "normal": plane.normal}}
+    src = {"frames": traj.n_frames, "rate": traj.rate, "markers": traj.n_markers, **(source or {})}
+    layout = Layout(src, parameters, tuple(region_results), tuple(clusters + mirrored), extra)
+    return ClusterResult(layout, traj, neutral, matrices, notes)

@@ -1,0 +1,143 @@
+"""Facial regions: read from a file, derived from label prefixes, or segmented from the neutral pose.
+
+A region map is ``{region name: [marker labels]}`` with every label in at most one region.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputFileError
+
+#: The six facial regions of the paper, top to bottom.
+FACIAL_REGIONS = ("forehead_brow", "eye", "nose", "cheek", "mouth", "chin")
+
+#: ``MOUTH_03``, ``FOREHEAD_BROW_05_L``, ``Anna:NOSE_1_C``: region words, a number, optional side tag.
+_PREFIX_LABEL = re.compile(r"^(?:.*:)?([A-Za-z]+(?:_[A-Za-z]+)*)_\d+(?:_[LRCM])?$")
+
+
+def read_regions(path: str | os.PathLike[str], labels: Sequence[str]) -> dict[str, list[str]]:
+    """Read a regions file: JSON ``{"region": ["LABEL", ...]}`` or CSV rows ``label,region``.
+
+    Raises :class:`InputFileError` for a malformed file, a label in two regions, or labels that
+    are not markers of the session (``labels``).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read regions file ({exc.strerror or exc})") from None
+    regions: dict[str, list[str]] = {}
+    if text.lstrip().startswith("{"):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
+        for name, members in data.items():
+            if not isinstance(members, list) or not all(isinstance(m, str) for m in members):
+                raise InputFileError(path, f"region {name!r} must be a list of marker labels")
+            regions[str(name)] = list(members)
+    else:
+        rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+        if rows and [c.strip().lower() for c in rows[0][:2]] == ["label", "region"]:
+            rows = rows[1:]
+        for number, row in enumerate(rows, start=1):
+            if len(row) < 2 or not row[0].strip() or not row[1].strip():
+                raise InputFileError(path, f"row {number}: expected 'label,region', got {','.join(row)!r}")
+            regions.setdefault(row[1].strip(), []).append(row[0].strip())
+    if not regions:
+        raise InputFileError(path, "no regions defined")
+    seen: dict[str, str] = {}
+    for name, members in regions.items():
+        for label in members:
+            if label in seen:
+                raise InputFileError(path, f"marker {label!r} is in two regions ({seen[label]!r}, {name!r})")
+            seen[label] = name
+    known = set(labels)
+    unknown = [label for label in seen if label not in known]
+    if unknown:
+        raise InputFileError(path, f"{len(unknown)} labels are not markers of the session: "
+                             + ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else ""))
+    return regions
+
+
+def regions_from_prefixes(labels: Sequence[str]) -> dict[str, list[str]] | None:
+    """Regions from label prefixes (``MOUTH_03_L`` → ``mouth``); None unless ALL labels follow it."""
+    regions: dict[str, list[str]] = {}
+    for label in labels:
+        match = _PREFIX_LABEL.match(label)
+        if match is None:
+            return None
+        regions.setdefault(match.group(1).lower(), []).append(label)
+    return regions
+
+
+def face_frame(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """Rows: lateral, up, forward unit axes of the face, from the neutral pose ``(M, 3)`` mm.
+
+    Principal axes of the neutral markers: largest extent = up (faces are taller than wide),
+    smallest = depth. Up points away from the markers that move most (jaw and mouth move more
+    than the forehead); forward points toward the side where the most prominent markers
+    (nose) stick out, i.e. the long tail of the depth distribution; lateral completes a
+    right-handed frame.
+    """
+    pts = neutral - neutral.mean(axis=0)
+    _, _, vt = np.linalg.svd(pts, full_matrices=False)
+    up, lateral, forward = vt[0], vt[1], vt[2]
+    heights = pts @ up
+    if np.ptp(displacement) > 0 and np.ptp(heights) > 0 and np.corrcoef(heights, displacement)[0, 1] > 0:
+        up = -up
+    depth = pts @ forward
+    if np.mean((depth - depth.mean()) ** 3) < 0:
+        forward = -forward
+    lateral = np.cross(up, forward)
+    return np.array([lateral, up, forward])
+
+
+def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray) -> dict[str, list[str]]:
+    """Segment the neutral pose into the six facial regions by height and distance from the midline.
+
+    In the face frame (:func:`face_frame`), ``u`` = height normalised to 0 (lowest marker) .. 1
+    (highest), ``v`` = |lateral offset from the median lateral position| / face height. Bands:
+    u >= 0.75 forehead_brow; 0.55-0.75: nose if v < 0.1, eye if v < 0.35, else cheek;
+    0.35-0.55: nose if v < 0.12, else cheek; 0.15-0.35: mouth if v < 0.25, else cheek;
+    u < 0.15 chin. Markers with a NaN neutral position are left out.
+    """
+    valid = np.isfinite(neutral).all(axis=1)
+    frame = face_frame(neutral[valid], displacement[valid])
+    local = (neutral[valid] - neutral[valid].mean(axis=0)) @ frame.T
+    height = np.ptp(local[:, 1]) or 1.0
+    u = (local[:, 1] - local[:, 1].min()) / height
+    v = np.abs(local[:, 0] - np.median(local[:, 0])) / height
+    names = np.select(
+        [u >= 0.75,
+         (u >= 0.55) & (v < 0.1), (u >= 0.55) & (v < 0.35), u >= 0.55,
+         (u >= 0.35) & (v < 0.12), u >= 0.35,
+         (u >= 0.15) & (v < 0.25), u >= 0.15],
+        ["forehead_brow", "nose", "eye", "cheek", "nose", "cheek", "mouth", "cheek"],
+        default="chin")
+    valid_labels = [label for label, ok in zip(labels, valid) if ok]
+    return {region: [lab for lab, n in zip(valid_labels, names) if n == region]
+            for region in FACIAL_REGIONS if (names == region).any()}
+
+
+def default_regions(labels: Sequence[str], neutral: np.ndarray,
+                    displacement: np.ndarray) -> tuple[dict[str, list[str]], str]:
+    """(regions, how) — from label prefixes when all labels follow them, else geometric."""
+    by_prefix = regions_from_prefixes(labels)
+    if by_prefix is not None:
+        return by_prefix, "label prefixes"
+    return geometric_regions(labels, neutral, displacement), "geometric segmentation of the neutral pose"
+
+
+def unassigned(regions: dict[str, list[str]], labels: Sequence[str]) -> list[str]:
+    """Labels that are in no region (in session order)."""
+    assigned = {label for members in regions.values() for label in members}
+    return [label for label in labels if label not in assigned]

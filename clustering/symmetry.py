@@ -1,0 +1,148 @@
+"""Sagittal plane, side tags and mirroring of a half-face layout to the other side."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import OptionError
+from .layout import Cluster
+from .regions import face_frame
+
+_SIDE_TAG = re.compile(r"_([LRCM])$")
+#: Markers closer than this to the sagittal plane count as midline when labels carry no side tag.
+MIDLINE_TOLERANCE_MM = 3.0
+
+
+def side_tag(label: str) -> str | None:
+    """``"L"``, ``"R"`` or ``"C"`` from a label's ``_L`` / ``_R`` / ``_C`` (or ``_M``) suffix, else None."""
+    match = _SIDE_TAG.search(label)
+    if match is None:
+        return None
+    return "C" if match.group(1) in "CM" else match.group(1)
+
+
+def mirror_label(label: str) -> str:
+    """Label of the mirror image: ``_L`` ↔ ``_R``; untagged labels get ``_mirror``."""
+    tag = side_tag(label)
+    if tag in ("L", "R"):
+        return label[:-1] + ("R" if tag == "L" else "L")
+    return f"{label}_mirror"
+
+
+def is_half_capture(labels: Sequence[str]) -> bool:
+    """True when side tags show one half of the face plus midline markers (L or R, not both, and C)."""
+    tags = {side_tag(label) for label in labels}
+    return "C" in tags and (("L" in tags) != ("R" in tags))
+
+
+@dataclass(frozen=True)
+class SagittalPlane:
+    """Plane through ``point`` (3,) mm with unit ``normal`` (3,) pointing to the subject's left (+lateral)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+
+    def signed_distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance (mm) of ``points`` (..., 3); positive on the normal's side."""
+        return (np.asarray(points) - self.point) @ self.normal
+
+    def mirror(self, points: np.ndarray) -> np.ndarray:
+        """Reflection of ``points`` (..., 3) mm across the plane."""
+        pts = np.asarray(points, dtype=np.float64)
+        return pts - 2.0 * self.signed_distance(pts)[..., None] * self.normal
+
+    def side(self, points: np.ndarray, *, tolerance: float = MIDLINE_TOLERANCE_MM) -> list[str]:
+        """``"L"``/``"R"``/``"C"`` per point: C within ``tolerance`` mm of the plane."""
+        d = self.signed_distance(points)
+        return ["C" if abs(x) <= tolerance else ("L" if x > 0 else "R") for x in np.atleast_1d(d)]
+
+
+def fit_sagittal_plane(midline: np.ndarray, lateral_hint: np.ndarray) -> SagittalPlane:
+    """Best-fit plane through midline markers.
+
+    Parameters
+    ----------
+    midline : (K, 3) mm
+        Neutral positions of midline markers (K >= 3, not all on one line).
+    lateral_hint : (3,)
+        Direction toward the subject's left (e.g. the face frame's lateral axis); orients the
+        normal and replaces the fit when the midline markers are (nearly) collinear.
+    """
+    pts = np.asarray(midline, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if pts.shape[0] < 2:
+        raise OptionError("mirroring needs at least 2 midline markers with a neutral position")
+    centre = pts.mean(axis=0)
+    hint = np.asarray(lateral_hint, dtype=np.float64) / np.linalg.norm(lateral_hint)
+    _, s, vt = np.linalg.svd(pts - centre, full_matrices=False)
+    if pts.shape[0] >= 3 and s[1] > 0.1 * s[0]:
+        normal = vt[2]
+    else:  # collinear midline: the plane contains the line and is as close to ⟂ hint as possible
+        line = vt[0]
+        normal = hint - (hint @ line) * line
+    normal = normal / np.linalg.norm(normal)
+    if normal @ hint < 0:
+        normal = -normal
+    return SagittalPlane(centre, normal)
+
+
+def mirror_clusters(clusters: Sequence[Cluster], plane: SagittalPlane, existing_labels: Sequence[str],
+                    midline: set[str]) -> list[Cluster]:
+    """Mirror images of the non-midline clusters.
+
+    Each mirrored cluster gets the mirrored representative label and position, the opposite side
+    tag, ``mirrored_from`` = the original label, and the mirrored labels of its non-midline
+    members (markers in ``midline`` stay only in the original cluster).
+    """
+    taken = set(existing_labels)
+    out = []
+    for cluster in clusters:
+        if cluster.side == "C":
+            continue
+        new_label = mirror_label(cluster.representative)
+        if new_label in taken:
+            raise OptionError(f"cannot mirror {cluster.representative!r}: {new_label!r} already exists "
+                              "(the capture is not a half face; use --no-mirror)")
+        members = [m for m in cluster.members if m not in midline or m == cluster.representative]
+        mirrored = [mirror_label(m) for m in members]
+        out.append(Cluster(
+            representative=new_label, region=cluster.region, members=tuple(mirrored),
+            member_correlation={mirror_label(m): cluster.member_correlation[m] for m in members},
+            position=tuple(float(x) for x in plane.mirror(np.array(cluster.position))),
+            side="R" if cluster.side == "L" else "L", mirrored_from=cluster.representative))
+    return out
+
+
+def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray, *,
+                            half: bool) -> SagittalPlane:
+    """Sagittal plane of a neutral pose ``(M, 3)`` mm.
+
+    Through the ``_C``-tagged midline markers when there are at least 2; otherwise normal = the face
+    frame's lateral axis (:func:`face_frame`) through the median lateral position (full face) or,
+    for a half face (``half``), through the medial edge: the lateral extreme nearer to the most
+    forward marker (the nose tip lies on the midline).
+    """
+    valid = np.isfinite(neutral).all(axis=1)
+    frame = face_frame(neutral[valid], displacement[valid])
+    tagged = np.array([side_tag(label) == "C" for label in labels]) & valid
+    if tagged.sum() >= 2:
+        return fit_sagittal_plane(neutral[tagged], frame[0])
+    pts = neutral[valid]
+    lateral = pts @ frame[0]
+    if half:
+        tip = lateral[np.argmax(pts @ frame[2])]
+        edge = lateral.min() if abs(tip - lateral.min()) < abs(tip - lateral.max()) else lateral.max()
+        offset = edge
+    else:
+        offset = float(np.median(lateral))
+    return SagittalPlane(frame[0] * offset, frame[0])
+
+
+def marker_sides(labels: Sequence[str], positions: np.ndarray, plane: SagittalPlane) -> list[str]:
+    """Side of each marker: its label tag when present, else its side of ``plane``."""
+    geometric = plane.side(positions)
+    return [side_tag(label) or geo for label, geo in zip(labels, geometric)]

@@ -1,0 +1,99 @@
+"""Threshold clustering of one region (Will, De Martino & Bezerra) and the final reassignment.
+
+Member rule (see docs/method.md): marker j joins representative r when ``C[r, j] >= tau`` with
+``tau = factor * mean off-diagonal C`` of the region; representatives are taken in order of
+decreasing displacement (ties: lower index first).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import OptionError
+from .correlation import mean_off_diagonal
+
+#: Columns per block in the reassignment (bounds memory for very large regions).
+_BLOCK = 2048
+
+
+@dataclass(frozen=True)
+class RegionClusters:
+    """Clusters of one region; indices refer to the region's markers.
+
+    ``representatives`` (K,) in creation order; ``assignment`` (M,) cluster number (index into
+    ``representatives``) after reassignment; ``first_assignment`` (M,) before it;
+    ``member_correlation`` (M,) ``C[representative, j]`` of each marker's final cluster.
+    """
+
+    representatives: np.ndarray
+    assignment: np.ndarray
+    first_assignment: np.ndarray
+    member_correlation: np.ndarray
+    mean_correlation: float
+    threshold: float
+
+    @property
+    def moved(self) -> int:
+        """Markers the reassignment moved to another representative."""
+        return int((self.assignment != self.first_assignment).sum())
+
+
+def threshold_clusters(matrix: np.ndarray, displacement: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """First pass: (representatives (K,), assignment (M,)) by the threshold rule."""
+    n = matrix.shape[0]
+    order = np.argsort(-np.asarray(displacement, dtype=np.float64), kind="stable")
+    assignment = np.full(n, -1, dtype=np.intp)
+    representatives: list[int] = []
+    for rep in order:
+        if assignment[rep] >= 0:
+            continue
+        joins = (assignment < 0) & (matrix[rep] >= threshold)
+        joins[rep] = True
+        assignment[joins] = len(representatives)
+        representatives.append(int(rep))
+    return np.array(representatives, dtype=np.intp), assignment
+
+
+def reassign(matrix: np.ndarray, representatives: np.ndarray, assignment: np.ndarray) -> np.ndarray:
+    """Move every non-representative to the representative it correlates with most.
+
+    A marker stays where it is when its current representative ties for the best.
+    """
+    out = assignment.copy()
+    n = matrix.shape[0]
+    is_rep = np.zeros(n, dtype=bool)
+    is_rep[representatives] = True
+    for lo in range(0, n, _BLOCK):
+        cols = np.arange(lo, min(lo + _BLOCK, n))
+        corr = matrix[np.ix_(representatives, cols)]  # (K, B)
+        best = corr.argmax(axis=0)
+        current = corr[assignment[cols], np.arange(cols.size)]
+        keep = current >= corr[best, np.arange(cols.size)]
+        new = np.where(keep | is_rep[cols], assignment[cols], best)
+        out[cols] = new
+    return out
+
+
+def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: float) -> RegionClusters:
+    """Threshold clustering followed by reassignment.
+
+    Parameters
+    ----------
+    matrix : (M, M) float
+        Consolidated correlation of the region's markers.
+    displacement : (M,) float, mm
+        Largest displacement of each marker (picks the representatives).
+    factor : float
+        Refinement factor (> 0); threshold = factor × mean off-diagonal correlation.
+    """
+    if not factor > 0:
+        raise OptionError(f"refinement factor must be > 0, got {factor}")
+    n = matrix.shape[0]
+    mean = mean_off_diagonal(matrix)
+    threshold = factor * mean if n > 1 else float("nan")
+    reps, first = threshold_clusters(matrix, displacement, threshold if n > 1 else np.inf)
+    final = reassign(matrix, reps, first)
+    member_corr = matrix[reps[final], np.arange(n)]
+    return RegionClusters(reps, final, first, member_corr, mean, threshold)
