@@ -1,0 +1,387 @@
+"""Triangulate a dense neutral marker cloud into a clean face surface.
+
+The markers of a dense facial session sample one skin surface (a cap that wraps around the
+face). :func:`marker_surface_mesh` turns them into a triangle mesh whose vertices ARE the
+markers (same order), so anything defined per dense marker is defined per vertex:
+
+1. **Chart.** Fit a sphere to the cloud (the face is a cap around a centre inside the head) and
+   map every marker to its (azimuth, elevation) around that centre, scaled to mm. Unlike a flat
+   PCA projection this keeps the sides of the face (cheeks, jaw line) from collapsing into
+   slivers. A nearly flat cloud falls back to the PCA plane.
+2. **Delaunay** (scipy) in the chart.
+3. **Peel the rim.** The convex hull of the chart adds long, thin triangles along the border;
+   boundary triangles with a 3-D edge longer than ``max_edge_factor`` x the local marker
+   spacing (largest nearest-neighbour distance of its three markers), or flat slivers (angle facing the border > ``max_rim_angle_deg``), are removed,
+   repeatedly, from the outside in. Interior triangles are kept (holes such as a missing marker stay filled).
+4. **Flip** interior edges whose 3-D triangles are badly shaped (improves the smallest angle
+   where the chart distorts), and **repair** vertices where two boundary loops touch (bow-ties),
+   so the result is an edge-manifold disk.
+5. **Orient** every triangle so its normal points out of the face (towards the viewer; +Z when
+   the session looks down +Z).
+
+A marker that ends up in no triangle (an isolated outlier) stays in ``vertices``, unreferenced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import Delaunay, cKDTree
+
+__all__ = [
+    "MeshQuality", "SurfaceMesh", "boundary_edges", "face_normals", "marker_spacing",
+    "marker_surface_mesh", "mesh_edges", "mesh_quality", "triangle_angles", "vertex_normals",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceMesh:
+    """A triangle mesh in millimetres.
+
+    ``vertices`` (V, 3) float64 mm; ``faces`` (T, 3) int64 vertex indices, counter-clockwise
+    seen from outside (normals point out of the face).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+
+@dataclass(frozen=True)
+class MeshQuality:
+    """Shape statistics of a triangle mesh (angles in degrees, lengths in mm)."""
+
+    min_angle_deg: float
+    median_edge_mm: float
+    max_edge_mm: float
+    non_manifold_edges: int
+    non_manifold_vertices: int
+    boundary_loops: int
+    unreferenced_vertices: int
+
+
+def marker_spacing(points: np.ndarray) -> float:
+    """Median distance (mm) from each marker to its nearest neighbour; ``points`` (M, 3)."""
+    points = np.asarray(points, dtype=float)
+    if points.shape[0] < 2:
+        raise ValueError("need at least 2 points to measure marker spacing")
+    dist, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(dist[:, 1]))
+
+
+def mesh_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges (E, 2) (sorted pairs) and how many faces use each (E,)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges, counts = np.unique(np.sort(half, axis=1), axis=0, return_counts=True)
+    return edges.reshape(-1, 2), counts
+
+
+def boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """Edges (B, 2) used by exactly one face (the mesh border)."""
+    edges, counts = mesh_edges(faces)
+    return edges[counts == 1]
+
+
+def triangle_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Interior angles (T, 3) in degrees; column k is the angle at ``faces[:, k]``."""
+    tri = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)]
+    angles = np.empty(tri.shape[:2])
+    for k in range(3):
+        a = tri[:, (k + 1) % 3] - tri[:, k]
+        b = tri[:, (k + 2) % 3] - tri[:, k]
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(
+            np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+        angles[:, k] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return angles
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit face normals (T, 3) from the counter-clockwise vertex order."""
+    tri = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3); zero for unreferenced vertices."""
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    tri = vertices[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 x area
+    out = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(out, faces[:, k], n)
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
+
+
+def mesh_quality(vertices: np.ndarray, faces: np.ndarray) -> MeshQuality:
+    """Smallest angle, edge lengths, manifoldness and boundary loops of a mesh."""
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    edges, counts = mesh_edges(faces)
+    lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    border = edges[counts == 1]
+    bad_vertices = np.flatnonzero(np.bincount(border.ravel(), minlength=len(vertices)) > 2)
+    loops = 0
+    if len(border):
+        n = len(vertices)
+        graph = coo_matrix((np.ones(len(border)), (border[:, 0], border[:, 1])), shape=(n, n))
+        _, comp = connected_components(graph, directed=False)
+        loops = len(np.unique(comp[np.unique(border)]))
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    return MeshQuality(
+        min_angle_deg=float(triangle_angles(vertices, faces).min()) if len(faces) else 0.0,
+        median_edge_mm=float(np.median(lengths)) if len(lengths) else 0.0,
+        max_edge_mm=float(lengths.max()) if len(lengths) else 0.0,
+        non_manifold_edges=int(np.sum(counts > 2)),
+        non_manifold_vertices=int(len(bad_vertices)),
+        boundary_loops=int(loops),
+        unreferenced_vertices=int(np.sum(~used)),
+    )
+
+
+def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
+                        max_rim_angle_deg: float = 120.0) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate a dense neutral marker cloud as one face surface.
+
+    Parameters
+    ----------
+    points : (M, 3) float
+        Neutral marker positions in mm (no NaN, M >= 3, not all on a line).
+    max_edge_factor : float
+        Border triangles with an edge longer than this x the local marker spacing (largest
+        nearest-neighbour distance among their three markers) are peeled.
+    max_rim_angle_deg : float
+        Border triangles whose angle facing the border is wider than this (degrees) are peeled
+        (flat slivers between rim markers).
+
+    Returns
+    -------
+    vertices : (M, 3) float64
+        The input points, same order (vertex i = marker i).
+    faces : (T, 3) int64
+        Triangles, counter-clockwise seen from the front of the face.
+
+    Raises
+    ------
+    ValueError
+        NaN/inf in ``points``, fewer than 3 points, duplicate points, or a degenerate cloud.
+    """
+    vertices = np.array(points, dtype=float)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < 3:
+        raise ValueError(f"expected (M >= 3, 3) points, got shape {vertices.shape}")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError("points contain NaN or inf (a marker missing in the neutral pose?)")
+    if len(np.unique(vertices, axis=0)) < len(vertices):
+        raise ValueError("points contain duplicates (two markers at the same position)")
+    nearest = cKDTree(vertices).query(vertices, k=2)[0][:, 1]
+    chart, front = _face_chart(vertices)
+    try:
+        faces = Delaunay(chart).simplices.astype(np.int64)
+    except Exception as exc:  # scipy raises QhullError for collinear clouds
+        raise ValueError(f"cannot triangulate the marker cloud: {exc}") from None
+    faces = _orient_in_chart(chart, faces)
+    faces = _peel_border(vertices, faces, max_edge=max_edge_factor * nearest,
+                         max_rim_angle=max_rim_angle_deg)
+    faces = _flip_bad_edges(vertices, faces, chart)
+    faces = _repair_bowties(faces, len(vertices))
+    faces = _orient_outward(vertices, faces, front)
+    order = np.lexsort(faces.T[::-1])
+    return vertices, faces[order]
+
+
+def _face_chart(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """2-D chart coordinates (M, 2) in mm and the unit front direction (3,)."""
+    centre = vertices.mean(axis=0)
+    _, sing, axes = np.linalg.svd(vertices - centre, full_matrices=False)
+    if sing[1] <= 1e-9 * max(sing[0], 1e-300):
+        raise ValueError("the marker cloud is degenerate (all markers on a line)")
+    e1, e2, normal = axes  # largest spread first; normal = least spread = face depth
+    front = _front_direction(vertices - centre, e1, e2, normal)
+    if np.dot(np.cross(e1, e2), front) < 0:
+        e2 = -e2
+    extent = float(np.ptp((vertices - centre) @ np.stack([e1, e2]).T, axis=0).max())
+    sphere = _fit_sphere(vertices)
+    if sphere is not None:
+        c, radius = sphere
+        behind = np.dot(centre - c, front)
+        if extent * 0.25 < radius < extent * 5.0 and behind > 0:
+            d = vertices - c
+            x, y, z = d @ e1, d @ e2, d @ front
+            azimuth = np.arctan2(x, z)
+            elevation = np.arctan2(y, np.hypot(x, z))
+            return np.column_stack([azimuth, elevation]) * radius, front
+    d = vertices - centre
+    return np.column_stack([d @ e1, d @ e2]), front
+
+
+def _front_direction(centred: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                     normal: np.ndarray) -> np.ndarray:
+    """The side of the PCA plane the face bulges towards (tie: +Z)."""
+    u, v, depth = centred @ e1, centred @ e2, centred @ normal
+    design = np.column_stack([np.ones_like(u), u, v, u * u + v * v])
+    coef, *_ = np.linalg.lstsq(design, depth, rcond=None)
+    curvature = coef[3] * float(np.mean(u * u + v * v))
+    if abs(curvature) > 1e-6 * max(float(np.ptp(depth)), 1e-300) and abs(curvature) > 1e-9:
+        return -normal if curvature > 0 else normal  # rim behind centre => bulge = front
+    return normal if normal[2] >= 0 else -normal
+
+
+def _fit_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Algebraic least-squares sphere (centre (3,), radius mm); None when ill-posed."""
+    design = np.column_stack([2 * vertices, np.ones(len(vertices))])
+    rhs = np.einsum("ij,ij->i", vertices, vertices)
+    sol, _, rank, _ = np.linalg.lstsq(design, rhs, rcond=None)
+    if rank < 4:
+        return None
+    centre = sol[:3]
+    r2 = sol[3] + centre @ centre
+    return (centre, float(np.sqrt(r2))) if r2 > 0 else None
+
+
+def _orient_in_chart(chart: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Make every triangle counter-clockwise in the chart."""
+    area = _ccw(chart, faces)
+    faces = faces.copy()
+    flip = area < 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces[area != 0]
+
+
+def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarray,
+                 max_rim_angle: float) -> np.ndarray:
+    """Remove bad triangles that lie on the border, from the outside in.
+
+    Bad = an edge longer than the largest ``max_edge`` (V,) mm of its three vertices, or a flat rim sliver: the angle facing one of
+    its border edges is wider than ``max_rim_angle`` (degrees) - the long thin triangles the
+    convex hull adds between rim markers.
+    """
+    n = len(vertices)
+    keys = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1),
+                   axis=2)
+    keys = keys[:, :, 0] * n + keys[:, :, 1]  # (T, 3) edge facing vertex k, as one integer
+    tri = vertices[faces]
+    longest = np.max(np.stack([np.linalg.norm(tri[:, (k + 1) % 3] - tri[:, k], axis=1)
+                               for k in range(3)]), axis=0)
+    too_long = longest > max_edge[faces].max(axis=1)
+    wide = triangle_angles(vertices, faces) > max_rim_angle  # (T, 3) angle facing edge k
+    keep = np.ones(len(faces), bool)
+    while True:
+        live_keys, counts = np.unique(keys[keep], return_counts=True)
+        on_border = np.isin(keys, live_keys[counts == 1])  # (T, 3)
+        drop = keep & ((on_border.any(axis=1) & too_long) | (on_border & wide).any(axis=1))
+        if not drop.any():
+            return faces[keep]
+        keep &= ~drop
+
+
+def _flip_bad_edges(vertices: np.ndarray, faces: np.ndarray, chart: np.ndarray,
+                    max_passes: int = 20) -> np.ndarray:
+    """Flip interior edges when that raises the smaller 3-D angle of the two triangles.
+
+    A flip is only taken where the quad is strictly convex in the chart, so the mesh stays an
+    embedded disk (both new triangles remain counter-clockwise there).
+    """
+    faces = faces.copy()
+    for _ in range(max_passes):
+        t0, t1, a, b, c, d = _interior_edge_quads(faces)
+        new0 = np.column_stack([a, d, c])
+        new1 = np.column_stack([b, c, d])
+        convex = (_ccw(chart, new0) > 0) & (_ccw(chart, new1) > 0)
+        old = np.minimum(triangle_angles(vertices, faces[t0]).min(axis=1),
+                         triangle_angles(vertices, faces[t1]).min(axis=1))
+        new = np.minimum(triangle_angles(vertices, new0).min(axis=1),
+                         triangle_angles(vertices, new1).min(axis=1))
+        gain = np.where(convex, new - old, 0.0)
+        touched = np.zeros(len(faces), bool)
+        flipped = False
+        for i in np.flatnonzero(gain > 1e-6)[np.argsort(-gain[gain > 1e-6], kind="stable")]:
+            if touched[t0[i]] or touched[t1[i]]:
+                continue  # one flip per triangle per pass keeps the quads valid
+            faces[t0[i]], faces[t1[i]] = new0[i], new1[i]
+            touched[[t0[i], t1[i]]] = True
+            flipped = True
+        if not flipped:
+            break
+    return faces
+
+
+def _interior_edge_quads(faces: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For each edge shared by two faces: the faces t0, t1, the edge a->b (as in t0) and the
+    opposite vertices c (in t0) and d (in t1)."""
+    n_faces = len(faces)
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    c = faces[:, [2, 0, 1]].ravel()
+    tri = np.repeat(np.arange(n_faces), 3)
+    n = int(faces.max()) + 1 if n_faces else 0
+    directed = a * n + b
+    reverse = b * n + a
+    order = np.argsort(directed)
+    pos = np.searchsorted(directed[order], reverse)
+    pos = np.minimum(pos, len(order) - 1)
+    found = directed[order][pos] == reverse
+    twin = order[pos]
+    first = found & (a < b)  # each interior edge once
+    return tri[first], tri[twin[first]], a[first], b[first], c[first], c[twin[first]]
+
+
+def _ccw(chart: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Twice the signed chart area (T,) of triangles (T, 3); > 0 = counter-clockwise."""
+    p0, p1, p2 = chart[faces[:, 0]], chart[faces[:, 1]], chart[faces[:, 2]]
+    return ((p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1])
+            - (p2[:, 0] - p0[:, 0]) * (p1[:, 1] - p0[:, 1]))
+
+
+def _repair_bowties(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Where several triangle fans meet at one vertex, keep only the largest fan."""
+    while True:
+        degree = np.bincount(boundary_edges(faces).ravel(), minlength=n_vertices)
+        bad = np.flatnonzero(degree > 2)
+        if len(bad) == 0:
+            return faces
+        drop = np.zeros(len(faces), bool)
+        for v in bad:
+            around = np.flatnonzero(np.any(faces == v, axis=1) & ~drop)
+            fans = _fans_around(faces[around], int(v))
+            largest = np.argmax(np.bincount(fans))
+            drop[around[fans != largest]] = True
+        faces = faces[~drop]
+
+
+def _fans_around(ring: np.ndarray, v: int) -> np.ndarray:
+    """Label (K,) the fans of triangles ``ring`` (K, 3) around vertex ``v``: triangles sharing
+    an edge through ``v`` are in the same fan."""
+    label = np.arange(len(ring))
+    others = ring[ring != v].reshape(len(ring), 2)
+    changed = True
+    while changed:  # propagate the smallest label across shared neighbours (tiny K)
+        changed = False
+        for i in range(len(ring)):
+            for j in range(i + 1, len(ring)):
+                if label[i] != label[j] and np.intersect1d(others[i], others[j]).size:
+                    label[i] = label[j] = min(label[i], label[j])
+                    changed = True
+    return np.unique(label, return_inverse=True)[1]
+
+
+def _orient_outward(vertices: np.ndarray, faces: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """Flip the whole mesh if its normals point into the head rather than out of the face."""
+    if len(faces) == 0:
+        return faces
+    tri = vertices[faces]
+    total = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).sum(axis=0)
+    return faces[:, [0, 2, 1]] if np.dot(total, front) < 0 else faces

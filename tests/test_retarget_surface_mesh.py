@@ -1,0 +1,88 @@
+"""The marker surface mesh: a clean, outward-facing, manifold disk through the dense markers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocaptk.surface_mesh import (face_normals, marker_spacing, marker_surface_mesh, mesh_edges,
+                                  mesh_quality, vertex_normals)
+
+
+def face_cap(*, spacing: float = 10.0, half: bool = False, seed: int = 0) -> np.ndarray:
+    """Jittered markers ~``spacing`` mm apart on an ellipsoidal face cap looking down +Z (mm)."""
+    rng = np.random.default_rng(seed)
+    az, el = np.meshgrid(np.arange(-75, 76, 7.0), np.arange(-55, 61, 7.0))
+    az = np.radians(az + rng.uniform(-1.5, 1.5, az.shape)).ravel()
+    el = np.radians(el + rng.uniform(-1.5, 1.5, el.shape)).ravel()
+    pts = np.column_stack([75 * np.sin(az) * np.cos(el), 100 * np.sin(el),
+                           90 * np.cos(az) * np.cos(el)])
+    pts[:, 2] += 25 * np.exp(-(pts[:, 0] ** 2 + (pts[:, 1] + 5) ** 2) / 400)  # a nose
+    if half:
+        pts = pts[pts[:, 0] > -3]
+    return pts * spacing / 10.0
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_surface_mesh_is_clean_manifold_disk_facing_front(half):
+    pts = face_cap(half=half)
+    vertices, faces = marker_surface_mesh(pts)
+    np.testing.assert_array_equal(vertices, pts)  # vertex i = marker i
+    q = mesh_quality(vertices, faces)
+    assert q.non_manifold_edges == 0 and q.non_manifold_vertices == 0
+    assert q.boundary_loops == 1
+    assert q.unreferenced_vertices == 0
+    assert q.min_angle_deg > 12.0  # no slivers
+    assert q.max_edge_mm < 2.5 * marker_spacing(pts) + 1e-9 or q.max_edge_mm < 3.0 * q.median_edge_mm
+    # consistent orientation: every interior edge is used once in each direction
+    half_edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    assert len(np.unique(half_edges, axis=0)) == len(half_edges)
+    # outward = towards the viewer (+Z) on the front of the face
+    front = np.abs(pts[:, 0]) < 30
+    assert np.all(vertex_normals(vertices, faces)[front, 2] > 0.3)
+    assert face_normals(vertices, faces).sum(axis=0)[2] > 0
+
+
+def test_surface_mesh_orientation_follows_the_face_not_the_axes():
+    pts = face_cap()
+    rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)  # face now looks down -Y
+    vertices, faces = marker_surface_mesh(pts @ rot.T)
+    assert face_normals(vertices, faces).sum(axis=0)[1] < 0
+    # same connectivity as unrotated (the chart does not depend on the axes)
+    _, faces0 = marker_surface_mesh(pts)
+    e0, _ = mesh_edges(faces0)
+    e1, _ = mesh_edges(faces)
+    assert len(e0) == len(e1) and np.array_equal(e0, e1)
+
+
+def test_surface_mesh_flat_grid_and_determinism():
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(15.0), np.arange(12.0)), -1).reshape(-1, 2) * 10
+    pts = np.column_stack([g + rng.normal(0, 1.0, g.shape), np.zeros(len(g))])
+    v1, f1 = marker_surface_mesh(pts)
+    v2, f2 = marker_surface_mesh(pts.copy())
+    np.testing.assert_array_equal(f1, f2)
+    q = mesh_quality(v1, f1)
+    assert q.boundary_loops == 1 and q.non_manifold_vertices == 0 and q.unreferenced_vertices == 0
+    assert face_normals(v1, f1)[:, 2].min() > 0.99  # flat cloud: tie broken towards +Z
+
+
+def test_surface_mesh_on_real_face_landmarks(shared_data):
+    import trimesh
+
+    from conftest import shared_path
+    obj = shared_path("face_mesh", "mediapipe", "canonical_face_model.obj")
+    pts = np.asarray(trimesh.load(obj, process=False).vertices) * 10.0  # cm -> mm
+    vertices, faces = marker_surface_mesh(pts)
+    q = mesh_quality(vertices, faces)
+    assert q.non_manifold_edges == 0 and q.non_manifold_vertices == 0 and q.boundary_loops == 1
+    assert q.min_angle_deg > 8.0
+    assert face_normals(vertices, faces).sum(axis=0)[2] > 0
+
+
+@pytest.mark.parametrize("bad", [np.full((5, 3), np.nan), np.zeros((2, 3)),
+                                 np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3.0]]),
+                                 np.zeros((4, 3))])
+def test_surface_mesh_rejects_degenerate_clouds(bad):
+    with pytest.raises(ValueError):
+        marker_surface_mesh(bad)
