@@ -4,3 +4,10 @@ Public API is listed in ``__all__``; the CLI calls only these names.
 """
 
 __all__: list[str] = []
+
+from .cameras import Camera, CameraRig, cara_rig, load_rig, read_qca, room_rig, save_rig  # noqa: E402
+from .projection import project_markers  # noqa: E402
+from .triangulate import triangulate  # noqa: E402
+
+__all__ += ["Camera", "CameraRig", "cara_rig", "room_rig", "load_rig", "save_rig", "read_qca",
+            "project_markers", "triangulate"]

@@ -14,6 +14,7 @@ from .app import app
 
 # Command modules register themselves on import (one line per module).
 # from . import <command_module>  # noqa: E402,F401  (helpers add lines here)
+from . import triangulate  # noqa: E402,F401
 
 
 def main(argv: Sequence[str] | None = None) -> None:
