@@ -1,0 +1,111 @@
+"""Write a :class:`Rig` as a binary glTF 2.0 (.glb) skinned mesh with pygltflib.
+
+Conventions (see docs/rig-format.md): metres, Y up, +Z forward; the mesh node sits at the scene
+root with no transform; joints are nodes with translation-only local transforms; four influences
+per ``JOINTS_n``/``WEIGHTS_n`` pair (a second pair when the rig has 5-8 influences).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+
+from mocaptk import __version__
+from mocaptk.atomic import write_bytes
+
+from .rig import Rig
+
+#: Millimetres to glTF metres.
+MM_TO_M = 1e-3
+MESH_NAME = "face_mesh"
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_COMPONENT = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint16): pygltflib.UNSIGNED_SHORT,
+              np.dtype(np.uint32): pygltflib.UNSIGNED_INT}
+_TYPE = {1: pygltflib.SCALAR, 3: pygltflib.VEC3, 4: pygltflib.VEC4, 16: pygltflib.MAT4}
+
+
+def write_rig_glb(rig: Rig, path: str | os.PathLike[str], *, force: bool = True) -> Path:
+    """Atomically write ``rig`` as a binary glTF 2.0 file at ``path``; returns the path."""
+    return write_bytes(path, rig_glb_bytes(rig), force=force)
+
+
+def rig_glb_bytes(rig: Rig) -> bytes:
+    """The .glb file for ``rig`` (deterministic)."""
+    if rig.joint_count > 65535:
+        raise ValueError("glTF JOINTS_n as unsigned short holds at most 65535 joints")
+    builder = _BufferBuilder()
+    vertices = (rig.vertices * MM_TO_M).astype(np.float32)
+    attributes = pygltflib.Attributes(
+        POSITION=builder.add(vertices, target=_ARRAY_BUFFER, bounds=True),
+        NORMAL=builder.add(rig.vertex_normals().astype(np.float32), target=_ARRAY_BUFFER),
+    )
+    slots = 4 * -(-rig.max_influences // 4)
+    joints = np.zeros((rig.vertex_count, slots), dtype=np.uint16)
+    weights = np.zeros((rig.vertex_count, slots), dtype=np.float32)
+    joints[:, :rig.max_influences] = rig.weight_index
+    weights[:, :rig.max_influences] = rig.weight_value
+    for pair in range(slots // 4):
+        columns = slice(4 * pair, 4 * pair + 4)
+        setattr(attributes, f"JOINTS_{pair}",
+                builder.add(np.ascontiguousarray(joints[:, columns]), target=_ARRAY_BUFFER))
+        setattr(attributes, f"WEIGHTS_{pair}",
+                builder.add(np.ascontiguousarray(weights[:, columns]), target=_ARRAY_BUFFER))
+    index_type = np.uint16 if rig.vertex_count <= 65535 else np.uint32
+    indices = builder.add(rig.faces.astype(index_type).ravel(), target=_ELEMENT_ARRAY_BUFFER)
+
+    positions_m = rig.joint_positions * MM_TO_M
+    inverse_bind = np.tile(np.eye(4), (rig.joint_count, 1, 1))
+    inverse_bind[:, 3, :3] = -positions_m  # column-major: translation in elements 12-14
+    ibm = builder.add(inverse_bind.reshape(-1, 16).astype(np.float32))
+
+    nodes = [pygltflib.Node(name=MESH_NAME, mesh=0, skin=0)]
+    for joint, name in enumerate(rig.joint_names):
+        parent = int(rig.joint_parents[joint])
+        local = positions_m[joint] - (positions_m[parent] if parent >= 0 else 0.0)
+        children = [1 + int(c) for c in np.flatnonzero(rig.joint_parents == joint)]
+        nodes.append(pygltflib.Node(name=name, translation=[float(v) for v in local],
+                                    children=children or None))
+    gltf = pygltflib.GLTF2(
+        asset=pygltflib.Asset(version="2.0", generator=f"mocaptk {__version__}"),
+        scene=0,
+        scenes=[pygltflib.Scene(name="rig", nodes=[0, 1 + rig.root])],
+        nodes=nodes,
+        meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
+            attributes=attributes, indices=indices, mode=pygltflib.TRIANGLES)])],
+        skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
+                              joints=[1 + j for j in range(rig.joint_count)])],
+        accessors=builder.accessors,
+        bufferViews=builder.views,
+        buffers=[pygltflib.Buffer(byteLength=len(builder.blob))],
+    )
+    gltf.set_binary_blob(bytes(builder.blob))
+    return b"".join(gltf.save_to_bytes())
+
+
+class _BufferBuilder:
+    """Packs arrays into one 4-byte-aligned binary buffer, one bufferView + accessor each."""
+
+    def __init__(self) -> None:
+        self.blob = bytearray()
+        self.views: list[pygltflib.BufferView] = []
+        self.accessors: list[pygltflib.Accessor] = []
+
+    def add(self, array: np.ndarray, *, target: int | None = None, bounds: bool = False) -> int:
+        """Append ``array`` (N,) or (N, C); returns its accessor index."""
+        width = 1 if array.ndim == 1 else array.shape[1]
+        data = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<")).tobytes()
+        self.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(self.blob),
+                                               byteLength=len(data), target=target))
+        self.blob += data + b"\x00" * (-len(data) % 4)
+        accessor = pygltflib.Accessor(bufferView=len(self.views) - 1, byteOffset=0,
+                                      componentType=_COMPONENT[array.dtype],
+                                      count=len(array), type=_TYPE[width])
+        if bounds:
+            flat = array.reshape(len(array), width)
+            accessor.min = [float(v) for v in flat.min(axis=0)]
+            accessor.max = [float(v) for v in flat.max(axis=0)]
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
