@@ -1,0 +1,226 @@
+"""Read C3D files into :class:`mocaptk.Trajectories` (millimetres, NaN gaps).
+
+Every file is first checked by our own header/parameter parser (:mod:`.c3d_raw`): a malformed
+file is refused with an :class:`InputFileError` before any native code sees it, and the declared
+point data must fit in the file (so memory is bounded by the file size). Point values are then
+read by ezc3d; files ezc3d cannot read (MIPS processor, float ``OFFSET`` parameters, more than
+65,535 frames, no parameters, other ezc3d errors) are read by :func:`.c3d_raw.read_points`.
+Labels, units, rate and metadata always come from the checked parameter section.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocaptk.errors import InputFileError, MocaptkError
+from mocaptk.trajectories import Take, Trajectories
+
+from . import c3d_raw
+from .c3d_raw import C3DStructure
+
+#: POINT:UNITS spellings -> millimetres per unit (matched on the lower-cased, stripped text).
+UNIT_SCALES = {"mm": 1.0, "millimeter": 1.0, "millimeters": 1.0, "millimetre": 1.0,
+               "millimetres": 1.0, "cm": 10.0, "centimeter": 10.0, "centimeters": 10.0,
+               "centimetre": 10.0, "centimetres": 10.0, "m": 1000.0, "meter": 1000.0,
+               "meters": 1000.0, "metre": 1000.0, "metres": 1000.0, "mete": 1000.0}
+#: Parameter group in which :func:`.c3d_write.write_c3d` stores takes.
+TAKES_GROUP = "MOCAPTK"
+EZC3D_MAX_FRAMES = 0xFFFF
+
+
+def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> Trajectories:
+    """Read the 3-D points of a C3D file.
+
+    Parameters
+    ----------
+    path : path of a ``.c3d`` file (any processor type, integer or float storage).
+    strip_prefixes : drop ``Subject:`` label prefixes (the subjects stay in the metadata).
+
+    Returns
+    -------
+    Trajectories
+        ``positions`` (frames, markers, 3) in mm, NaN where the file marks a point invalid
+        (residual < 0) or a value is not finite; ``residuals`` (frames, markers) in mm;
+        ``first_frame`` as numbered in the file; metadata ``source``, ``format`` ("c3d"),
+        ``original_units``, ``subjects``, ``takes``, ``descriptions``, ``events``, ``reader``,
+        ``processor``, ``storage`` and ``notes`` (repairs such as renamed duplicate labels).
+    """
+    path = Path(path)
+    structure = c3d_raw.read_structure(path)
+    if structure.n_points == 0:
+        raise InputFileError(path, "no 3-D marker data (the file holds 0 points; "
+                                   "analog or rotation data only)")
+    notes = list(structure.notes)
+    mm_per_unit, units = _units(structure)
+    labels = _labels(structure, notes)
+    xyz, residual, reader = _read_point_values(structure, notes)
+    missing = (residual < 0) | ~np.isfinite(xyz).all(axis=2)
+    xyz *= mm_per_unit
+    xyz[missing] = np.nan
+    residual = np.where(missing, np.nan, residual * mm_per_unit)
+    metadata: dict[str, Any] = {
+        "source": str(path), "format": "c3d", "original_units": units,
+        "subjects": _subjects(structure, labels),
+        "takes": _takes(structure, notes),
+        "descriptions": _descriptions(structure, labels),
+        "events": _events(structure),
+        "reader": reader, "processor": structure.processor,
+        "storage": "float" if structure.float_storage else "int",
+        "notes": notes,
+    }
+    try:
+        traj = Trajectories(xyz, labels, structure.rate, structure.first_frame, residual, metadata)
+    except MocaptkError as exc:  # e.g. a bad rate or take range
+        raise InputFileError(path, str(exc)) from None
+    if strip_prefixes:
+        try:
+            traj = traj.strip_prefixes()
+        except MocaptkError as exc:
+            raise InputFileError(path, f"cannot strip subject prefixes: {exc}") from None
+    return traj
+
+
+def _read_point_values(s: C3DStructure, notes: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """(xyz (F, N, 3) file units, residual (F, N) file units, <0 invalid, reader name)."""
+    if s.processor != "mips" and s.n_frames <= EZC3D_MAX_FRAMES and "POINT" in s.parameters:
+        import ezc3d
+
+        try:
+            c3d = ezc3d.c3d(str(s.path))
+        except Exception as exc:  # ezc3d raises RuntimeError/ValueError/OSError for what it rejects
+            notes.append(f"ezc3d could not read the file ({str(exc).splitlines()[0][:80]}); "
+                         "read with mocaptk's own C3D reader")
+        else:
+            points = c3d["data"]["points"]
+            analogs = c3d["data"]["analogs"]  # (1, channels, samples)
+            analog_words = analogs.shape[1] * analogs.shape[2] // max(s.n_frames, 1)
+            if points.shape[1:] == (s.n_points, s.n_frames) and analog_words == s.analog_words:
+                residual = c3d["data"]["meta_points"]["residuals"]
+                xyz = np.ascontiguousarray(points[:3].transpose(2, 1, 0))
+                return xyz, np.ascontiguousarray(residual[0].T), "ezc3d"
+            # e.g. sample28/*.C3D: no ANALOG:RATE, ezc3d assumes no analog data and misreads
+            notes.append(f"ezc3d's frame layout ({points.shape[1]} points, {analog_words} analog "
+                         f"words per frame) disagrees with the file's ({s.n_points}, "
+                         f"{s.analog_words}); read with mocaptk's own C3D reader")
+    xyz, residual = c3d_raw.read_points(s)
+    return xyz, residual, "mocaptk"
+
+
+def _units(s: C3DStructure) -> tuple[float, str]:
+    value = s.param("POINT", "UNITS")
+    if not value or not value[0].strip():
+        return 1.0, "mm"  # C3D default when POINT:UNITS is absent
+    text = value[0].strip()
+    scale = UNIT_SCALES.get(text.lower())
+    if scale is None:
+        raise InputFileError(s.path, f"unknown POINT:UNITS {text!r} (expected mm, cm or m)")
+    return scale, text
+
+
+def _labels(s: C3DStructure, notes: list[str]) -> list[str]:
+    """POINT:LABELS, LABELS2, LABELS3... trimmed to the point count; empty -> ``M###``,
+    duplicates -> ``LABEL_2``, ``LABEL_3`` (noted)."""
+    found: list[str] = []
+    for key in ["LABELS"] + [f"LABELS{k}" for k in range(2, 1000)]:
+        value = s.param("POINT", key)
+        if value is None:
+            break
+        found.extend(str(v).strip() for v in value)
+    generated = c3d_raw.header_only_labels(s.n_points)
+    labels = [found[k] if k < len(found) and found[k] else "" for k in range(s.n_points)]
+    if not any(labels):
+        return generated
+    taken = set(labels)
+    seen: set[str] = set()
+    out: list[str] = []
+    renamed: list[str] = []
+    for k, label in enumerate(labels):
+        if not label:
+            label = _fresh(generated[k], taken)
+        elif label in seen:
+            new = _fresh(label, taken, start=2)
+            renamed.append(f"{label}->{new}")
+            label = new
+        taken.add(label)
+        seen.add(label)
+        out.append(label)
+    if renamed:
+        notes.append(f"duplicate labels renamed: {', '.join(renamed[:10])}"
+                     + (f" (+{len(renamed) - 10} more)" if len(renamed) > 10 else ""))
+    return out
+
+
+def _fresh(base: str, taken: set[str], start: int | None = None) -> str:
+    if start is None and base not in taken:
+        return base
+    k = start or 2
+    while f"{base}_{k}" in taken:
+        k += 1
+    return f"{base}_{k}"
+
+
+def _subjects(s: C3DStructure, labels: list[str]) -> list[str]:
+    """Subject names from SUBJECTS:NAMES, else from ``Subject:`` label prefixes (in order)."""
+    names = s.param("SUBJECTS", "NAMES")
+    subjects = [n for n in names if n] if isinstance(names, list) else []
+    for label in labels:
+        if ":" in label:
+            prefix = label.rsplit(":", 1)[0]
+            if prefix not in subjects:
+                subjects.append(prefix)
+    return subjects
+
+
+def _takes(s: C3DStructure, notes: list[str]) -> list[Take]:
+    """Takes stored by :func:`.c3d_write.write_c3d` (``MOCAPTK:TAKE_NAMES/STARTS/ENDS``)."""
+    group = s.parameters.get(TAKES_GROUP, {})
+    names, starts, ends = group.get("TAKE_NAMES"), group.get("TAKE_STARTS"), group.get("TAKE_ENDS")
+    if not isinstance(names, list) or not isinstance(starts, np.ndarray) \
+            or not isinstance(ends, np.ndarray):
+        return []
+    regions = group.get("TAKE_REGIONS")
+    regions = regions if isinstance(regions, list) else []
+    takes = []
+    for k, name in enumerate(names):
+        if k >= min(len(starts), len(ends)):
+            break
+        start, end = int(starts[k]), int(ends[k])
+        if not 0 <= start < end <= s.n_frames:
+            notes.append(f"take {name!r} [{start}, {end}) outside the data; ignored")
+            continue
+        region = regions[k] if k < len(regions) and regions[k] else None
+        takes.append(Take(name, start, end, region))
+    return takes
+
+
+def _descriptions(s: C3DStructure, labels: list[str]) -> dict[str, str]:
+    """Non-empty POINT:DESCRIPTIONS by label."""
+    found: list[str] = []
+    for key in ["DESCRIPTIONS"] + [f"DESCRIPTIONS{k}" for k in range(2, 1000)]:
+        value = s.param("POINT", key)
+        if not isinstance(value, list):
+            break
+        found.extend(value)
+    return {label: desc.strip() for label, desc in zip(labels, found) if desc.strip()}
+
+
+def _events(s: C3DStructure) -> list[dict[str, Any]]:
+    """EVENT:LABELS / CONTEXTS / TIMES as ``{"label", "context", "time"}`` (time in s)."""
+    labels, times = s.param("EVENT", "LABELS"), s.param("EVENT", "TIMES")
+    if not isinstance(labels, list) or not isinstance(times, np.ndarray) or times.size < 2:
+        return []
+    contexts = s.param("EVENT", "CONTEXTS")
+    contexts = contexts if isinstance(contexts, list) else []
+    pairs = times[: 2 * (times.size // 2)].reshape(-1, 2)  # (minutes, seconds) per event
+    events = []
+    for k, label in enumerate(labels[:len(pairs)]):
+        minutes, seconds = pairs[k]
+        if not (np.isfinite(minutes) and np.isfinite(seconds)):
+            continue
+        events.append({"label": label, "context": contexts[k] if k < len(contexts) else "",
+                       "time": round(float(minutes * 60 + seconds), 6)})
+    return events
