@@ -11,3 +11,8 @@ from .triangulate import triangulate  # noqa: E402
 
 __all__ += ["Camera", "CameraRig", "cara_rig", "room_rig", "load_rig", "save_rig", "read_qca",
             "project_markers", "triangulate"]
+
+from .c3d_read import read_c3d  # noqa: E402
+from .c3d_write import write_c3d  # noqa: E402
+
+__all__ += ["read_c3d", "write_c3d"]

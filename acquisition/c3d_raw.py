@@ -265,7 +265,7 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
     if start_field is not None and end_field is not None and end_field >= start_field:
         if saturated or header_frames == 0:
             n_frames = end_field - start_field + 1
-        first = start_field if first == 0 else first
+        first = start_field  # 32-bit; equals the header's where both exist in the corpus
     if saturated and n_frames <= header_frames:
         declared = _unsigned(point.get("FRAMES"))
         n_frames = declared if declared and declared > header_frames else available
