@@ -11,7 +11,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-import pygltflib
 
 from mocaptk import __version__
 from mocaptk.atomic import write_bytes
@@ -21,10 +20,11 @@ from .rig import Rig
 #: Millimetres to glTF metres.
 MM_TO_M = 1e-3
 MESH_NAME = "face_mesh"
+# glTF 2.0 enumerations (bufferView targets, accessor component types, primitive mode).
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
-_COMPONENT = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint16): pygltflib.UNSIGNED_SHORT,
-              np.dtype(np.uint32): pygltflib.UNSIGNED_INT}
-_TYPE = {1: pygltflib.SCALAR, 3: pygltflib.VEC3, 4: pygltflib.VEC4, 16: pygltflib.MAT4}
+_COMPONENT = {np.dtype(np.float32): 5126, np.dtype(np.uint16): 5123, np.dtype(np.uint32): 5125}
+_TYPE = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
+_TRIANGLES = 4
 
 
 def write_rig_glb(rig: Rig, path: str | os.PathLike[str], *, force: bool = True) -> Path:
@@ -34,14 +34,15 @@ def write_rig_glb(rig: Rig, path: str | os.PathLike[str], *, force: bool = True)
 
 def rig_glb_bytes(rig: Rig) -> bytes:
     """The .glb file for ``rig`` (deterministic)."""
+    import pygltflib  # ~0.2 s to import: only when writing glTF
+
     if rig.joint_count > 65535:
         raise ValueError("glTF JOINTS_n as unsigned short holds at most 65535 joints")
     builder = _BufferBuilder()
     vertices = (rig.vertices * MM_TO_M).astype(np.float32)
     attributes = pygltflib.Attributes(
         POSITION=builder.add(vertices, target=_ARRAY_BUFFER, bounds=True),
-        NORMAL=builder.add(rig.vertex_normals().astype(np.float32), target=_ARRAY_BUFFER),
-    )
+        NORMAL=builder.add(rig.vertex_normals().astype(np.float32), target=_ARRAY_BUFFER))
     slots = 4 * -(-rig.max_influences // 4)
     joints = np.zeros((rig.vertex_count, slots), dtype=np.uint16)
     weights = np.zeros((rig.vertex_count, slots), dtype=np.float32)
@@ -74,11 +75,11 @@ def rig_glb_bytes(rig: Rig) -> bytes:
         scenes=[pygltflib.Scene(name="rig", nodes=[0, 1 + rig.root])],
         nodes=nodes,
         meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
-            attributes=attributes, indices=indices, mode=pygltflib.TRIANGLES)])],
+            attributes=attributes, indices=indices, mode=_TRIANGLES)])],
         skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
                               joints=[1 + j for j in range(rig.joint_count)])],
-        accessors=builder.accessors,
-        bufferViews=builder.views,
+        accessors=[pygltflib.Accessor(**a) for a in builder.accessors],
+        bufferViews=[pygltflib.BufferView(**v) for v in builder.views],
         buffers=[pygltflib.Buffer(byteLength=len(builder.blob))],
     )
     gltf.set_binary_blob(bytes(builder.blob))
@@ -90,22 +91,22 @@ class _BufferBuilder:
 
     def __init__(self) -> None:
         self.blob = bytearray()
-        self.views: list[pygltflib.BufferView] = []
-        self.accessors: list[pygltflib.Accessor] = []
+        self.views: list[dict] = []  # pygltflib.BufferView keyword arguments
+        self.accessors: list[dict] = []  # pygltflib.Accessor keyword arguments
 
     def add(self, array: np.ndarray, *, target: int | None = None, bounds: bool = False) -> int:
         """Append ``array`` (N,) or (N, C); returns its accessor index."""
         width = 1 if array.ndim == 1 else array.shape[1]
         data = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<")).tobytes()
-        self.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(self.blob),
-                                               byteLength=len(data), target=target))
+        self.views.append({"buffer": 0, "byteOffset": len(self.blob), "byteLength": len(data),
+                           "target": target})
         self.blob += data + b"\x00" * (-len(data) % 4)
-        accessor = pygltflib.Accessor(bufferView=len(self.views) - 1, byteOffset=0,
-                                      componentType=_COMPONENT[array.dtype],
-                                      count=len(array), type=_TYPE[width])
+        accessor = {"bufferView": len(self.views) - 1, "byteOffset": 0,
+                    "componentType": _COMPONENT[array.dtype], "count": len(array),
+                    "type": _TYPE[width]}
         if bounds:
             flat = array.reshape(len(array), width)
-            accessor.min = [float(v) for v in flat.min(axis=0)]
-            accessor.max = [float(v) for v in flat.max(axis=0)]
+            accessor["min"] = [float(v) for v in flat.min(axis=0)]
+            accessor["max"] = [float(v) for v in flat.max(axis=0)]
         self.accessors.append(accessor)
         return len(self.accessors) - 1
