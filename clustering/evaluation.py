@@ -24,34 +24,53 @@ from .neutral import neutral_pose
 DEFAULT_RIDGE = 1e-3
 
 
+def _row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct rows of a 2-D bool array and, per row, the number of its pattern (fast np.unique)."""
+    packed = np.ascontiguousarray(np.packbits(mask, axis=1))
+    keys = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return mask[first], inverse.ravel()
+
+
 def _ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
     """Ridge fit ``targets ≈ inputs @ W + b``; inputs finite (F, K), targets may hold NaN (F, T).
 
-    Columns of ``targets`` sharing a NaN pattern are solved together on their finite rows;
-    a column with fewer than 2 finite rows gets W = 0 and b = its mean (or 0).
+    Each target column is fitted on its finite rows (the intercept is not penalised); columns
+    sharing a NaN pattern share one Gram matrix. A column with fewer than 2 finite rows gets
+    W = 0 and b = its mean (or 0).
     """
-    n_in, n_out = inputs.shape[1], targets.shape[1]
+    n_frames, n_in = inputs.shape
+    n_out = targets.shape[1]
     coef = np.zeros((n_in, n_out))
     intercept = np.zeros(n_out)
     present = np.isfinite(targets)
-    patterns, inverse = np.unique(present.T, axis=0, return_inverse=True)
-    for p, rows in enumerate(patterns):
-        cols = np.flatnonzero(inverse.ravel() == p)
-        n_rows = int(rows.sum())
-        if n_rows == 0:
+    patterns, inverse = _row_patterns(present.T)
+    aug = np.hstack([inputs, np.ones((n_frames, 1))])
+    rhs = aug.T @ np.where(present, targets, 0.0)  # (K+1, T): NaN rows contribute nothing
+    weights = patterns.T.astype(np.float64)  # (F, P)
+    grams = np.zeros((patterns.shape[0], (n_in + 1) ** 2))
+    chunk = max(1, 2_000_000 // (n_in + 1) ** 2)
+    for lo in range(0, n_frames, chunk):
+        block = aug[lo:lo + chunk]
+        outer = (block[:, :, None] * block[:, None, :]).reshape(block.shape[0], -1)
+        grams += weights[lo:lo + chunk].T @ outer
+    grams = grams.reshape(-1, n_in + 1, n_in + 1)
+    for p, gram in enumerate(grams):
+        cols = np.flatnonzero(inverse == p)
+        n_rows = gram[n_in, n_in]
+        if n_rows < 1:
             continue
-        x = inputs[rows]
-        y = targets[np.ix_(rows, cols)]
-        x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
-        intercept[cols] = y_mean
         if n_rows < 2:
+            intercept[cols] = rhs[n_in, cols] / n_rows
             continue
-        xc = x - x_mean
-        gram = xc.T @ xc
-        lam = ridge * max(float(np.trace(gram)) / n_in, 1e-12)
-        w = np.linalg.solve(gram + lam * np.eye(n_in), xc.T @ (y - y_mean))
-        coef[:, cols] = w
-        intercept[cols] = y_mean - x_mean @ w
+        sums = gram[n_in, :n_in]
+        centred_trace = float(np.trace(gram[:n_in, :n_in]) - sums @ sums / n_rows)
+        lam = ridge * max(centred_trace / n_in, 1e-12)
+        system = gram.copy()
+        system[np.arange(n_in), np.arange(n_in)] += lam
+        solution = np.linalg.solve(system, rhs[:, cols])
+        coef[:, cols] = solution[:n_in]
+        intercept[cols] = solution[n_in]
     return coef, intercept
 
 
@@ -109,8 +128,7 @@ def reconstruct(model: ReconstructionModel, test: np.ndarray) -> np.ndarray:
     n_frames, n_markers = test.shape[:2]
     out = np.full(test.shape, np.nan)
     present = np.isfinite(test[:, model.layout]).all(axis=2)  # (F, L)
-    patterns, inverse = np.unique(present, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    patterns, inverse = _row_patterns(present)
     for p, pattern in enumerate(patterns):
         if not pattern.any():
             continue
@@ -260,3 +278,33 @@ def _mean_summary(summaries: list[dict]) -> dict:
                    for key in ("rmse_mm", "p95_mm")}
             for name in summaries[0]["regions"]}
     return out
+
+
+def evaluate_layout(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
+                    takes: Sequence[Take] = (), test: np.ndarray | None = None,
+                    regions: Mapping[str, Sequence[int]] | None = None, name: str = "layout",
+                    split: str = "blocks", folds: int = 5, n_random: int = 10, seed: int = 0,
+                    ridge: float = DEFAULT_RIDGE) -> dict:
+    """A layout against random / farthest-point / k-means layouts of the same size.
+
+    Parameters
+    ----------
+    positions : (frames, markers, 3) mm
+        The session (layouts are chosen from it; the reconstruction is fitted on its training frames).
+    layout_idx : marker indices of the layout under test
+    takes : the session's takes (held-out splits follow them, see :func:`holdout_splits`)
+    test : (frames', markers, 3) mm, optional
+        Separate performance: fit on the whole session, test here (no splits).
+
+    Returns
+    -------
+    dict ``{"count", "protocol", "methods": {name: summary, "random": ..., ...}}``.
+    """
+    idx = np.unique(np.asarray(layout_idx, dtype=np.intp))
+    splits = [] if test is not None else holdout_splits(positions.shape[0], takes, split=split, folds=folds)
+    layouts = {name: [idx], **baseline_layouts(positions, idx.size, n_random=n_random, seed=seed)}
+    protocol = ({"test": "separate performance", "frames": int(test.shape[0])} if test is not None
+                else {"test": f"held-out {split}", "folds": len(splits)})
+    protocol.update({"ridge": ridge, "random_seeds": n_random})
+    return {"count": int(idx.size), "protocol": protocol,
+            "methods": compare_layouts(positions, layouts, splits, test=test, regions=regions, ridge=ridge)}

@@ -9,13 +9,15 @@ Nothing here prints or writes files; problems the user should know about are ret
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import OptionError
+from ..errors import InputFileError, OptionError
 from ..trajectories import Take, Trajectories
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
@@ -197,3 +199,18 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     src = {"frames": traj.n_frames, "rate": traj.rate, "markers": traj.n_markers, **(source or {})}
     layout = Layout(src, parameters, tuple(region_results), tuple(clusters + mirrored), extra)
     return ClusterResult(layout, traj, neutral, matrices, notes)
+
+
+def load_session(path: str, *, rate: float | None = None, units: str | None = None) -> tuple[Trajectories, dict[str, Any]]:
+    """Read a session file (any format ``read_trajectories`` knows) and describe it for ``source``.
+
+    Returns the trajectories (``Subject:`` prefixes stripped) and ``{"path", "sha256"}``.
+    """
+    from ..acquisition.formats import read_trajectories
+
+    file = Path(path)
+    if not file.is_file():
+        raise InputFileError(file, "no such file")
+    traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
+    digest = hashlib.sha256(file.read_bytes()).hexdigest()
+    return traj, {"path": file.name, "sha256": digest}

@@ -15,7 +15,7 @@ def planted_session(*, per_group: int = 4, frames: int = 600, noise: float = 0.0
                     gaps: float = 0.0, takes: bool = True) -> tuple[Trajectories, dict[str, int]]:
     """Half face + midline: groups of markers each driven by one hidden 3-D signal plus noise.
 
-    Returns the session (labels ``REGION_NN_L``; the first marker of every nose group is on the
+    Returns the session (labels ``REGION_NN_L``; the first marker of every group is on the
     midline, tagged ``_C``) and ``{label: group id}``. One take per region moves only that
     region's groups (the others rest, with noise), like the paper's per-region captures.
     """
@@ -27,7 +27,7 @@ def planted_session(*, per_group: int = 4, frames: int = 600, noise: float = 0.0
             anchor = np.array(centre) + rng.normal(scale=8.0, size=3)
             for k in range(per_group):
                 number = g * per_group + k + 1
-                midline = region == "nose" and k == 0
+                midline = k == 0
                 pos = anchor + rng.normal(scale=3.0, size=3)
                 if midline:
                     pos[0] = 0.0

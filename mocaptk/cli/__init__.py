@@ -14,6 +14,10 @@ from .app import app
 
 # Command modules register themselves on import (one line per module).
 # from . import <command_module>  # noqa: E402,F401  (helpers add lines here)
+from . import cluster  # noqa: E402,F401
+from . import evaluate  # noqa: E402,F401
+from . import info  # noqa: E402,F401
+from . import convert  # noqa: E402,F401
 from . import triangulate  # noqa: E402,F401
 
 

@@ -1,0 +1,122 @@
+"""Pictures of a clustering: per-region correlation heatmaps, the layout, the regions (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from .layout import Layout
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams["svg.hashsalt"] = "mocaptk"
+    return plt
+
+
+def _save(fig, path: str | os.PathLike[str]) -> Path:
+    plt = _pyplot()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, metadata={"Software": None})
+    plt.close(fig)
+    return Path(path)
+
+
+def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.ndarray, *, title: str,
+                        path: str | os.PathLike[str]) -> Path:
+    """Heatmap of one region's consolidated correlation (−3..3), markers ordered by cluster."""
+    plt = _pyplot()
+    order = np.argsort(clusters, kind="stable")
+    n = len(labels)
+    size = min(4 + 0.18 * n, 16)
+    fig, ax = plt.subplots(figsize=(size + 1.5, size))
+    image = ax.imshow(matrix[np.ix_(order, order)], cmap="RdBu_r", vmin=-3, vmax=3, interpolation="nearest")
+    if n <= 60:
+        ax.set_xticks(range(n), [labels[i] for i in order], rotation=90, fontsize=6)
+        ax.set_yticks(range(n), [labels[i] for i in order], fontsize=6)
+    bounds = np.flatnonzero(np.diff(clusters[order])) + 0.5
+    for b in bounds:
+        ax.axhline(b, color="k", lw=0.6)
+        ax.axvline(b, color="k", lw=0.6)
+    fig.colorbar(image, ax=ax, label="consolidated correlation Cx+Cy+Cz")
+    ax.set_title(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _front(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(lateral, up) coordinates: a front view of the face."""
+    return points @ frame[:2].T
+
+
+def layout_picture(layout: Layout, neutral: Mapping[str, np.ndarray], *, frame: np.ndarray,
+                   path: str | os.PathLike[str]) -> Path:
+    """Front view: every neutral marker coloured by its cluster; representatives large, mirrored hollow."""
+    plt = _pyplot()
+    cmap = plt.get_cmap("tab20")
+    fig, ax = plt.subplots(figsize=(8, 9))
+    clustered = {m for c in layout.clusters for m in c.members if c.mirrored_from is None}
+    others = np.array([p for label, p in neutral.items() if label not in clustered])
+    if others.size:
+        xy = _front(others, frame)
+        ax.scatter(xy[:, 0], xy[:, 1], s=10, c="lightgrey", label="not clustered")
+    for k, cluster in enumerate(layout.clusters):
+        colour = cmap(k % 20)
+        if cluster.mirrored_from is None:
+            members = np.array([neutral[m] for m in cluster.members])
+            xy = _front(members, frame)
+            ax.scatter(xy[:, 0], xy[:, 1], s=14, color=colour)
+        rep = _front(np.array(cluster.position)[None], frame)[0]
+        face = "none" if cluster.mirrored_from else colour
+        ax.scatter([rep[0]], [rep[1]], s=150, facecolors=[face], edgecolors=["k"], linewidths=1.2, zorder=3)
+    ax.set_aspect("equal")
+    ax.set_xlabel("lateral (mm, + = subject's left)")
+    ax.set_ylabel("up (mm)")
+    n_mirrored = sum(c.mirrored_from is not None for c in layout.clusters)
+    ax.set_title(f"{len(layout.clusters)} layout markers (large; {n_mirrored} mirrored, hollow), "
+                 f"factor {layout.parameters.get('factor')}")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, np.ndarray], *,
+                    frame: np.ndarray, path: str | os.PathLike[str]) -> Path:
+    """Front view of the markers coloured by region."""
+    plt = _pyplot()
+    cmap = plt.get_cmap("tab10")
+    fig, ax = plt.subplots(figsize=(8, 9))
+    for k, (name, members) in enumerate(regions.items()):
+        pts = np.array([neutral[m] for m in members if m in neutral])
+        if pts.size:
+            xy = _front(pts, frame)
+            ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{name} ({len(pts)})")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("regions")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def sweep_plot(factors: Sequence[float], counts: Sequence[int], errors: Sequence[float], *,
+               path: str | os.PathLike[str]) -> Path:
+    """Marker count and held-out RMSE against the refinement factor."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    ax.plot(factors, counts, "o-", color="tab:blue")
+    ax.set_xlabel("refinement factor")
+    ax.set_ylabel("layout markers", color="tab:blue")
+    ax2 = ax.twinx()
+    ax2.plot(factors, errors, "s--", color="tab:red")
+    ax2.set_ylabel("held-out RMSE (mm)", color="tab:red")
+    ax.set_title("factor sweep")
+    fig.tight_layout()
+    return _save(fig, path)
+

@@ -1,0 +1,156 @@
+"""``mocaptk cluster``: dense session → optimized marker layout (layout.json + pictures + summary).
+
+Extension points for later issues:
+- the layout is computed in ONE place, :func:`mocaptk.clustering.pipeline.cluster_session`
+  (a ``--method`` option selects another layout rule there; ``paper`` is the default);
+- every output file is written in ONE place, :func:`write_cluster_outputs` below (rig/guide
+  exports add their files there, into the same staging folder, so the whole folder stays atomic).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import typer
+
+from ..errors import OutputError
+from .app import app
+
+
+def default_out_dir(session: Path) -> Path:
+    """``<session stem>_layout/`` next to the session."""
+    return session.with_name(f"{session.stem}_layout")
+
+
+def staged_folder(out_dir: Path, *, force: bool):
+    """Context manager: a temporary sibling folder moved into ``out_dir`` on success.
+
+    Rule: an existing, non-empty ``out_dir`` is refused unless ``force``; with ``force`` the new
+    files replace same-named files in it (other files are left alone). On failure nothing changes.
+    """
+    import contextlib
+
+    @contextlib.contextmanager
+    def manager():
+        if out_dir.exists() and not out_dir.is_dir():
+            raise OutputError(f"{out_dir}: exists and is not a folder")
+        if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
+            raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
+        parent = out_dir.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".part", dir=parent))
+        except OSError as exc:
+            raise OutputError(f"{out_dir}: cannot write ({exc.strerror or exc})") from None
+        try:
+            yield staging
+            if out_dir.is_dir():
+                for item in sorted(staging.iterdir()):
+                    os.replace(item, out_dir / item.name)
+                staging.rmdir()
+            else:
+                os.replace(staging, out_dir)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+
+    return manager()
+
+
+def summary_text(result) -> str:
+    """Short text summary: markers per region (measured + mirrored), total, warnings."""
+    layout = result.layout
+    lines = [f"mocaptk cluster: {layout.source.get('path')}  factor {layout.parameters['factor']}  "
+             f"step {layout.parameters['step']}  stabilized {layout.parameters['stabilized']}  "
+             f"mirror {layout.parameters['mirror']}",
+             f"regions from: {layout.parameters['regions_from']}", "",
+             f"{'region':<16}{'markers':>8}{'layout':>8}{'mirrored':>10}{'mean C':>9}{'threshold':>11}"]
+    for region in layout.regions:
+        own = sum(c.region == region.name and c.mirrored_from is None for c in layout.clusters)
+        mirrored = sum(c.region == region.name and c.mirrored_from is not None for c in layout.clusters)
+        lines.append(f"{region.name:<16}{len(region.markers):>8}{own:>8}{mirrored:>10}"
+                     f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}")
+    total_in = sum(len(r.markers) for r in layout.regions)
+    lines.append(f"{'total':<16}{total_in:>8}{len(layout.clusters):>8}")
+    rigid = layout.extra.get("stabilization", {}).get("rigid_labels")
+    if rigid:
+        lines.append(f"stabilized on rigid set: {', '.join(rigid)}")
+    for note in result.notes:
+        lines.append(f"warning: {note}")
+    return "\n".join(lines) + "\n"
+
+
+def write_cluster_outputs(result, folder: Path) -> list[Path]:
+    """Write layout.json, per-region heatmaps, layout + regions pictures and summary.txt into ``folder``."""
+    from ..atomic import write_text
+    from ..clustering.figures import correlation_heatmap, layout_picture, regions_picture
+    from ..clustering.layout import write_layout
+    from ..clustering.neutral import max_displacement
+    from ..clustering.regions import face_frame
+
+    layout = result.layout
+    written = [write_layout(layout, folder / "layout.json")]
+    for name, region in result.matrices.items():
+        written.append(correlation_heatmap(region.labels, region.matrix, region.clusters,
+                                           title=f"{name}: consolidated correlation (by cluster)",
+                                           path=folder / f"correlation_{name}.png"))
+    traj = result.trajectories
+    frame = face_frame(result.neutral, max_displacement(traj.positions, result.neutral))
+    neutral = dict(zip(traj.labels, result.neutral))
+    written.append(layout_picture(layout, neutral, frame=frame, path=folder / "layout.png"))
+    regions = {r.name: list(r.markers) for r in layout.regions}
+    written.append(regions_picture(regions, neutral, frame=frame, path=folder / "regions.png"))
+    written.append(write_text(folder / "summary.txt", summary_text(result)))
+    return written
+
+
+@app.command()
+def cluster(
+    session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
+    factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
+                                 "region mean correlation; larger gives more markers."),
+    regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: [labels]} or CSV "
+                                 "label,region (default: label prefixes, else geometric)."),
+    takes: Path = typer.Option(None, "--takes", help="Takes file {\"takes\": [{name, region, start, end}]} "
+                               "(default: takes recorded in the session)."),
+    step: int = typer.Option(5, "--step", help="Use every STEP-th frame for the correlation matrices."),
+    out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_layout/ next to it)."),
+    mirror: bool = typer.Option(None, "--mirror/--no-mirror", help="Mirror the half-face layout across "
+                                "the sagittal plane (default: when labels show one half + midline)."),
+    no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
+                                      "(for already head-relative data, e.g. head-mounted cameras)."),
+    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
+    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
+    force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress or summary (warnings still shown)."),
+) -> None:
+    """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra)."""
+    from rich.console import Console
+
+    from ..clustering.pipeline import ClusterOptions, cluster_session, load_session
+    from ..clustering.regions import read_regions
+    from ..clustering.takes import read_takes
+
+    out_dir = out or default_out_dir(session)
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not force:  # fail before the slow part
+        raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
+    console = Console(stderr=True, quiet=quiet)
+    traj, source = load_session(session, rate=rate, units=units)
+    options = ClusterOptions(
+        factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror,
+        regions=read_regions(regions, traj.labels) if regions else None,
+        takes=read_takes(takes, traj.n_frames) if takes else None)
+    with console.status("clustering") as status:
+        result = cluster_session(traj, options=options, source=source,
+                                 progress=lambda text: status.update(text))
+    for note in result.notes:
+        print(f"mocaptk: warning: {note}", file=sys.stderr)
+    with staged_folder(out_dir, force=force) as folder:
+        write_cluster_outputs(result, folder)
+    if not quiet:
+        typer.echo(summary_text(result), nl=False)
+        typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

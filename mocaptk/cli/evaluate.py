@@ -1,0 +1,102 @@
+"""``mocaptk evaluate``: held-out reconstruction error of a layout beside baselines of the same size."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from ..errors import InputFileError
+from .app import app
+
+
+def evaluation_table(result: dict) -> str:
+    """Plain-text table: method, markers, RMSE and 95th percentile (mm), per-region RMSE."""
+    methods = result["methods"]
+    regions = sorted(next(iter(methods.values())).get("regions", {}))
+    head = f"{'method':<16}{'markers':>8}{'RMSE mm':>16}{'p95 mm':>16}" + "".join(f"{r[:10]:>11}" for r in regions)
+    lines = [head]
+    for name, s in methods.items():
+        rmse = f"{s['rmse_mm']:.3f}" + (f" ± {s['rmse_sd_mm']:.3f}" if "rmse_sd_mm" in s else "")
+        p95 = f"{s['p95_mm']:.3f}" + (f" ± {s['p95_sd_mm']:.3f}" if "p95_sd_mm" in s else "")
+        lines.append(f"{name:<16}{s['count']:>8}{rmse:>16}{p95:>16}"
+                     + "".join(f"{s['regions'][r]['rmse_mm']:>11.3f}" for r in regions))
+    return "\n".join(lines) + "\n"
+
+
+def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
+                   units: str | None):
+    """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
+    from ..clustering.pipeline import load_session, stabilize
+
+    traj, source = load_session(session, rate=rate, units=units)
+    if stabilized:
+        traj, _ = stabilize(traj)
+    test_positions = None
+    if test is not None:
+        perf, _ = load_session(test, rate=rate, units=units)
+        missing = [label for label in traj.labels if label not in set(perf.labels)]
+        if missing:
+            raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
+        perf = perf.select(traj.labels)
+        if stabilized:
+            perf, _ = stabilize(perf)
+        test_positions = perf.positions
+    return traj, test_positions, source
+
+
+@app.command()
+def evaluate(
+    session: Path = typer.Argument(..., help="Dense session the layout was computed from."),
+    layout: Path = typer.Option(..., "--layout", help="layout.json written by mocaptk cluster."),
+    test: Path = typer.Option(None, "--test", help="Separate performance file (same markers) to test on; "
+                              "default: held-out parts of the session."),
+    takes: Path = typer.Option(None, "--takes", help="Takes file (default: takes recorded in the session); "
+                               "held-out blocks follow the takes."),
+    split: str = typer.Option("blocks", "--split", help="Held-out scheme without --test: 'blocks' (each take "
+                              "cut in FOLDS blocks, one block of every take held out per fold) or 'takes' "
+                              "(leave one take out)."),
+    folds: int = typer.Option(5, "--folds", help="Folds for --split blocks."),
+    seeds: int = typer.Option(10, "--seeds", help="Random layouts to average (mean ± sd)."),
+    ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength, relative to the mean input variance."),
+    out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout)."),
+    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
+    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
+    quiet: bool = typer.Option(False, "--quiet", help="Do not print the table."),
+) -> None:
+    """Reconstruct every dense marker from the layout's markers; compare with baselines of equal size."""
+    from ..atomic import check_writable
+    from ..clustering.evaluation import evaluate_layout
+    from ..clustering.layout import read_layout
+    from ..clustering.takes import read_takes
+    from ..jsonio import write_json
+
+    out_path = out or layout.with_name("evaluation.json")
+    check_writable(out_path, force=force)
+    lay = read_layout(layout)
+    traj, test_positions, source = session_arrays(
+        session, test=test, stabilized=bool(lay.parameters.get("stabilized")), rate=rate, units=units)
+    index = {label: i for i, label in enumerate(traj.labels)}
+    measured = [c.representative for c in lay.clusters if c.mirrored_from is None]
+    unknown = [label for label in measured if label not in index]
+    if unknown:
+        raise InputFileError(layout, f"{len(unknown)} layout markers are not in {session.name}: "
+                             + ", ".join(unknown[:5]))
+    mirrored = len(lay.clusters) - len(measured)
+    if mirrored:
+        print(f"mocaptk: note: {mirrored} mirrored layout markers are not in the session; "
+              f"evaluating the {len(measured)} measured ones", file=sys.stderr)
+    regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
+    name = str(lay.parameters.get("method", "layout"))
+    take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
+    result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
+                             test=test_positions, regions=regions, name=name, split=split, folds=folds,
+                             n_random=seeds, ridge=ridge)
+    result.update({"format": "mocaptk.evaluation", "version": 1, "units": "mm", "source": source,
+                   "layout": layout.name, "test": test.name if test else None})
+    write_json(out_path, result, force=True)
+    if not quiet:
+        typer.echo(evaluation_table(result), nl=False)
+        typer.echo(f"wrote {out_path}")
