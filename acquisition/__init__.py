@@ -16,3 +16,7 @@ from .c3d_read import read_c3d  # noqa: E402
 from .c3d_write import write_c3d  # noqa: E402
 
 __all__ += ["read_c3d", "write_c3d"]
+
+from .formats import detect_format, read_trajectories, write_trajectories  # noqa: E402
+
+__all__ += ["detect_format", "read_trajectories", "write_trajectories"]

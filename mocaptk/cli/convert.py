@@ -1,0 +1,34 @@
+"""``mocaptk convert IN OUT``: between C3D, Vicon CSV and TRC (output format from OUT's extension)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .app import app
+
+
+@app.command()
+def convert(
+    source: Path = typer.Argument(..., help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
+    target: Path = typer.Argument(..., help="Output file: .c3d, .csv (Nexus style) or .trc."),
+    force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists."),
+    units: str = typer.Option(None, "--units", help="Units of the numbers in a text input (mm, cm, m, in, "
+                                                   "or mm per unit), overriding the file's own."),
+    rate: float = typer.Option(None, "--rate", help="Frame rate (Hz) for a column CSV input without a time column."),
+    strip_prefixes: bool = typer.Option(False, "--strip-prefixes",
+                                        help="Drop 'Subject:' prefixes from marker labels."),
+) -> None:
+    """Convert a marker file; the output is written atomically (never a partial file)."""
+    from ..acquisition.formats import output_format, write_trajectories
+    from ..atomic import check_writable
+    from .info import read_marker_file
+
+    fmt = output_format(target)
+    check_writable(target, force=force)  # fail before the (possibly long) read
+    traj = read_marker_file(source, units=units, rate=rate, strip_prefixes=strip_prefixes)
+    write_trajectories(traj, target, fmt=fmt, force=force)
+    typer.echo(f"wrote {target} ({fmt}: {traj.n_markers} markers, {traj.n_frames} frames, {traj.rate:g} Hz)")
+    if traj.takes and fmt == "trc":
+        typer.echo(f"note: TRC has no place for takes; {len(traj.takes)} takes not written")
