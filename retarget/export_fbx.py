@@ -160,7 +160,7 @@ def _objects(rig: Rig) -> Node:
 
 def _geometry(rig: Rig) -> Node:
     polygon_index = rig.faces.astype(np.int32).copy()
-    polygon_index[:, 2] = ~polygon_index[:, 2]  # the last corner of each polygon is stored as -(i+1)
+    polygon_index[:, 2] = ~polygon_index[:, 2]  # a polygon's last corner is stored as -(i+1)
     normals = Node("LayerElementNormal", [0], [
         Node("Version", [101]), Node("Name", [""]),
         Node("MappingInformationType", ["ByVertice"]),

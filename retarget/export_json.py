@@ -15,7 +15,7 @@ import numpy as np
 from mocaptk.errors import InputFileError
 from mocaptk.jsonio import to_plain, write_json
 
-from .rig import MESH_DIGITS, Rig, RigError
+from .rig import MESH_DIGITS, Rig, RigError, mesh_sha256
 
 FORMAT = "mocaptk.rig"
 VERSION = 1
@@ -24,8 +24,10 @@ WEIGHT_DIGITS = 9
 
 
 def rig_to_dict(rig: Rig) -> dict[str, Any]:
-    """The JSON document of ``rig`` (plain Python types)."""
+    """The JSON document of ``rig`` (weights as arrays; :mod:`mocaptk.jsonio` rounds them)."""
     positions = to_plain(rig.joint_positions, digits=MESH_DIGITS)
+    vertices = to_plain(rig.vertices, digits=MESH_DIGITS)
+    faces = rig.faces.tolist()
     joints = [{"name": name,
                "parent": None if parent < 0 else rig.joint_names[parent],
                "bind_position": position, "side": side, "region": region, "marker": marker}
@@ -34,14 +36,12 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
                   rig.joint_regions, rig.joint_markers)]
     return {
         "format": FORMAT, "version": VERSION, "unit": "mm", "up_axis": "Y", "front_axis": "+Z",
-        "mesh": {"vertex_count": rig.vertex_count, "face_count": len(rig.faces),
-                 "sha256": rig.mesh_sha256(),
-                 "vertices": to_plain(rig.vertices, digits=MESH_DIGITS),
-                 "faces": rig.faces.tolist()},
+        "mesh": {"vertex_count": rig.vertex_count, "face_count": len(faces),
+                 "sha256": mesh_sha256(vertices, faces), "vertices": vertices, "faces": faces},
         "joints": joints,
         "weights": {"max_influences": rig.max_influences,
                     "joint_index": rig.weight_index.tolist(),
-                    "value": to_plain(rig.weight_value, digits=WEIGHT_DIGITS)},
+                    "value": rig.weight_value},  # rounded to WEIGHT_DIGITS when written
     }
 
 

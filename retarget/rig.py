@@ -1,4 +1,4 @@
-"""The facial rig every exporter writes: a mesh, one joint per layout marker under a root, skin weights.
+"""The facial rig the exporters write: a mesh, one joint per layout marker under a root, weights.
 
 Pure data with validation; no file I/O here (see ``export_json``, ``export_fbx``, ``export_glb``).
 """
@@ -148,15 +148,8 @@ class Rig:
         return int(np.flatnonzero(self.joint_parents < 0)[0])
 
     def mesh_sha256(self) -> str:
-        """SHA-256 (hex) identifying the mesh, robust to a JSON round trip.
-
-        Hash of the UTF-8 text ``{"faces":[[a,b,c],...],"vertices":[[x,y,z],...]}`` (no spaces,
-        vertices in mm rounded to :data:`MESH_DIGITS` decimals, as :mod:`mocaptk.jsonio` writes).
-        """
-        text = json.dumps({"faces": to_plain(self.faces),
-                           "vertices": to_plain(self.vertices, digits=MESH_DIGITS)},
-                          sort_keys=True, separators=(",", ":"), allow_nan=False)
-        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+        """SHA-256 (hex) of the mesh, unchanged by a rig.json round trip (:func:`mesh_sha256`)."""
+        return mesh_sha256(to_plain(self.vertices, digits=MESH_DIGITS), self.faces.tolist())
 
     def vertex_normals(self) -> np.ndarray:
         """Unit area-weighted vertex normals ``(V, 3)``; ``+Z`` where a vertex has no area."""
@@ -220,13 +213,24 @@ class Rig:
             vertices=vertices, faces=faces,
             joint_names=(root_name, *names),
             joint_parents=np.array([-1] + [0] * count),
-            joint_positions=np.vstack([np.asarray(root, dtype=np.float64).reshape(1, 3), positions]),
+            joint_positions=np.vstack([np.reshape(root, (1, 3)), positions]),
             joint_sides=("C", *marker_sides),
             joint_regions=("", *marker_regions),
             joint_markers=("", *marker_labels),
             weight_index=np.asarray(weight_index) + 1,
             weight_value=weight_value,
         )
+
+
+def mesh_sha256(vertices: list[list[float]], faces: list[list[int]]) -> str:
+    """SHA-256 (hex) of the UTF-8 text ``{"faces":[[a,b,c],...],"vertices":[[x,y,z],...]}``.
+
+    ``vertices`` in mm already rounded to :data:`MESH_DIGITS` decimals as :mod:`mocaptk.jsonio`
+    writes them (``to_plain(vertices, digits=MESH_DIGITS)``); no spaces in the text.
+    """
+    text = json.dumps({"faces": faces, "vertices": vertices}, sort_keys=True,
+                      separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 def joint_names_from_markers(labels: Sequence[str], sides: Sequence[str]) -> tuple[str, ...]:
@@ -258,7 +262,8 @@ def joint_names_from_markers(labels: Sequence[str], sides: Sequence[str]) -> tup
 
 def _array(value: object, dtype: type, what: str, shape: tuple[int | None, ...]) -> np.ndarray:
     array = np.array(value, dtype=dtype, copy=True)
-    if array.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, array.shape)):
+    wrong = any(s is not None and s != n for s, n in zip(shape, array.shape))
+    if array.ndim != len(shape) or wrong:
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
         raise RigError(f"{what} must have shape {want}, got {array.shape}")
     return array

@@ -7,6 +7,7 @@ Matrices are 4x4 row-major lists (column vectors, translation in the last column
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 import ufbx
@@ -71,6 +72,8 @@ def main(path: str) -> None:
         "bind_pose": bind_pose,
     }
     json.dump(out, sys.stdout)
+    sys.stdout.flush()
+    os._exit(0)  # tearing the wrappers down at exit crashes ufbx 0.0.5 on large scenes
 
 
 if __name__ == "__main__":
