@@ -2,7 +2,9 @@
 # Install the test-only readers that check our rig exports (never shipped, never imported by mocaptk):
 #   ufbx (PyPI), the FBX2glTF binary from npm fbx2gltf@0.9.7 (Autodesk FBX SDK inside),
 #   and the Khronos gltf-validator (npm). npm tools go to <repo>/.tools/ (git-ignored).
-# Usage: scripts/install-readers.sh        (idempotent; tests skip a reader that is missing)
+#   With --blender also Blender as a module: PyPI bpy 5.0.1 (GPL, ~1.2 GB, Python 3.11 only,
+#   pins numpy<2) in its own venv .tools/bpyvenv, used by scripts/check_fbx_blender.py.
+# Usage: scripts/install-readers.sh [--blender]  (idempotent; tests skip a missing reader)
 set -euo pipefail
 repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 tools="$repo/.tools"
@@ -21,6 +23,11 @@ fi
 
 if [ ! -f "$tools/node_modules/gltf-validator/package.json" ]; then
     npm install --silent --no-save --no-audit --no-fund --prefix "$tools" gltf-validator@2.0.0-dev.3.10
+fi
+
+if [ "${1:-}" = "--blender" ] && [ ! -x "$tools/bpyvenv/bin/python" ]; then
+    python3.11 -m venv "$tools/bpyvenv"
+    "$tools/bpyvenv/bin/python" -m pip install --quiet "bpy==5.0.1"
 fi
 
 echo "readers installed: ufbx $(python -c 'import importlib.metadata as m; print(m.version("ufbx"))')," \
