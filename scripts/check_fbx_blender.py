@@ -83,8 +83,10 @@ def check(fbx_path: str, rig: dict) -> dict:
     rest_error = float(np.abs(_world_vertices(mesh_obj, evaluated=True) * to_mm
                               - vertices).max()) if same_count else float("inf")
 
-    # Move one leaf joint by 10 mm along +X in world space; vertices must follow by their weight.
-    leaf = max(range(len(names)), key=lambda j: expected[:, j].sum())
+    # Move the most influential leaf joint 10 mm along +X; vertices must follow by their weight.
+    parents = {j["parent"] for j in rig["joints"]}
+    leaves = [j for j, name in enumerate(names) if name not in parents]
+    leaf = max(leaves, key=lambda j: expected[:, j].sum())
     move_mm = np.array([10.0, 0.0, 0.0])
     bpy.context.view_layer.objects.active = arm_obj
     pose_bone = arm_obj.pose.bones[names[leaf]]

@@ -20,11 +20,14 @@ from mocaptk.retarget import write_rig_fbx, write_rig_json
 WEIGHT_TOL = 1e-6
 
 
-@pytest.fixture(scope="module", params=[4, 6], ids=["k4", "k6"])
+@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "C_Chin"))],
+                ids=["k4", "k6", "k4_unused_joints"])
 def exported(request, tmp_path_factory):
-    """(rig, rig.fbx path) for 4 and 6 influences per vertex."""
-    rig = sample_rig(k=request.param)
-    folder = tmp_path_factory.mktemp(f"fbx_k{request.param}")
+    """(rig, rig.fbx path) for 4 and 6 influences per vertex, and with joints that have no
+    influence (empty clusters)."""
+    k, silent = request.param
+    rig = sample_rig(k=k, silent_joints=silent)
+    folder = tmp_path_factory.mktemp(f"fbx_k{k}")
     write_rig_json(rig, folder / "rig.json")
     return rig, write_rig_fbx(rig, folder / "rig.fbx")
 
@@ -68,6 +71,9 @@ def test_structure_the_fbx_sdk_needs(exported):
         transform = cluster.first("Transform").props[0].reshape(4, 4).T
         np.testing.assert_allclose(link[:3, 3], rig.joint_positions[joint] * 0.1)
         np.testing.assert_allclose(transform @ link, np.eye(4), atol=1e-12)
+        vertices, weights = rig.joint_influences(joint)
+        np.testing.assert_array_equal(cluster.first("Indexes").props[0], vertices)
+        np.testing.assert_array_equal(cluster.first("Weights").props[0], weights)
     pose = objects.first("Pose")
     assert pose.props[2] == "BindPose" and pose.first("NbPoseNodes").props == [1 + joints]
     assert len(root.first("Connections").find("C")) == 3 + 4 * joints

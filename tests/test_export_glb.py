@@ -13,9 +13,11 @@ from mocaptk.errors import OutputError
 from mocaptk.retarget import write_rig_glb
 
 
-@pytest.fixture(scope="module", params=[4, 6], ids=["k4", "k6"])
+@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "C_Chin"))],
+                ids=["k4", "k6", "k4_unused_joints"])
 def exported(request, tmp_path_factory):
-    rig = sample_rig(k=request.param)
+    k, silent = request.param
+    rig = sample_rig(k=k, silent_joints=silent)
     return rig, write_rig_glb(rig, tmp_path_factory.mktemp("glb") / "rig.glb")
 
 

@@ -7,11 +7,13 @@ import numpy as np
 from mocaptk.retarget.rig import Rig
 
 
-def sample_rig(*, rows: int = 9, cols: int = 11, k: int = 4) -> Rig:
+def sample_rig(*, rows: int = 9, cols: int = 11, k: int = 4,
+               silent_joints: tuple[str, ...] = ()) -> Rig:
     """A curved 140 x 120 mm grid patch (Y up, facing +Z) with 6 marker joints under a root.
 
     Weights: Gaussian falloff from each joint (sigma 30 mm), top ``k`` kept, renormalised;
-    the root keeps a share on the outer rows so it has influences too.
+    the root keeps a share on the outer rows so it has influences too. Joints named in
+    ``silent_joints`` get no influence at all (empty clusters in FBX).
     """
     u, v = np.meshgrid(np.linspace(-70.0, 70.0, cols), np.linspace(-60.0, 60.0, rows))
     z = 90.0 - (u ** 2 + v ** 2) / 200.0
@@ -34,13 +36,16 @@ def sample_rig(*, rows: int = 9, cols: int = 11, k: int = 4) -> Rig:
     dense = np.exp(-0.5 * (distance / 30.0) ** 2)
     outer = np.abs(v.ravel()) > 50.0
     dense = np.column_stack([np.where(outer, 0.3, 0.0), dense])  # column 0: the root
+    names = ("face_root", "L_LBrow", "R_RBrow", "C_Nose", "L_LMouth", "R_RMouth", "C_Chin")
+    dense[:, [names.index(n) for n in silent_joints]] = 0.0
     order = np.argsort(-dense, axis=1, kind="stable")[:, :k]
     value = np.take_along_axis(dense, order, axis=1)
+    value /= value.sum(axis=1, keepdims=True)
     value[value < 1e-3] = 0.0
     value /= value.sum(axis=1, keepdims=True)
     return Rig(
         vertices=vertices, faces=faces,
-        joint_names=("face_root", "L_LBrow", "R_RBrow", "C_Nose", "L_LMouth", "R_RMouth", "C_Chin"),
+        joint_names=names,
         joint_parents=np.array([-1, 0, 0, 0, 0, 0, 0]),
         joint_positions=np.vstack([markers.mean(axis=0), markers]),
         joint_sides=("C", *sides), joint_regions=("", *regions), joint_markers=("", *labels),
