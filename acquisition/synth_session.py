@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.interpolate import PchipInterpolator
 from scipy.spatial.transform import Rotation
 
@@ -378,6 +379,101 @@ def observed(truth: GroundTruth, *, noise_mm: float = 0.0, gaps_per_minute: floa
     return Trajectories(positions, truth.labels, truth.rate,
                         metadata={"takes": list(truth.takes), "source": name,
                                   "format": "synthetic", "original_units": "mm"})
+
+
+def marker_normals(model: FaceModel, truth: GroundTruth, *, chunk: int = 1000) -> np.ndarray:
+    """Outward unit surface normals at the markers, ``(F, M, 3)``, posed like the truth.
+
+    The normal of a marker is the area-weighted normal of the face triangles around its vertex,
+    recomputed per frame from only those triangles' deformed corners.
+    """
+    faces = model.face_triangles
+    ring = [np.flatnonzero((faces == v).any(axis=1)) for v in truth.vertices]
+    owner = np.repeat(np.arange(len(ring)), [len(r) for r in ring])
+    # (M, K) sums triangle normals onto their marker
+    gather = sp.csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))),
+                           shape=(len(ring), len(owner)))
+    tris = faces[np.concatenate(ring)]  # (K, 3) triangles around all markers
+    used, local = np.unique(tris, return_inverse=True)
+    local = local.reshape(tris.shape)
+    base = model.identity_mesh(truth.identity_coefficients)[used]
+    shapes = model.blendshapes[:, used]
+    normals = np.empty((truth.n_frames, len(truth.labels), 3))
+    for start in range(0, truth.n_frames, chunk):
+        stop = min(start + chunk, truth.n_frames)
+        mesh = base + np.tensordot(truth.weights[start:stop], shapes, axes=1)  # (f, U, 3)
+        corner = mesh[:, local]  # (f, K, 3, 3)
+        tri_normals = np.cross(corner[:, :, 1] - corner[:, :, 0], corner[:, :, 2] - corner[:, :, 0])
+        summed = (gather @ tri_normals.transpose(1, 0, 2).reshape(len(owner), -1))
+        summed = summed.reshape(len(ring), stop - start, 3).transpose(1, 0, 2)
+        summed = np.einsum("fij,fmj->fmi", truth.head_rotations[start:stop], summed)
+        normals[start:stop] = summed / np.linalg.norm(summed, axis=2, keepdims=True)
+    return normals
+
+
+def camera_capture(model: FaceModel, truth: GroundTruth, rig: Any, *, noise_mm: float = 0.3,
+                   dropout: float = 0.01, ghost_rate: float = 0.002, seed: int = 0,
+                   outlier_threshold_px: float = 4.0, spike_threshold_mm: float = 4.0,
+                   ) -> Trajectories:
+    """Simulate the cameras: project the truth into ``rig`` (a :class:`CameraRig`), detect, triangulate.
+
+    A camera misses a marker whose surface normal is more than 85° from the direction to it
+    (a marker hemisphere still shows at grazing angles),
+    that is outside its image or field of view, or that randomly drops out (``dropout``);
+    ``ghost_rate`` of the detections are wrong (mislabels, reflections). Detection noise is
+    ``noise_mm`` expressed in pixels per camera (focal length / distance to the face).
+    Triangulation drops views by reprojection error; points that still jump more than
+    ``spike_threshold_mm`` from their running median are removed (:func:`spike_mask`).
+    Returns the trajectories (gaps NaN, residuals = reprojection error px,
+    ``metadata["view_counts"]``, ``metadata["spikes_removed"]``) with the truth's takes.
+    """
+    from .projection import project_markers
+    from .triangulate import triangulate
+
+    if noise_mm < 0:
+        raise OptionError(f"noise must be ≥ 0 mm, got {noise_mm}")
+    points = truth.positions
+    normals = marker_normals(model, truth)
+    center = np.nanmean(points.reshape(-1, 3), axis=0)
+    pixel_noise = float(np.median([noise_mm * cam.focal_px / np.linalg.norm(cam.center - center)
+                                   for cam in rig]))
+    observations = project_markers(rig, points, normals=normals, pixel_noise=pixel_noise,
+                                   dropout=dropout, ghost_rate=ghost_rate,
+                                   min_view_cos=np.cos(np.deg2rad(85.0)),
+                                   rng=np.random.default_rng([seed, 5]))
+    traj = triangulate(rig, observations, labels=truth.labels, rate=truth.rate,
+                       outlier_threshold_px=outlier_threshold_px)
+    spikes = spike_mask(traj.positions, threshold_mm=spike_threshold_mm)
+    positions = np.where(spikes[..., None], np.nan, traj.positions)
+    residuals = np.where(spikes, np.nan, traj.residuals)
+    meta = dict(traj.metadata)
+    meta["spikes_removed"] = int(spikes.sum())
+    meta.update({"takes": list(truth.takes), "source": f"synthetic capture ({rig.name})",
+                 "format": "synthetic", "original_units": "mm", "pixel_noise": pixel_noise})
+    return traj.replace(positions=positions, residuals=residuals, metadata=meta)
+
+
+def spike_mask(positions: np.ndarray, *, threshold_mm: float = 4.0, window: int = 7) -> np.ndarray:
+    """Where a marker jumps away from its running median, ``(F, M)`` bool.
+
+    ``positions (F, M, 3)`` mm with NaN gaps (bridged linearly for the median only); a point
+    farther than ``threshold_mm`` from the median of its ``window`` frames is a spike: what a
+    two-view mislabel or reflection leaves after triangulation, which no view check can catch.
+    """
+    from scipy.ndimage import median_filter
+
+    n_frames = positions.shape[0]
+    frames = np.arange(n_frames)
+    bridged = positions.copy()
+    for marker in range(positions.shape[1]):
+        seen = np.isfinite(positions[:, marker, 0])
+        if 0 < seen.sum() < n_frames:
+            for axis in range(3):
+                bridged[~seen, marker, axis] = np.interp(frames[~seen], frames[seen],
+                                                         positions[seen, marker, axis])
+    median = median_filter(np.nan_to_num(bridged), size=(window, 1, 1), mode="nearest")
+    with np.errstate(invalid="ignore"):
+        return np.linalg.norm(positions - median, axis=2) > threshold_mm
 
 
 def dense_session(model: FaceModel, layout: MarkerLayout, *, seed: int = 0,

@@ -1,0 +1,154 @@
+"""``mocaptk synth OUT.c3d``: a synthetic dense facial capture with ground truth.
+
+Face (ICT-FaceKit) → dense marker layout → per-region expression takes → cameras (2-D
+detections with noise, occlusion, dropouts, ghosts) → triangulation → spike removal → OUT.
+Beside OUT it writes ``<stem>_regions.json``, ``<stem>_takes.json``, ``<stem>_truth.npz`` and,
+unless ``--performance 0``, a held-out performance ``<stem>_performance<ext>`` with its
+``<stem>_performance_truth.npz``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .app import app
+
+
+def companion_paths(target: Path, *, performance: bool) -> dict[str, Path]:
+    """Every file ``synth`` writes for ``target`` (by role)."""
+    stem, folder = target.stem, target.parent
+    paths = {"session": target, "regions": folder / f"{stem}_regions.json",
+             "takes": folder / f"{stem}_takes.json", "truth": folder / f"{stem}_truth.npz"}
+    if performance:
+        paths["performance"] = folder / f"{stem}_performance{target.suffix}"
+        paths["performance_truth"] = folder / f"{stem}_performance_truth.npz"
+    return paths
+
+
+def _parse_identity(text: str | None, count: int):
+    import numpy as np
+
+    from ..errors import OptionError
+
+    if text is None:
+        return None
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise OptionError(f"--identity must be {count} comma-separated numbers, got {text!r}") from None
+    if values.shape != (count,) or not np.isfinite(values).all():
+        raise OptionError(f"--identity must be {count} comma-separated numbers, got {text!r}")
+    return values
+
+
+@app.command()
+def synth(
+    target: Path = typer.Argument(..., metavar="OUT",
+                                  help="Output session: .c3d (takes kept), .csv or .trc."),
+    half: bool = typer.Option(True, "--half/--full",
+                              help="Markers on one half of the face + midline (paper) or both."),
+    rig: str = typer.Option("cara", "--rig", metavar="cara|room|none",
+                            help="Capture through a head-mounted 4-camera rig (cara), a room "
+                                 "ring (room), or directly with noise only (none)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed (layout, expressions, noise)."),
+    noise: float = typer.Option(0.3, "--noise", metavar="MM",
+                                help="Detection noise in mm at the face (per camera in px "
+                                     "through the rig; per axis with --rig none)."),
+    head_motion: bool = typer.Option(False, "--head-motion",
+                                     help="Add small rigid head motion (room rig or none; a "
+                                          "head-mounted rig moves with the head)."),
+    rotation: float = typer.Option(3.0, "--rotation", metavar="DEG",
+                                   help="Peak head rotation per axis with --head-motion."),
+    translation: float = typer.Option(5.0, "--translation", metavar="MM",
+                                      help="Peak head translation per axis with --head-motion."),
+    spacing: float = typer.Option(8.5, "--spacing", metavar="MM",
+                                  help="Minimum marker spacing (median neighbour ≈ 10 mm)."),
+    expressions: int = typer.Option(8, "--expressions",
+                                    help="Target expressions per region take."),
+    rest: float = typer.Option(2.0, "--rest", metavar="S",
+                               help="Neutral rest before each expression, seconds (±15%)."),
+    hold: float = typer.Option(2.0, "--hold", metavar="S",
+                               help="Expression duration incl. easing in/out, seconds (±15%)."),
+    performance: float = typer.Option(30.0, "--performance", metavar="S",
+                                      help="Length of the held-out performance; 0: none."),
+    rate: float = typer.Option(0.0, "--rate", metavar="HZ",
+                               help="Frame rate (0: the rig's, 60 Hz for cara and none)."),
+    identity: str = typer.Option(None, "--identity", metavar="C1,C2,...",
+                                 help="ICT-FaceKit identity coefficients (default generic face)."),
+    gaps: float = typer.Option(1.0, "--gaps", metavar="PER_MIN",
+                               help="With --rig none: random dropouts per marker per minute."),
+    dropout: float = typer.Option(0.01, "--dropout",
+                                  help="With a rig: fraction of 2-D detections lost."),
+    ghosts: float = typer.Option(0.002, "--ghosts",
+                                 help="With a rig: fraction of 2-D detections that are wrong."),
+    model_path: Path = typer.Option(None, "--model", metavar="PATH",
+                                    help="ICT-FaceKit FaceXModel .tar.xz or folder (default "
+                                         "$MOCAPTK_ICT_FACEKIT or ../shared/data/...)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+) -> None:
+    """Simulate a dense facial marker capture (per-region takes) with ground truth."""
+    import numpy as np
+    from rich.console import Console
+
+    from ..acquisition import synth_session as ss
+    from ..acquisition.cameras import RIG_PRESETS
+    from ..acquisition.face_model import load_face_model
+    from ..acquisition.formats import output_format, write_trajectories
+    from ..acquisition.synth_layout import dense_layout
+    from ..atomic import check_writable
+    from ..errors import OptionError
+
+    if rig not in (*RIG_PRESETS, "none"):
+        raise OptionError(f"--rig must be one of {', '.join((*RIG_PRESETS, 'none'))}, got {rig!r}")
+    if head_motion and rig == "cara":
+        raise OptionError("--head-motion needs --rig room or none: a head-mounted rig moves "
+                          "with the head, so its data stay head-relative")
+    if expressions < 1 or rest <= 0 or hold <= 0 or performance < 0 or rate < 0:
+        raise OptionError("--expressions must be ≥ 1, --rest/--hold > 0, --performance/--rate ≥ 0")
+    if noise < 0 or gaps < 0 or not 0 <= dropout <= 1 or not 0 <= ghosts <= 1:
+        raise OptionError("--noise/--gaps must be ≥ 0 and --dropout/--ghosts within [0, 1]")
+    fmt = output_format(target)
+    paths = companion_paths(target, performance=performance > 0)
+    for path in paths.values():
+        check_writable(path, force=force)
+
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("loading the ICT-FaceKit face model..."):
+        model = load_face_model(model_path)
+    identity_coefficients = _parse_identity(identity, len(model.identity_names))
+    camera_rig = None if rig == "none" else RIG_PRESETS[rig]()
+    rate = rate or (camera_rig.rate if camera_rig is not None and camera_rig.rate else 60.0)
+    layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing, seed=seed)
+    motion = {"head_motion": head_motion, "rotation_deg": rotation, "translation_mm": translation}
+    sessions = {"session": ss.dense_session(
+        model, layout, seed=seed, identity_coefficients=identity_coefficients, rate=rate,
+        expressions_per_take=expressions, rest_seconds=rest, expression_seconds=hold,
+        noise_mm=noise, gaps_per_minute=gaps, **motion)}
+    if performance > 0:
+        sessions["performance"] = ss.performance_session(
+            model, layout, seed=seed, seconds=performance, identity_coefficients=identity_coefficients,
+            rate=rate, noise_mm=noise, gaps_per_minute=gaps, **motion)
+    for role, synthetic in sessions.items():
+        traj = synthetic.trajectories
+        if camera_rig is not None:
+            with console.status(f"capturing the {role} through the {rig} rig "
+                                f"({synthetic.truth.n_frames} frames)..."):
+                traj = ss.camera_capture(model, synthetic.truth, camera_rig, noise_mm=noise,
+                                         dropout=dropout, ghost_rate=ghosts, seed=seed)
+        write_trajectories(traj, paths[role], fmt=fmt, force=force)
+        ss.save_ground_truth(synthetic.truth, paths[f"{role}_truth" if role != "session"
+                                                   else "truth"], force=force)
+        err = np.linalg.norm(traj.positions - synthetic.truth.positions, axis=2)
+        seen = np.isfinite(err)
+        rmse = float(np.sqrt(np.mean(err[seen] ** 2))) if seen.any() else float("nan")
+        typer.echo(f"wrote {paths[role]} ({traj.n_markers} markers, {traj.n_frames} frames, "
+                   f"{traj.rate:g} Hz, {len(traj.takes)} takes); {1 - seen.mean():.2%} missing, "
+                   f"RMSE vs truth {rmse:.3f} mm")
+    truth = sessions["session"].truth
+    ss.write_regions_file(truth, paths["regions"], force=force)
+    ss.write_takes_file(truth.takes, paths["takes"], force=force)
+    counts = ", ".join(f"{region} {len(labels)}" for region, labels in truth.regions_dict().items())
+    typer.echo(f"wrote {paths['regions']} ({counts}), {paths['takes']}, {paths['truth']}")
