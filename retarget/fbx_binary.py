@@ -51,12 +51,6 @@ class Node:
     props: Sequence[Property] = ()
     children: list[Node] = field(default_factory=list)
 
-    def add(self, name: str, *props: Property) -> Node:
-        """Append and return a child node."""
-        child = Node(name, props)
-        self.children.append(child)
-        return child
-
 
 def encode_fbx(nodes: Sequence[Node]) -> bytes:
     """The complete binary FBX 7.4 file holding the top-level ``nodes``."""
