@@ -20,3 +20,13 @@ __all__ += ["read_c3d", "write_c3d"]
 from .formats import detect_format, read_trajectories, write_trajectories  # noqa: E402
 
 __all__ += ["detect_format", "read_trajectories", "write_trajectories"]
+
+from .face_model import FaceModel, load_face_model  # noqa: E402
+from .synth_layout import MarkerLayout, dense_layout  # noqa: E402
+from .synth_session import (GroundTruth, SyntheticSession, camera_capture,  # noqa: E402
+                            dense_session, load_ground_truth, performance_session,
+                            save_ground_truth)
+
+__all__ += ["FaceModel", "load_face_model", "MarkerLayout", "dense_layout", "GroundTruth",
+            "SyntheticSession", "dense_session", "performance_session", "camera_capture",
+            "save_ground_truth", "load_ground_truth"]
