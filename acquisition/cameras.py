@@ -95,6 +95,18 @@ class Camera:
         """Mean focal length in px (scale from normalized image coordinates to px)."""
         return float((self.matrix[0, 0] + self.matrix[1, 1]) / 2)
 
+    def pixels_from_normalized(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Apply distortion and intrinsics to normalized image coordinates ``x = X/Z, y = Y/Z``
+        (any equal shapes); returns pixel ``(u, v)``. Same model as ``cv2.projectPoints``
+        (without its Jacobians, which make it slow for many points)."""
+        k1, k2, p1, p2, k3 = self.distortion
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        m = self.matrix
+        return m[0, 0] * xd + m[0, 1] * yd + m[0, 2], m[1, 1] * yd + m[1, 2]
+
     @classmethod
     def look_at(cls, name: str, *, position: Sequence[float], target: Sequence[float],
                 up: Sequence[float] = (0.0, 1.0, 0.0), focal_px: float,

@@ -148,3 +148,13 @@ def test_projection_noise_dropout_and_ghosts(sphere):
     # same seed, same detections
     again = project_markers(rig, points, normals=normals, ghost_rate=0.1, rng=4)
     np.testing.assert_array_equal(ghosts, again)
+
+
+def test_pixels_from_normalized_matches_opencv_projection():
+    cam = Camera.look_at("d", position=(30, 40, 300), target=(0, 0, 0), focal_px=700,
+                         image_size=(720, 1280), distortion=(-0.2, 0.05, 0.002, -0.001, 0.01))
+    points = np.random.default_rng(1).uniform(-80, 80, (500, 3))
+    expected, _ = project_points(cam, points)
+    local = points @ cam.rotation.T + cam.tvec
+    u, v = cam.pixels_from_normalized(local[:, 0] / local[:, 2], local[:, 1] / local[:, 2])
+    np.testing.assert_allclose(np.column_stack([u, v]), expected, atol=1e-8)

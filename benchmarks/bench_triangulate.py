@@ -1,0 +1,180 @@
+"""Benchmark: mocaptk triangulation vs a per-point SVD loop and aniposelib, same data.
+
+8-camera room rig, markers all around a head-sized ellipsoid (visibility from surface
+normals, so each marker is seen by the 2-6 cameras it faces),
+0.5 px detection noise; without and with 5 % ghost views (mislabels / reflections).
+Prints points/s and RMSE (mm) against ground truth, and speed ratios vs the baselines.
+
+    python benchmarks/bench_triangulate.py [--frames 500] [--markers 200]
+
+aniposelib (``pip install aniposelib``) is a benchmark-only dependency. Since 0.8 its
+``CameraGroup.triangulate`` is a JAX-vectorized SVD (timed after JIT warm-up); earlier
+releases looped over points in Python (numba-compiled SVD): pass ``--legacy-aniposelib DIR``
+(e.g. after ``pip install --no-deps --target DIR aniposelib==0.5.1``) to time that one too.
+That loop and the exhaustive outlier search ``triangulate_ransac`` (loops over points and
+camera subsets) are timed on the first ``--slow-points`` points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mocaptk.acquisition.cameras import CameraRig, room_rig
+from mocaptk.acquisition.projection import project_markers
+from mocaptk.acquisition.triangulate import triangulate
+
+
+def head_markers(frames: int, markers: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Markers all around a head-sized ellipsoid (mm) with outward normals."""
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-np.pi, np.pi, (frames, markers))
+    pitch = rng.uniform(-0.9, 0.9, (frames, markers))
+    axes = np.array([80.0, 110.0, 60.0])
+    unit = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
+    normals = unit / axes
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    return unit * axes + np.array([0.0, 0.0, 40.0]), normals
+
+
+def per_point_loop(rig: CameraRig, observations: np.ndarray) -> np.ndarray:
+    """Baseline (a): undistort per camera, then one DLT SVD per point in a Python loop."""
+    n_cams, n_points, _ = observations.shape
+    rays = np.full(observations.shape, np.nan)
+    for c, cam in enumerate(rig):
+        seen = np.isfinite(observations[c, :, 0])
+        if not seen.any():
+            continue
+        rays[c, seen] = cv2.undistortPoints(observations[c, seen].reshape(-1, 1, 2), cam.matrix,
+                                            cam.distortion).reshape(-1, 2)
+    poses = [np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig]
+    out = np.full((n_points, 3), np.nan)
+    for p in range(n_points):
+        rows = []
+        for c in range(n_cams):
+            u, v = rays[c, p]
+            if np.isfinite(u):
+                rows.append(u * poses[c][2] - poses[c][0])
+                rows.append(v * poses[c][2] - poses[c][1])
+        if len(rows) >= 4:
+            vh = np.linalg.svd(np.array(rows))[2]
+            out[p] = vh[-1, :3] / vh[-1, 3]
+    return out
+
+
+def aniposelib_group(rig: CameraRig, module):
+    Camera, CameraGroup = module.cameras.Camera, module.cameras.CameraGroup
+    return CameraGroup([Camera(matrix=cam.matrix, dist=cam.distortion, size=cam.image_size,
+                               rvec=cam.rvec, tvec=cam.tvec, name=cam.name) for cam in rig])
+
+
+def load_aniposelib(folder: str | None):
+    """The installed aniposelib, or the copy in ``folder`` under another module name."""
+    if folder is None:
+        import aniposelib
+        import aniposelib.cameras  # noqa: F401
+
+        return aniposelib
+    init = Path(folder) / "aniposelib" / "__init__.py"
+    spec = importlib.util.spec_from_file_location("aniposelib_legacy", init,
+                                                  submodule_search_locations=[str(init.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["aniposelib_legacy"] = module
+    spec.loader.exec_module(module)
+    importlib.import_module("aniposelib_legacy.cameras")
+    return module
+
+
+def timed(function, repeat: int = 1):
+    best, result = np.inf, None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = function()
+        best = min(best, time.perf_counter() - start)
+    return result, best
+
+
+def accuracy(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float, float, float]:
+    """RMSE and median error (mm) over solved points, fraction of solved points off by
+    more than 5 mm, fraction of points solved."""
+    err = np.linalg.norm(estimate - truth, axis=-1)
+    solved = np.isfinite(err)
+    return (float(np.sqrt(np.mean(err[solved] ** 2))), float(np.median(err[solved])),
+            float(np.mean(err[solved] > 5.0)), float(solved.mean()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--markers", type=int, default=200)
+    parser.add_argument("--slow-points", type=int, default=1000,
+                        help="points given to the slow per-point baselines (rate extrapolated)")
+    parser.add_argument("--legacy-aniposelib", metavar="DIR",
+                        help="folder holding an older aniposelib package to time as well")
+    args = parser.parse_args()
+
+    rig = room_rig(n_cameras=8)
+    truth, normals = head_markers(args.frames, args.markers, seed=0)
+    flat_truth = truth.reshape(-1, 3)
+    n_points = flat_truth.shape[0]
+    try:
+        current = load_aniposelib(None)
+        group = aniposelib_group(rig, current)
+        print(f"aniposelib {getattr(current, '__version__', '?')}")
+    except ImportError:
+        group = None
+        print("aniposelib is not installed (pip install aniposelib): its rows are skipped")
+    legacy = None
+    if args.legacy_aniposelib:
+        legacy_module = load_aniposelib(args.legacy_aniposelib)
+        legacy = aniposelib_group(rig, legacy_module)
+        print(f"legacy aniposelib {getattr(legacy_module, '__version__', '?')} "
+              f"from {args.legacy_aniposelib}")
+
+    print(f"{len(rig)} cameras, {n_points} points, 0.5 px noise\n")
+    print("| data | method | points/s | RMSE mm | median mm | > 5 mm | solved | ours faster by |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for ghost_rate in (0.0, 0.05):
+        obs = project_markers(rig, truth, normals=normals, pixel_noise=0.5,
+                              ghost_rate=ghost_rate, rng=1)
+        flat = obs.reshape(len(rig), -1, 2)
+        data = "clean" if ghost_rate == 0 else "5 % ghosts"
+        rows = []
+        ours, t_ours = timed(lambda: triangulate(rig, obs).positions.reshape(-1, 3), repeat=3)
+        rows.append(("mocaptk triangulate (robust)", ours, t_ours, n_points))
+        loop, t_loop = timed(lambda: per_point_loop(rig, flat))
+        rows.append(("per-point SVD loop", loop, t_loop, n_points))
+        if group is not None:
+            group.triangulate(flat[:, :1000])  # JAX compiles on first use; not timed
+            anipose, t_anipose = timed(lambda: group.triangulate(flat), repeat=3)
+            rows.append(("aniposelib triangulate", anipose, t_anipose, n_points))
+        if legacy is not None:
+            legacy.triangulate(flat[:, :100])  # numba compiles on first use; not timed
+            old, t_old = timed(lambda: legacy.triangulate(flat[:, :args.slow_points]))
+            rows.append(("legacy aniposelib triangulate (per-point loop, subset)", old, t_old,
+                         args.slow_points))
+            if ghost_rate > 0:
+                ransac, t_ransac = timed(
+                    lambda: group.triangulate_ransac(flat[:, :args.slow_points]))
+                if isinstance(ransac, tuple):
+                    ransac = ransac[0]
+                ransac = np.asarray(ransac).reshape(-1, 3)
+                rows.append(("aniposelib triangulate_ransac (subset)", ransac, t_ransac,
+                             args.slow_points))
+        ours_rate = n_points / t_ours
+        for name, estimate, seconds, count in rows:
+            error, median, gross, solved = accuracy(estimate, flat_truth[:count])
+            rate = count / seconds
+            ratio = "—" if name.startswith("mocaptk") else f"{ours_rate / rate:.1f}×"
+            print(f"| {data} | {name} | {rate:,.0f} | {error:.3f} | {median:.3f} | {gross:.2%} "
+                  f"| {solved:.1%} | {ratio} |")
+
+
+if __name__ == "__main__":
+    main()
