@@ -19,7 +19,7 @@ Regions (:func:`face_regions`) are rules on the frontal projection (x, y) measur
 landmarks of the +X side, applied to ``|x|``; first match wins: **mouth** (ellipse around the
 outer-lip landmarks widened by 10 mm), **eye** (ellipse around the eye landmarks widened by
 9 mm × 14 mm half-height), **nose** (between the glabella and 4 mm under the nose base, half-width
-growing from 10 mm to the alar width + 8 mm), **forehead_brow** (above the brow landmarks − 8 mm),
+growing from 10 mm to the alar width + 8 mm), **forehead_brow** (above the brow landmarks − 8 mm, and the glabella above the nose),
 **chin** (below the mouth centre line, inside the jaw landmarks 4–12), else **cheek**.
 
 Labels: ``REGION_NN_S`` — the region in capitals first (``FOREHEAD_BROW_03_L``, ``NOSE_01_C``),
@@ -191,7 +191,7 @@ def face_regions(model: FaceModel) -> np.ndarray:
 
     brow = marks[22:27]  # +X brow, landmarks ordered from the midline outwards
     brow_y = np.interp(x, brow[:, 0], brow[:, 1])
-    forehead = y >= brow_y - 8.0
+    forehead = (y >= brow_y - 8.0) | ((y > top_y) & (x <= 10.0))  # the glabella is brow
 
     jaw = marks[8:13]  # chin bottom to the +X jaw angle (x increasing)
     chin = (y < mouth_c[1]) & (x <= np.interp(y, jaw[::-1, 1], jaw[::-1, 0], left=jaw[0, 0],
