@@ -241,6 +241,10 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
     n_points = header_points if n_points is None else n_points
     scale = _scalar(point.get("SCALE"))
     scale = header_scale if scale is None or scale == 0 else scale
+    notes = []
+    if np.isfinite(header_scale) and not np.isclose(abs(header_scale), abs(scale), rtol=1e-4):
+        notes.append(f"header scale {header_scale:.6g} differs from POINT:SCALE {scale:.6g}; "
+                     "used POINT:SCALE")  # MACsample.c3d
     _check(path, np.isfinite(scale) and scale != 0, f"invalid POINT:SCALE {scale}")
     rate = _scalar(point.get("RATE"))
     rate = header_rate if rate is None or rate <= 0 else rate
@@ -274,7 +278,6 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
     _check(path, n_points * max(n_frames, 1) <= MAX_POINT_SAMPLES,
            f"declares {n_frames} frames of {n_points} markers, more than the "
            f"{MAX_POINT_SAMPLES:,} marker samples mocaptk reads at once")
-    notes: list[str] = []
     if frame_bytes and n_frames > available:
         # Optotrak.c3d declares 1149 frames but holds 29 whole ones (data end on a frame
         # boundary): read those. Data ending mid-frame is a cut file.

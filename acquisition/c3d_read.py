@@ -3,8 +3,10 @@
 Every file is first checked by our own header/parameter parser (:mod:`.c3d_raw`): a malformed
 file is refused with an :class:`InputFileError` before any native code sees it, and the declared
 point data must fit in the file (so memory is bounded by the file size). Point values are then
-read by ezc3d; files ezc3d cannot read (MIPS processor, float ``OFFSET`` parameters, more than
-65,535 frames, no parameters, other ezc3d errors) are read by :func:`.c3d_raw.read_points`.
+read by ezc3d in a guarded child process (:mod:`.c3d_ezc3d`); files ezc3d cannot read or
+misreads (MIPS processor, float ``OFFSET`` parameters, more than 65,535 frames, no parameters,
+analog layout it gets wrong, crashes, time or memory limits) are read by
+:func:`.c3d_raw.read_points`, with a note in ``metadata["notes"]``.
 Labels, units, rate and metadata always come from the checked parameter section.
 """
 
@@ -19,7 +21,7 @@ import numpy as np
 from mocaptk.errors import InputFileError, MocaptkError
 from mocaptk.trajectories import Take, Trajectories
 
-from . import c3d_raw
+from . import c3d_ezc3d, c3d_raw
 from .c3d_raw import C3DStructure
 
 #: POINT:UNITS spellings -> millimetres per unit (matched on the lower-cased, stripped text).
@@ -86,26 +88,23 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
 
 def _read_point_values(s: C3DStructure, notes: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
     """(xyz (F, N, 3) file units, residual (F, N) file units, <0 invalid, reader name)."""
-    if s.processor != "mips" and s.n_frames <= EZC3D_MAX_FRAMES and "POINT" in s.parameters:
-        import ezc3d
-
-        try:
-            c3d = ezc3d.c3d(str(s.path))
-        except Exception as exc:  # ezc3d raises RuntimeError/ValueError/OSError for what it rejects
-            notes.append(f"ezc3d could not read the file ({str(exc).splitlines()[0][:80]}); "
-                         "read with mocaptk's own C3D reader")
-        else:
-            points = c3d["data"]["points"]
-            analogs = c3d["data"]["analogs"]  # (1, channels, samples)
-            analog_words = analogs.shape[1] * analogs.shape[2] // max(s.n_frames, 1)
-            if points.shape[1:] == (s.n_points, s.n_frames) and analog_words == s.analog_words:
-                residual = c3d["data"]["meta_points"]["residuals"]
-                xyz = np.ascontiguousarray(points[:3].transpose(2, 1, 0))
-                return xyz, np.ascontiguousarray(residual[0].T), "ezc3d"
+    if s.processor == "mips":
+        reason = "ezc3d does not read MIPS files"
+    elif s.n_frames > EZC3D_MAX_FRAMES:
+        reason = f"ezc3d reads at most {EZC3D_MAX_FRAMES} frames"
+    elif "POINT" not in s.parameters:
+        reason = "no POINT parameters (ezc3d would see no points)"
+    else:
+        result = c3d_ezc3d.read_points(s.path, s.n_frames, s.n_points)
+        if isinstance(result, str):
+            reason = result
+        elif result.analog_words != s.analog_words:
             # e.g. sample28/*.C3D: no ANALOG:RATE, ezc3d assumes no analog data and misreads
-            notes.append(f"ezc3d's frame layout ({points.shape[1]} points, {analog_words} analog "
-                         f"words per frame) disagrees with the file's ({s.n_points}, "
-                         f"{s.analog_words}); read with mocaptk's own C3D reader")
+            reason = (f"ezc3d's frame layout ({result.analog_words} analog samples per frame) "
+                      f"disagrees with the file's ({s.analog_words})")
+        else:
+            return result.xyz, result.residual, "ezc3d"
+    notes.append(f"{reason}; points read with mocaptk's own C3D reader")
     xyz, residual = c3d_raw.read_points(s)
     return xyz, residual, "mocaptk"
 
