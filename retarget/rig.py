@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocaptk.jsonio import to_plain
+from mocaptk.surface_mesh import vertex_normals
 
 #: Side tags a joint name starts with (character's left = +X when the face looks down +Z).
 SIDES = ("L", "R", "C")
@@ -152,17 +153,13 @@ class Rig:
         return mesh_sha256(to_plain(self.vertices, digits=MESH_DIGITS), self.faces.tolist())
 
     def vertex_normals(self) -> np.ndarray:
-        """Unit area-weighted vertex normals ``(V, 3)``; ``+Z`` where a vertex has no area."""
-        corners = self.vertices[self.faces]
-        face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        normals = np.zeros_like(self.vertices)
-        for corner in range(3):
-            np.add.at(normals, self.faces[:, corner], face_normals)
-        length = np.linalg.norm(normals, axis=1)
-        flat = length <= 1e-12 * max(1.0, float(length.max(initial=0.0)))
-        normals[flat] = (0.0, 0.0, 1.0)
-        length[flat] = 1.0
-        return normals / length[:, None]
+        """Unit area-weighted vertex normals ``(V, 3)``; ``+Z`` where a vertex has none.
+
+        Exporters need unit normals everywhere (glTF validation), hence the fallback.
+        """
+        normals = vertex_normals(self.vertices, self.faces)
+        normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
+        return normals
 
     def dense_weights(self) -> np.ndarray:
         """Weights as a dense ``(V, J)`` float64 matrix."""
