@@ -30,3 +30,10 @@ from .synth_session import (GroundTruth, SyntheticSession, camera_capture,  # no
 __all__ += ["FaceModel", "load_face_model", "MarkerLayout", "dense_layout", "GroundTruth",
             "SyntheticSession", "dense_session", "performance_session", "camera_capture",
             "save_ground_truth", "load_ground_truth"]
+
+from .filtering import lowpass  # noqa: E402
+from .gapfill import FillReport, GapRecord, fill_gaps  # noqa: E402
+from .stabilize import StabilizeResult, detect_rigid_markers, stabilize_head  # noqa: E402
+
+__all__ += ["lowpass", "fill_gaps", "FillReport", "GapRecord", "stabilize_head", "StabilizeResult",
+            "detect_rigid_markers"]

@@ -18,6 +18,7 @@ from . import cluster  # noqa: E402,F401
 from . import evaluate  # noqa: E402,F401
 from . import info  # noqa: E402,F401
 from . import convert  # noqa: E402,F401
+from . import clean  # noqa: E402,F401
 from . import triangulate  # noqa: E402,F401
 from . import synth  # noqa: E402,F401
 

@@ -1,0 +1,270 @@
+"""Rigid head stabilization: per-frame Kabsch fit of a rigid marker set, head-relative trajectories.
+
+The pose of frame ``f`` maps reference coordinates to the capture: ``x_f = R_f @ x_ref + t_f``;
+head-relative positions are ``R_f.T @ (x_f - t_f)``, i.e. every frame expressed in the head
+coordinates of the reference frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocaptk.errors import OptionError
+from mocaptk.trajectories import Trajectories
+
+#: Automatic rigid set: at most this many markers ...
+AUTO_RIGID_MAX = 6
+#: ... each added only while its distances to the chosen set vary by less than this (mm, std).
+AUTO_RIGID_MAX_STD_MM = 1.0
+#: The third marker must lie at least this far (mm) from the line through the first two.
+AUTO_RIGID_MIN_SPREAD_MM = 10.0
+_DETECT_FRAMES = 300  # frames sampled to score distance variation
+_MIN_SHARED = 0.5     # a pair counts only if both markers are seen in half the sampled frames
+
+
+@dataclass(frozen=True)
+class StabilizeResult:
+    """Head-relative trajectories and the head pose per frame.
+
+    ``trajectories``: positions in the reference frame's head coordinates (mm), NaN in frames
+    without a pose; ``rotations (F, 3, 3)`` and ``translations (F, 3)`` mm with
+    ``x_f = R_f x_ref + t_f`` (NaN where fewer than 3 consistent rigid markers are seen);
+    ``rigid_labels``: the markers used; ``rms_residual_mm (F,)``: RMS distance of the rigid
+    markers from the fitted rigid body; ``reference_frame``: index of the reference frame.
+    """
+
+    trajectories: Trajectories
+    rotations: np.ndarray
+    translations: np.ndarray
+    rigid_labels: tuple[str, ...]
+    rms_residual_mm: np.ndarray
+    reference_frame: int
+
+
+def kabsch(reference: np.ndarray, moving: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched weighted rigid fit ``moving ≈ R @ reference + t``.
+
+    Parameters
+    ----------
+    reference : (M, 3) or (F, M, 3) mm
+    moving : (F, M, 3) mm (NaN allowed where ``weights`` is 0)
+    weights : (F, M) >= 0
+
+    Returns
+    -------
+    rotations (F, 3, 3), translations (F, 3); NaN for frames with fewer than 3 weighted markers
+    or a degenerate (collinear) set.
+    """
+    w = np.asarray(weights, dtype=float)
+    ref = np.broadcast_to(reference, moving.shape)
+    ref = np.where(w[..., None] > 0, ref, 0.0)
+    mov = np.where(w[..., None] > 0, moving, 0.0)
+    total = w.sum(axis=1)
+    ok = ((w > 0).sum(axis=1) >= 3) & (total > 0)
+    safe = np.where(ok, total, 1.0)[:, None]
+    c_ref = np.einsum("fm,fmk->fk", w, ref) / safe
+    c_mov = np.einsum("fm,fmk->fk", w, mov) / safe
+    cov = np.einsum("fm,fmi,fmj->fij", w, ref - c_ref[:, None], mov - c_mov[:, None])
+    u, s, vt = np.linalg.svd(cov)
+    ok &= s[:, 1] > 1e-9 * np.maximum(s[:, 0], 1e-300)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", vt, u)))  # det(V U^T)
+    d[d == 0] = 1.0
+    fix = np.ones_like(s)
+    fix[:, 2] = d
+    rot = np.einsum("fji,fj,fkj->fik", vt, fix, u)  # V diag(1,1,d) U^T
+    trans = c_mov - np.einsum("fij,fj->fi", rot, c_ref)
+    rot[~ok] = np.nan
+    trans[~ok] = np.nan
+    return rot, trans
+
+
+def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
+    """Markers that move together as a rigid body (on a face: forehead, nose bridge, temples).
+
+    Rule: over up to 300 evenly spaced frames, score every marker pair by the standard deviation
+    of its distance (pairs seen together in fewer than half the frames are excluded). Start from
+    the least varying pair, then repeatedly add the marker whose distances to the chosen set have
+    the smallest mean std, while that std is below ``AUTO_RIGID_MAX_STD_MM`` (1 mm) and the set has
+    fewer than ``AUTO_RIGID_MAX`` (6) markers; the third marker must lie at least 10 mm off the line
+    through the first two. Raises :class:`OptionError` if no 3 markers qualify.
+    """
+    step = max(1, traj.n_frames // _DETECT_FRAMES)
+    pos = traj.positions[::step]
+    visible = ~np.isnan(pos).any(axis=2)
+    n_frames, n_markers = visible.shape
+    if n_markers < 3:
+        raise OptionError(f"stabilization needs at least 3 markers, the session has {n_markers}")
+    shared = visible.T.astype(float) @ visible.astype(float)  # (M, M) frames seen together
+    seen = np.maximum(visible.sum(axis=1), 1)[:, None, None]
+    centre = np.where(visible[..., None], pos, 0.0).sum(axis=1, keepdims=True) / seen
+    centred = np.where(visible[..., None], pos - centre, 0.0)  # centred: small numbers, exact distances
+    norms = (centred ** 2).sum(axis=2)
+    sq = np.maximum(norms[:, :, None] + norms[:, None, :] - 2 * centred @ centred.transpose(0, 2, 1), 0.0)
+    both = visible[:, :, None] & visible[:, None, :]
+    dist = np.sqrt(np.where(both, sq, 0.0))  # (frames, M, M) pairwise distances, 0 where unseen
+    total = dist.sum(axis=0)
+    total_sq = (dist ** 2).sum(axis=0)
+    count = np.maximum(shared, 1.0)
+    std = np.sqrt(np.maximum(total_sq / count - (total / count) ** 2, 0.0))
+    usable = shared >= _MIN_SHARED * n_frames
+    np.fill_diagonal(usable, False)
+    std = np.where(usable, std, np.inf)
+    if not np.isfinite(std).any():
+        raise OptionError("cannot detect rigid markers: no two markers are seen together often enough")
+    i, j = np.unravel_index(np.argmin(std), std.shape)
+    chosen = [int(i), int(j)]
+    while len(chosen) < AUTO_RIGID_MAX:
+        score = std[:, chosen].mean(axis=1)
+        score[chosen] = np.inf
+        if len(chosen) == 2:
+            score = np.where(_off_line(pos, visible, chosen) >= AUTO_RIGID_MIN_SPREAD_MM, score, np.inf)
+        k = int(np.argmin(score))
+        if not score[k] < AUTO_RIGID_MAX_STD_MM and len(chosen) >= 3:
+            break
+        if not np.isfinite(score[k]):
+            raise OptionError("cannot detect 3 rigid markers (no third marker off the line of the first two)")
+        chosen.append(k)
+    return tuple(traj.labels[k] for k in sorted(chosen))
+
+
+def _off_line(pos: np.ndarray, visible: np.ndarray, pair: list[int]) -> np.ndarray:
+    """Median distance (mm) of every marker from the line through the markers ``pair``."""
+    a, b = pos[:, pair[0]], pos[:, pair[1]]
+    axis = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True).clip(1e-12)
+    rel = pos - a[:, None]
+    off = np.linalg.norm(rel - np.einsum("fmk,fk->fm", rel, axis)[..., None] * axis[:, None], axis=2)
+    ok = visible & visible[:, pair].all(axis=1, keepdims=True)
+    off = np.where(ok, off, np.nan)
+    out = np.zeros(off.shape[1])
+    seen = ok.any(axis=0)
+    out[seen] = np.nanmedian(off[:, seen], axis=0)
+    return out
+
+
+def _reference_frame(traj: Trajectories, rigid: np.ndarray, visible: np.ndarray, outlier_mm: float) -> int:
+    """The first clean frame with the most rigid markers seen, preferring a take named like "neutral".
+
+    Clean: every pairwise distance of the rigid markers within ``max(outlier_mm, 3 × typical)`` of its
+    median over the candidate frames (so a glitching marker in the first frame cannot become the
+    reference shape); if no candidate is clean, the candidate closest to the median distances.
+    """
+    count = visible.sum(axis=1)
+    candidates = np.flatnonzero(count == count.max())
+    for take in traj.takes:
+        if "neutral" in take.name.lower():
+            inside = candidates[(candidates >= take.start) & (candidates < take.end)]
+            if inside.size:
+                candidates = inside
+                break
+    cols = np.flatnonzero(visible[candidates[0]])  # same markers in every candidate
+    pts = rigid[candidates][:, cols]
+    d = np.linalg.norm(pts[:, :, None] - pts[:, None, :], axis=3)
+    dev = np.abs(d - np.median(d, axis=0)).reshape(len(candidates), -1).max(axis=1)
+    clean = np.flatnonzero(dev <= max(outlier_mm, 3.0 * float(np.median(dev))))
+    return int(candidates[clean[0]] if clean.size else candidates[np.argmin(dev)])
+
+
+def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = None,
+                   outlier_mm: float = 2.0) -> StabilizeResult:
+    """Remove rigid head motion: fit the rigid marker set in every frame, express all markers in head coordinates.
+
+    Parameters
+    ----------
+    traj : session (frames, markers, 3) mm
+    rigid_labels : markers on the rigid part of the head (≥ 3); default: detected with
+        :func:`detect_rigid_markers`.
+    outlier_mm : a rigid marker is dropped from a frame's fit (if ≥ 3 remain) when its distances to
+        the other rigid markers deviate from the reference shape by more than this (median over
+        the others), or when its residual after the fit exceeds ``max(outlier_mm, 3 × median
+        residual)``.
+
+    Each frame uses only its visible rigid markers (≥ 3). The reference shape is the rigid set in the
+    reference frame (the first clean frame with the most rigid markers, in a "neutral" take if
+    there is one, see :func:`_reference_frame`), refined (3 rounds) to the per-marker mean of the head-relative rigid
+    positions over inlier frames, so a marker missing or glitching in the reference frame still
+    takes part. The output is expressed in the reference frame's own coordinates (its pose is
+    the identity).
+    """
+    labels = tuple(rigid_labels) if rigid_labels is not None else detect_rigid_markers(traj)
+    if len(set(labels)) < 3:
+        raise OptionError(f"stabilization needs at least 3 distinct rigid markers, got {len(set(labels))}")
+    idx = traj.index(labels)
+    rigid = traj.positions[:, idx]
+    visible = ~np.isnan(rigid).any(axis=2)
+    if not visible.any():
+        raise OptionError("the rigid markers are never visible")
+    ref_frame = _reference_frame(traj, rigid, visible, outlier_mm)
+    reference = rigid[ref_frame].copy()
+    for _ in range(3):
+        known = visible & ~np.isnan(reference).any(axis=1)
+        # drop markers that left the rigid body in a frame (sliding skin, mislabels), keep >= 3
+        weights = known & _distances_consistent(rigid, reference, outlier_mm)  # < 3 left: no pose
+        rot, trans = kabsch(np.nan_to_num(reference), rigid, weights)
+        residual = _residuals(np.nan_to_num(reference), rigid, rot, trans)
+        median = np.zeros(len(rigid))
+        rows = weights.any(axis=1) & ~np.isnan(rot[:, 0, 0])
+        median[rows] = np.nanmedian(np.where(weights, residual, np.nan)[rows], axis=1)
+        weights = _keep_three(weights & (residual <= np.maximum(outlier_mm, 3.0 * median)[:, None]), weights)
+        rot, trans = kabsch(np.nan_to_num(reference), rigid, weights)
+        # reference shape = mean head-relative position of each rigid marker over its inlier frames
+        # (outliers are already out; a mean, unlike a per-axis median, does not depend on the axes)
+        rel = _to_head(rigid, rot, trans)
+        inlier = weights & ~np.isnan(rel).any(axis=2)
+        for m in np.flatnonzero(inlier.any(axis=0)):
+            reference[m] = rel[inlier[:, m], m].mean(axis=0)
+    residual = _residuals(np.nan_to_num(reference), rigid, rot, trans)
+    counts = weights.sum(axis=1)
+    sq = np.where(weights, residual, 0.0) ** 2
+    rms = np.full(len(rigid), np.nan)
+    has = counts > 0
+    rms[has] = np.sqrt(sq[has].sum(axis=1) / counts[has])
+    rms[np.isnan(rot[:, 0, 0])] = np.nan
+    # rotate back to the reference frame's own coordinates
+    r0, t0 = rot[ref_frame].copy(), trans[ref_frame].copy()
+    if np.isfinite(r0).all():
+        rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
+        trans = trans - np.einsum("fij,j->fi", rot, t0)
+    relative = _to_head(traj.positions, rot, trans)
+    meta = dict(traj.metadata)
+    meta["stabilized"] = {"rigid_labels": list(labels), "reference_frame": ref_frame}
+    return StabilizeResult(traj.replace(positions=relative, metadata=meta), rot, trans, labels, rms, ref_frame)
+
+
+def _keep_three(weights: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """``weights`` per frame where they keep at least 3 markers, else ``fallback``."""
+    return np.where((weights.sum(axis=1) >= 3)[:, None], weights, fallback)
+
+
+def _distances_consistent(rigid: np.ndarray, reference: np.ndarray, outlier_mm: float) -> np.ndarray:
+    """(F, K) True where a rigid marker keeps its reference distances to the other visible ones.
+
+    A marker is an outlier in a frame when the (lower) median over the other markers of
+    ``|d_ij(f) - d_ij(ref)|`` exceeds ``max(outlier_mm, 3 × the session's median deviation)``;
+    a good marker has at most one large deviation (to the outlier), so its median stays small.
+    Independent of the head pose, so it works before any fit.
+    """
+    d = np.linalg.norm(rigid[:, :, None] - rigid[:, None, :], axis=3)  # (F, K, K), NaN if unseen
+    d_ref = np.linalg.norm(reference[:, None] - reference[None, :], axis=2)
+    dev = np.abs(d - d_ref)
+    k = rigid.shape[1]
+    dev[:, np.arange(k), np.arange(k)] = np.nan
+    valid = ~np.isnan(dev)
+    count = valid.sum(axis=2)
+    ordered = np.sort(np.where(valid, dev, np.inf), axis=2)
+    lower_median = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, axis=2)[..., 0]
+    typical = float(np.median(dev[valid])) if valid.any() else 0.0
+    return (count > 0) & (lower_median <= max(outlier_mm, 3.0 * typical))
+
+
+def _to_head(points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """``R_f^T (x - t_f)`` for points (F, M, 3); NaN where the pose or the point is unknown."""
+    return np.einsum("fji,fmj->fmi", rot, points - trans[:, None])
+
+
+def _residuals(reference: np.ndarray, moving: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Distance (F, M) mm between each moving marker and the posed reference marker."""
+    posed = np.einsum("fij,mj->fmi", rot, reference) + trans[:, None]
+    return np.linalg.norm(moving - posed, axis=2)
