@@ -12,17 +12,21 @@ mkdir -p "$tools"
 
 python -c "import ufbx" 2>/dev/null || python -m pip install --quiet "ufbx>=0.0.5"
 
-if [ ! -x "$tools/fbx2gltf/bin/Linux/FBX2glTF" ]; then
-    work="$(mktemp -d)"
-    (cd "$work" && npm pack --silent fbx2gltf@0.9.7 >/dev/null && tar -xzf fbx2gltf-0.9.7.tgz)
-    rm -rf "$tools/fbx2gltf"
-    mv "$work/package" "$tools/fbx2gltf"
-    rm -rf "$work"
-    chmod +x "$tools/fbx2gltf/bin/Linux/FBX2glTF"
-fi
+if ! command -v npm >/dev/null; then
+    echo "install-readers: npm not found, skipping FBX2glTF and gltf-validator (their tests skip)" >&2
+else
+    if [ ! -x "$tools/fbx2gltf/bin/Linux/FBX2glTF" ]; then
+        work="$(mktemp -d)"
+        (cd "$work" && npm pack --silent fbx2gltf@0.9.7 >/dev/null && tar -xzf fbx2gltf-0.9.7.tgz)
+        rm -rf "$tools/fbx2gltf"
+        mv "$work/package" "$tools/fbx2gltf"
+        rm -rf "$work"
+        chmod +x "$tools/fbx2gltf/bin/Linux/FBX2glTF"
+    fi
 
-if [ ! -f "$tools/node_modules/gltf-validator/package.json" ]; then
-    npm install --silent --no-save --no-audit --no-fund --prefix "$tools" gltf-validator@2.0.0-dev.3.10
+    if [ ! -f "$tools/node_modules/gltf-validator/package.json" ]; then
+        npm install --silent --no-save --no-audit --no-fund --prefix "$tools" gltf-validator@2.0.0-dev.3.10
+    fi
 fi
 
 if [ "${1:-}" = "--blender" ] && [ ! -x "$tools/bpyvenv/bin/python" ]; then
