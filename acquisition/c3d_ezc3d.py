@@ -80,7 +80,10 @@ def _child(ezc3d, path: Path, xyz: np.ndarray, residual: np.ndarray, pipe: int,
            budget: int) -> None:
     status = 1
     try:
+        import faulthandler
         import resource
+
+        faulthandler.disable()  # a crash here is reported by the parent, once
 
         used = _address_space()
         if used:  # Linux: bound what ezc3d may add
