@@ -22,8 +22,8 @@ from ..trajectories import Take, Trajectories
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
 from .neutral import max_displacement, neutral_pose
-from .regions import default_regions, unassigned
-from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters
+from .regions import default_regions, face_frame, unassigned
+from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
 from .threshold import cluster_region
 
@@ -64,6 +64,7 @@ class ClusterResult:
     trajectories: Trajectories  # the (stabilized) session the layout was computed on
     neutral: np.ndarray  # (M, 3) mm, neutral pose of ``trajectories``
     matrices: dict[str, RegionMatrix]
+    frame: np.ndarray  # (3, 3) rows lateral, up, forward of the face (for front views)
     notes: list[str] = field(default_factory=list)
 
 
@@ -145,6 +146,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     mirror = is_half_capture(labels) if options.mirror is None else options.mirror
     plane = estimate_sagittal_plane(labels, neutral, displacement, half=mirror)
     sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
+    frame = plane_frame(plane, face_frame(neutral, displacement))
 
     index = {label: i for i, label in enumerate(labels)}
     region_results, clusters, matrices, static_markers = [], [], {}, []
@@ -198,7 +200,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
              "sagittal_plane": {"point": plane.point, "normal": plane.normal}}
     src = {"frames": traj.n_frames, "rate": traj.rate, "markers": traj.n_markers, **(source or {})}
     layout = Layout(src, parameters, tuple(region_results), tuple(clusters + mirrored), extra)
-    return ClusterResult(layout, traj, neutral, matrices, notes)
+    return ClusterResult(layout, traj, neutral, matrices, frame, notes)
 
 
 def load_session(path: str, *, rate: float | None = None, units: str | None = None) -> tuple[Trajectories, dict[str, Any]]:

@@ -84,18 +84,19 @@ def face_frame(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
 
     Principal axes of the neutral markers: largest extent = up (faces are taller than wide),
     smallest = depth. Up points away from the markers that move most (jaw and mouth move more
-    than the forehead); forward points toward the side where the most prominent markers
-    (nose) stick out, i.e. the long tail of the depth distribution; lateral completes a
-    right-handed frame.
+    than the forehead). Forward points out of the convex face: markers far from the centre of
+    the front view (forehead top, chin, sides) lie further back than central ones. Lateral
+    completes a right-handed frame (lateral × up = forward), i.e. points to the subject's left.
     """
     pts = neutral - neutral.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts, full_matrices=False)
-    up, lateral, forward = vt[0], vt[1], vt[2]
+    _, _, vt = np.linalg.svd(pts, full_matrices=True)  # full: 3 axes even for < 3 markers
+    up, side, forward = vt[0], vt[1], vt[2]
     heights = pts @ up
     if np.ptp(displacement) > 0 and np.ptp(heights) > 0 and np.corrcoef(heights, displacement)[0, 1] > 0:
         up = -up
     depth = pts @ forward
-    if np.mean((depth - depth.mean()) ** 3) < 0:
+    radial = np.hypot(heights, pts @ side)
+    if np.ptp(depth) > 0 and np.ptp(radial) > 0 and np.corrcoef(radial, depth)[0, 1] > 0:
         forward = -forward
     lateral = np.cross(up, forward)
     return np.array([lateral, up, forward])

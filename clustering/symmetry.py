@@ -121,16 +121,23 @@ def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displace
                             half: bool) -> SagittalPlane:
     """Sagittal plane of a neutral pose ``(M, 3)`` mm.
 
-    Through the ``_C``-tagged midline markers when there are at least 2; otherwise normal = the face
+    Through the ``_C``-tagged midline markers when there are at least 2 (normal toward the ``_L``
+    markers, away from the ``_R`` ones); otherwise normal = the face
     frame's lateral axis (:func:`face_frame`) through the median lateral position (full face) or,
     for a half face (``half``), through the medial edge: the lateral extreme nearer to the most
     forward marker (the nose tip lies on the midline).
     """
     valid = np.isfinite(neutral).all(axis=1)
     frame = face_frame(neutral[valid], displacement[valid])
-    tagged = np.array([side_tag(label) == "C" for label in labels]) & valid
+    tags = np.array([side_tag(label) or "" for label in labels])
+    tagged = (tags == "C") & valid
     if tagged.sum() >= 2:
-        return fit_sagittal_plane(neutral[tagged], frame[0])
+        hint = frame[0]
+        left, right = (tags == "L") & valid, (tags == "R") & valid
+        if left.any() or right.any():  # side tags say where the subject's left is
+            centre = neutral[tagged].mean(axis=0)
+            hint = (neutral[left] - centre).sum(axis=0) - (neutral[right] - centre).sum(axis=0)
+        return fit_sagittal_plane(neutral[tagged], hint)
     pts = neutral[valid]
     lateral = pts @ frame[0]
     if half:
@@ -146,3 +153,11 @@ def marker_sides(labels: Sequence[str], positions: np.ndarray, plane: SagittalPl
     """Side of each marker: its label tag when present, else its side of ``plane``."""
     geometric = plane.side(positions)
     return [side_tag(label) or geo for label, geo in zip(labels, geometric)]
+
+
+def plane_frame(plane: SagittalPlane, frame: np.ndarray) -> np.ndarray:
+    """Face frame (rows lateral, up, forward) with lateral = the plane's normal (for front views)."""
+    lateral = plane.normal
+    up = frame[1] - (frame[1] @ lateral) * lateral
+    up /= np.linalg.norm(up)
+    return np.array([lateral, up, np.cross(lateral, up)])

@@ -16,11 +16,13 @@ from .app import app
 # from . import <command_module>  # noqa: E402,F401  (helpers add lines here)
 from . import cluster  # noqa: E402,F401
 from . import evaluate  # noqa: E402,F401
+from . import sweep  # noqa: E402,F401
 from . import info  # noqa: E402,F401
 from . import convert  # noqa: E402,F401
 from . import clean  # noqa: E402,F401
 from . import triangulate  # noqa: E402,F401
 from . import synth  # noqa: E402,F401
+from . import rig  # noqa: E402,F401
 
 
 def main(argv: Sequence[str] | None = None) -> None:

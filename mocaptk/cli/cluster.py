@@ -89,8 +89,6 @@ def write_cluster_outputs(result, folder: Path) -> list[Path]:
     from ..atomic import write_text
     from ..clustering.figures import correlation_heatmap, layout_picture, regions_picture
     from ..clustering.layout import write_layout
-    from ..clustering.neutral import max_displacement
-    from ..clustering.regions import face_frame
 
     layout = result.layout
     written = [write_layout(layout, folder / "layout.json")]
@@ -99,7 +97,7 @@ def write_cluster_outputs(result, folder: Path) -> list[Path]:
                                            title=f"{name}: consolidated correlation (by cluster)",
                                            path=folder / f"correlation_{name}.png"))
     traj = result.trajectories
-    frame = face_frame(result.neutral, max_displacement(traj.positions, result.neutral))
+    frame = result.frame
     neutral = dict(zip(traj.labels, result.neutral))
     written.append(layout_picture(layout, neutral, frame=frame, path=folder / "layout.png"))
     regions = {r.name: list(r.markers) for r in layout.regions}
