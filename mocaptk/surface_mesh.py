@@ -32,7 +32,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
 __all__ = [
-    "MeshQuality", "SurfaceMesh", "boundary_edges", "face_normals", "marker_spacing",
+    "MeshQuality", "SurfaceMesh", "boundary_edges", "face_normals", "front_direction",
+    "marker_spacing",
     "marker_surface_mesh", "mesh_edges", "mesh_quality", "triangle_angles", "vertex_normals",
 ]
 
@@ -203,17 +204,42 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     return vertices, faces[order]
 
 
+def front_direction(points: np.ndarray) -> np.ndarray:
+    """Unit direction (3,) the face in ``points`` (M, 3) looks towards.
+
+    The least-spread principal axis, signed so the cloud bulges that way: a face is a cap
+    whose rim (forehead top, cheeks, jaw line) lies behind its centre (nose). A flat cloud
+    looks towards +Z.
+    """
+    points = np.asarray(points, dtype=float)
+    centred = points - points.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    return _front_direction(centred, *axes)
+
+
 def _face_chart(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """2-D chart coordinates (M, 2) in mm and the unit front direction (3,)."""
+    """2-D chart coordinates (M, 2) in mm and the unit front direction (3,).
+
+    Azimuth is measured around the in-plane axis the face wraps least around (ear to ear is
+    the strongly curved direction), so points on the far sides of the cheeks - even behind the
+    fitted sphere's centre - do not fold over; elevation along the other axis stays within
+    ±90°.
+    """
     centre = vertices.mean(axis=0)
     _, sing, axes = np.linalg.svd(vertices - centre, full_matrices=False)
     if sing[1] <= 1e-9 * max(sing[0], 1e-300):
         raise ValueError("the marker cloud is degenerate (all markers on a line)")
     e1, e2, normal = axes  # largest spread first; normal = least spread = face depth
     front = _front_direction(vertices - centre, e1, e2, normal)
+    d = vertices - centre
+    u, v, depth = d @ e1, d @ e2, d @ front
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(u), u, v, u * u, v * v]), depth,
+                               rcond=None)
+    if coef[3] * np.ptp(u) ** 2 > coef[4] * np.ptp(v) ** 2:  # depth drops more along v
+        e1, e2 = e2, e1
     if np.dot(np.cross(e1, e2), front) < 0:
         e2 = -e2
-    extent = float(np.ptp((vertices - centre) @ np.stack([e1, e2]).T, axis=0).max())
+    extent = float(np.ptp(d @ np.stack([e1, e2]).T, axis=0).max())
     sphere = _fit_sphere(vertices)
     if sphere is not None:
         c, radius = sphere
@@ -224,7 +250,6 @@ def _face_chart(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             azimuth = np.arctan2(x, z)
             elevation = np.arctan2(y, np.hypot(x, z))
             return np.column_stack([azimuth, elevation]) * radius, front
-    d = vertices - centre
     return np.column_stack([d @ e1, d @ e2]), front
 
 

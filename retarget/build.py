@@ -1,0 +1,371 @@
+"""Layout + session (+ mesh) -> skinned :class:`~mocaptk.retarget.rig.Rig`, and the files for it.
+
+:func:`build_rig` is the pure pipeline (arrays in, rig and report out); :func:`write_rig_outputs`
+adds the files (``rig.json``/``rig.fbx``/``rig.glb``, ``guide.pdf`` and its PNG views) and is
+the one function ``mocaptk rig`` and ``mocaptk cluster`` call.
+
+Frames. The rig is Y up, face looking down +Z (mm). The session's face frame (forward = the
+side the face bulges towards, :func:`~mocaptk.surface_mesh.front_direction`; up = away from
+the most moving markers, as :func:`face_frame` of the clustering stage) is snapped to the nearest signed axis permutation when every axis is within
+25° of one (so an already Y-up session is left exactly as is), else used as the rotation.
+
+Half-face captures. A layout mirrored to the other side (clusters with ``mirrored_from``)
+refers to markers the session does not have: their dense markers are the session's mirrored
+across the layout's sagittal plane, and they move like their mirror images (symmetric motion).
+The skinning check reports the error on the captured markers only.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocaptk.errors import OptionError
+from mocaptk.surface_mesh import (SurfaceMesh, front_direction, marker_spacing, marker_surface_mesh,
+                                  mesh_quality)
+from mocaptk.trajectories import Trajectories
+
+from ..clustering.layout import Layout
+from ..clustering.neutral import max_displacement, neutral_pose
+from ..clustering.regions import face_frame
+from ..clustering.symmetry import SagittalPlane, mirror_label
+from .align import Alignment, SurfaceProximity, align_mesh_to_markers
+from .animate import SkinningError, skin_vertices, skinning_error
+from .guide import GuideMarker, guide_markers, write_guide_pdf
+from .influence import anchor_vertices, edge_graph, main_influence_regions
+from .rig import Rig
+from .weights import cap_weights, region_masks, shape_by_regions, thin_shell_weights
+
+__all__ = ["DenseCloud", "RigBuild", "RigOptions", "build_rig", "dense_cloud", "ground_truth_error",
+           "guide_rows", "marker_driven_error", "rig_frame_rotation", "write_rig_outputs"]
+
+#: Largest angle (degrees) between a face-frame axis and a coordinate axis for snapping.
+SNAP_DEGREES = 25.0
+FORMATS = ("json", "fbx", "glb")
+#: Default region falloff in dense marker spacings (docs/rig-weights.md has the measurements).
+FALLOFF_SPACINGS = 3.0
+
+
+@dataclass(frozen=True)
+class RigOptions:
+    """Options of :func:`build_rig`.
+
+    ``max_influences`` per vertex (4 or 8 usual); ``falloff_mm``: how far (geodesic mm) a joint's
+    influence extends past its region's border (``None``: :data:`FALLOFF_SPACINGS` x the dense
+    marker spacing; 0: hard borders; see :mod:`~mocaptk.retarget.weights`);
+    ``pure_thin_shell``: skip the region shaping (measured on the sample: lower RMSE); ``subdivisions``: midpoint subdivisions of the default marker surface mesh;
+    ``ks``/``kb``: thin-shell stretching/bending stiffness.
+    """
+
+    max_influences: int = 4
+    min_weight: float = 1e-3
+    falloff_mm: float | None = None
+    pure_thin_shell: bool = False
+    subdivisions: int = 1
+    ks: float = 1.0
+    kb: float = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class DenseCloud:
+    """Every dense marker the rig knows, in the rig frame.
+
+    ``labels`` (N,); ``trajectories`` (F, N, 3) mm; ``neutral`` (N, 3) mm; ``captured`` (N,)
+    bool - False for markers mirrored from the other side; ``rotation`` (3, 3) session -> rig.
+    """
+
+    labels: tuple[str, ...]
+    trajectories: np.ndarray
+    neutral: np.ndarray
+    captured: np.ndarray
+    rotation: np.ndarray
+
+    def index(self, labels: Sequence[str]) -> np.ndarray:
+        lookup = {label: i for i, label in enumerate(self.labels)}
+        missing = [label for label in labels if label not in lookup]
+        if missing:
+            raise OptionError(f"layout markers not found in the session: {', '.join(missing[:6])}"
+                              + (" ..." if len(missing) > 6 else ""))
+        return np.array([lookup[label] for label in labels], dtype=np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class RigBuild:
+    """A rig and how it was made: per-vertex region (cluster index, -1 none), dense-marker
+    vertices, alignment of a user mesh, the skinning check, and a JSON-ready report."""
+
+    rig: Rig
+    layout: Layout
+    cloud: DenseCloud
+    regions: np.ndarray
+    dense_vertices: np.ndarray
+    joint_vertices: np.ndarray
+    alignment: Alignment | None
+    check: SkinningError
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) from session coordinates to the rig frame (X left, Y up, Z forward)."""
+    ok = np.isfinite(neutral).all(axis=1) & np.isfinite(displacement)
+    forward = front_direction(neutral[ok])
+    up = face_frame(neutral[ok], displacement[ok])[1]  # away from the most moving markers
+    up = up - (up @ forward) * forward
+    up /= np.linalg.norm(up)
+    frame = np.array([np.cross(up, forward), up, forward])  # rows: lateral, up, forward
+    snapped = np.zeros((3, 3))
+    for row, axis in enumerate(frame):
+        k = int(np.argmax(np.abs(axis)))
+        if np.degrees(np.arccos(min(1.0, abs(axis[k])))) > SNAP_DEGREES:
+            return frame
+        snapped[row, k] = np.sign(axis[k])
+    if abs(np.linalg.det(snapped) - 1.0) > 1e-9:
+        return frame
+    return snapped
+
+
+def dense_cloud(layout: Layout, session: Trajectories, *,
+                rotation: np.ndarray | None = None) -> DenseCloud:
+    """The session's markers (+ mirrored ones the layout needs), rotated into the rig frame.
+
+    ``rotation`` (3, 3) session -> rig; default: :func:`rig_frame_rotation` of the session.
+    Markers never seen are left out.
+    """
+    positions = np.asarray(session.positions, dtype=float)
+    neutral = neutral_pose(positions)
+    seen = np.isfinite(neutral).all(axis=1)
+    labels = [label for label, ok in zip(session.labels, seen) if ok]
+    positions, neutral = positions[:, seen], neutral[seen]
+    captured = np.ones(len(labels), bool)
+    mirrored = [c for c in layout.clusters if c.mirrored_from is not None]
+    if mirrored:
+        plane = _sagittal_plane(layout)
+        lookup = {label: i for i, label in enumerate(labels)}
+        wanted = {m for c in mirrored for m in c.members if m not in lookup}
+        sources = {mirror_label(label): i for label, i in lookup.items()}
+        unknown = sorted(m for m in wanted if m not in sources)
+        if unknown:
+            raise OptionError("mirrored layout markers have no source marker in the session: "
+                              + ", ".join(unknown[:6]))
+        new = sorted(wanted)
+        src = np.array([sources[m] for m in new], dtype=np.int64)
+        positions = np.concatenate([positions, plane.mirror(positions[:, src])], axis=1)
+        neutral = np.concatenate([neutral, plane.mirror(neutral[src])])
+        labels += new
+        captured = np.concatenate([captured, np.zeros(len(new), bool)])
+    if rotation is None:
+        rotation = rig_frame_rotation(neutral, max_displacement(positions, neutral))
+    return DenseCloud(tuple(labels), positions @ rotation.T, neutral @ rotation.T, captured,
+                      rotation)
+
+
+def _sagittal_plane(layout: Layout) -> SagittalPlane:
+    plane = layout.extra.get("sagittal_plane")
+    try:
+        return SagittalPlane(np.asarray(plane["point"], float), np.asarray(plane["normal"], float))
+    except (TypeError, KeyError, ValueError):
+        raise OptionError("the layout has mirrored markers but no sagittal_plane; "
+                          "re-run mocaptk cluster") from None
+
+
+def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None = None,
+              landmarks: dict[str, int] | None = None, options: RigOptions = RigOptions(),
+              progress: Callable[[str], None] | None = None) -> RigBuild:
+    """Skinned rig of ``layout`` on ``mesh`` (default: the dense marker surface).
+
+    ``session`` must be the (stabilized) session the layout was computed on. ``landmarks``
+    maps marker labels to vertex indices of ``mesh`` for its alignment.
+    """
+    say = progress or (lambda _: None)
+    cloud = dense_cloud(layout, session)
+    reps = [c.representative for c in layout.clusters]
+    rep_idx = cloud.index(reps)
+    members = [cloud.index(c.members) for c in layout.clusters]
+    spacing = marker_spacing(cloud.neutral)
+    alignment = None
+    if mesh is None:
+        say("triangulating the marker surface")
+        vertices, faces = marker_surface_mesh(cloud.neutral)
+        vertices, faces = _subdivide(vertices, faces, options.subdivisions)
+        dense_vertices = np.arange(len(cloud.labels), dtype=np.int64)
+        mesh_kind = "marker surface"
+    else:
+        say("aligning the mesh")
+        pairs = None
+        if landmarks:
+            pairs = {int(cloud.index([label])[0]): int(v) for label, v in landmarks.items()}
+        alignment = align_mesh_to_markers(mesh.vertices, mesh.faces, cloud.neutral,
+                                          landmarks=pairs)
+        vertices = alignment.transform.apply(mesh.vertices)
+        faces = np.asarray(mesh.faces, dtype=np.int64)
+        dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
+                                            proximity=SurfaceProximity(vertices, faces))
+        mesh_kind = "user mesh"
+    joint_vertices = dense_vertices[rep_idx]
+    say("computing weights")
+    graph = edge_graph(vertices, faces)
+    regions = main_influence_regions(graph, [dense_vertices[m] for m in members])
+    weights = thin_shell_weights(vertices, faces, joint_vertices, graph=graph, ks=options.ks,
+                                 kb=options.kb)
+    falloff = FALLOFF_SPACINGS * spacing if options.falloff_mm is None else float(options.falloff_mm)
+    if not options.pure_thin_shell:
+        weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
+                                                         falloff_mm=falloff))
+    nearest = np.argmin(np.linalg.norm(vertices[:, None] - vertices[joint_vertices][None], axis=2),
+                        axis=1)
+    index, value = cap_weights(weights, max_influences=options.max_influences,
+                               min_weight=options.min_weight, fallback=nearest)
+    joint_positions = cloud.neutral[rep_idx]
+    rig = Rig.from_markers(vertices, faces, marker_labels=reps, marker_positions=joint_positions,
+                           marker_sides=[c.side for c in layout.clusters],
+                           marker_regions=[c.region for c in layout.clusters],
+                           weight_index=index, weight_value=value)
+    say("checking by animation")
+    build = RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment,
+                     SkinningError(float("nan"), float("nan"), float("nan"), 0, 0))
+    check = marker_driven_error(build)
+    quality = mesh_quality(vertices, faces)
+    report = {
+        "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
+                 "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
+                 "subdivisions": options.subdivisions if mesh is None else 0},
+        "alignment": None if alignment is None else {
+            "method": alignment.method, "scale": alignment.transform.scale,
+            "rms_residual_mm": alignment.rms_mm, "max_residual_mm": alignment.max_mm},
+        "weights": {"method": "thin-shell" if options.pure_thin_shell else
+                    "thin-shell shaped by influence regions",
+                    "falloff_mm": None if options.pure_thin_shell else falloff,
+                    "ks": options.ks, "kb": options.kb, "max_influences": options.max_influences,
+                    "min_weight": options.min_weight},
+        "joints": len(reps), "dense_markers": int(cloud.captured.sum()),
+        "mirrored_dense_markers": int((~cloud.captured).sum()),
+        "marker_spacing_mm": spacing,
+        "frame_rotation": cloud.rotation,
+        "skinning_check": check.as_dict(),
+    }
+    return RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment, check,
+                    report)
+
+
+def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
+                        truth: np.ndarray | None = None) -> SkinningError:
+    """Drive the rig with its markers' trajectories; error at the captured dense markers (mm).
+
+    ``cloud``: the markers that drive the rig (default: the build's own session, else e.g. a
+    held-out performance, see :func:`ground_truth_error`); displacements are taken from the
+    bind (neutral) pose of the build. ``truth`` (F, N_captured, 3) mm, rig frame, replaces the
+    compared positions (default: the cloud's own captured markers). Frames where a layout
+    marker is missing are skipped. A dense marker's prediction is its bind position moved by
+    its vertex's skinned displacement.
+    """
+    cloud = build.cloud if cloud is None else cloud
+    rig = build.rig
+    captured = np.flatnonzero(cloud.captured)
+    bind_joints = build.cloud.neutral[build.cloud.index(build.layout.labels)]
+    bind_dense = build.cloud.index([cloud.labels[i] for i in captured])
+    joints = cloud.trajectories[:, cloud.index(build.layout.labels)] - bind_joints
+    usable = np.isfinite(joints).all(axis=(1, 2))
+    disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
+    disp[:, 1:] = joints[usable]  # joint 0 is the static root
+    rows = build.dense_vertices[bind_dense]
+    rest = np.asarray(rig.vertices)[rows]
+    predicted = skin_vertices(rest, rig.weight_index[rows], rig.weight_value[rows], disp)
+    predicted += (build.cloud.neutral[bind_dense] - rest)[None]
+    target = cloud.trajectories[:, captured] if truth is None else np.asarray(truth)
+    return skinning_error(predicted, target[usable])
+
+
+def ground_truth_error(build: RigBuild, session: Trajectories, truth_positions: np.ndarray,
+                       truth_labels: Sequence[str]) -> SkinningError:
+    """Skinning error of ``session``'s layout markers driving the rig, against noise-free
+    ``truth_positions`` (F, M, 3) mm (session frame) of the dense markers ``truth_labels``."""
+    cloud = dense_cloud(build.layout, session, rotation=build.cloud.rotation)
+    lookup = {label: i for i, label in enumerate(truth_labels)}
+    captured = [cloud.labels[i] for i in np.flatnonzero(cloud.captured)]
+    missing = [label for label in captured if label not in lookup]
+    if missing:
+        raise OptionError(f"ground truth lacks markers: {', '.join(missing[:6])}")
+    truth = np.asarray(truth_positions, float)[:, [lookup[label] for label in captured]]
+    return marker_driven_error(build, cloud, truth=truth @ build.cloud.rotation.T)
+
+
+def _subdivide(vertices: np.ndarray, faces: np.ndarray, times: int) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint subdivision ``times`` times; the original vertices keep their indices."""
+    import trimesh.remesh
+
+    for _ in range(max(0, times)):
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    return np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
+
+
+def guide_rows(build: RigBuild) -> list[GuideMarker]:
+    """Guide table rows of a built rig (numbers = layout order)."""
+    clusters = build.layout.clusters
+    nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
+    return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
+                         [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],
+                         [c.members for c in clusters], nose)
+
+
+def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.PathLike[str], *,
+                      mesh_path: str | os.PathLike[str] | None = None,
+                      landmarks: dict[str, int] | None = None,
+                      options: RigOptions = RigOptions(), formats: Sequence[str] = FORMATS,
+                      title: str = "", force: bool = False,
+                      progress: Callable[[str], None] | None = None) -> tuple[RigBuild, dict[str, Path]]:
+    """Build the rig and write ``rig.json``/``rig.fbx``/``rig.glb`` (as ``formats`` asks),
+    ``guide.pdf``, ``guide_front.png``, ``guide_profile.png`` and ``rig_report.json`` into
+    ``out_dir``. Existing files are refused unless ``force``."""
+    from mocaptk.atomic import check_writable
+    from mocaptk.jsonio import write_json
+
+    from .export_fbx import write_rig_fbx
+    from .export_glb import write_rig_glb
+    from .export_json import write_rig_json
+    from .mesh_io import load_mesh
+    from .renders import render_view
+
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown:
+        raise OptionError(f"unknown rig format(s) {', '.join(unknown)} (choose from json, fbx, glb)")
+    out = Path(out_dir)
+    names = {f: out / f"rig.{f}" for f in formats}
+    names.update(guide=out / "guide.pdf", front=out / "guide_front.png",
+                 profile=out / "guide_profile.png", report=out / "rig_report.json")
+    for target in names.values():
+        check_writable(target, force=force)
+    mesh = load_mesh(mesh_path) if mesh_path is not None else None
+    build = build_rig(layout, session, mesh=mesh, landmarks=landmarks, options=options,
+                      progress=progress)
+    say = progress or (lambda _: None)
+    writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
+    for fmt in formats:
+        say(f"writing rig.{fmt}")
+        writers[fmt](build.rig, names[fmt], force=True)
+    say("rendering the guide")
+    clusters = build.layout.clusters
+    joints = np.asarray(build.rig.joint_positions)[1:]
+    numbers = list(range(1, len(clusters) + 1))
+    for view in ("front", "profile"):
+        render_view(build.rig.vertices, build.rig.faces, build.regions,
+                    [c.region for c in clusters], joints, numbers, names[view], view=view)
+    check = build.check
+    notes = [f"{len(clusters)} markers; mesh: {build.report['mesh']['kind']} "
+             f"({build.rig.vertex_count} vertices); weights: {build.report['weights']['method']}, "
+             f"max {options.max_influences} influences",
+             f"marker-driven skinning check on the session: RMSE {check.rmse_mm:.2f} mm, "
+             f"95th percentile {check.p95_mm:.2f} mm over {check.vertices} dense markers"]
+    if build.alignment is not None:
+        notes.append(f"mesh alignment ({build.alignment.method}): residual RMS "
+                     f"{build.alignment.rms_mm:.2f} mm, max {build.alignment.max_mm:.2f} mm")
+    write_guide_pdf(names["guide"], guide_rows(build), front_png=names["front"],
+                    profile_png=names["profile"], outline=build.cloud.neutral,
+                    title=title or "mocaptk marker placement guide", notes=notes, force=True)
+    write_json(names["report"], {"format": "mocaptk.rig_report", "version": 1, **build.report},
+               force=True)
+    return build, names

@@ -1,0 +1,113 @@
+"""Offscreen pyvista pictures of a rig: influence regions shaded, layout markers numbered.
+
+Colours: each facial region has a hue (:data:`REGION_COLOURS`); the influence regions of its
+markers alternate between lighter and darker tints of it, so cluster borders show. Markers are
+drawn as spheres in the region's strong colour with their guide number.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import os
+from pathlib import Path
+
+import numpy as np
+
+from mocaptk.atomic import atomic_path
+
+__all__ = ["REGION_COLOURS", "VIEWS", "region_colour", "render_view"]
+
+#: RGB (0-1) of the six facial regions of the method; other region names get a fixed grey-blue.
+REGION_COLOURS: dict[str, tuple[float, float, float]] = {
+    "forehead_brow": (0.20, 0.45, 0.85),
+    "eye": (0.55, 0.30, 0.80),
+    "nose": (0.90, 0.55, 0.10),
+    "cheek": (0.20, 0.65, 0.35),
+    "mouth": (0.85, 0.20, 0.25),
+    "chin": (0.60, 0.45, 0.25),
+}
+OTHER_COLOUR = (0.40, 0.50, 0.60)
+#: Camera direction (from the face towards the camera) and up vector per view, rig frame.
+VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "front": ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
+    "profile": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+}
+
+
+def region_colour(region: str, *, tint: float = 0.0) -> tuple[float, float, float]:
+    """RGB of a region; ``tint`` in [-1, 1] lightens (>0) or darkens (<0) it."""
+    r, g, b = REGION_COLOURS.get(region, OTHER_COLOUR)
+    h, light, s = colorsys.rgb_to_hls(r, g, b)
+    light = light + tint * (1.0 - light) if tint > 0 else light * (1.0 + tint)
+    return colorsys.hls_to_rgb(h, min(max(light, 0.0), 1.0), s)
+
+
+def cluster_shades(regions: list[str]) -> np.ndarray:
+    """RGB (C, 3) per cluster: its region's hue, alternating tints within the region."""
+    count: dict[str, int] = {}
+    out = []
+    for region in regions:
+        k = count.get(region, 0)
+        count[region] = k + 1
+        out.append(region_colour(region, tint=(0.55, 0.30, 0.70, 0.42)[k % 4]))
+    return np.array(out)
+
+
+def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndarray,
+                cluster_regions: list[str], marker_positions: np.ndarray, numbers: list[int],
+                path: str | os.PathLike[str], *, view: str = "front",
+                size: tuple[int, int] = (1050, 1200), force: bool = True) -> Path:
+    """Render one view to a PNG and return its path.
+
+    Parameters
+    ----------
+    vertices, faces : (V, 3) mm rig frame, (T, 3)
+    vertex_cluster : (V,) int
+        Main influence region (cluster index) of each vertex, -1 for none (drawn grey).
+    cluster_regions : list of str, length C
+        Facial region of each cluster.
+    marker_positions : (C, 3) mm
+        Layout markers, same order as the clusters; ``numbers`` their guide numbers.
+    """
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    direction, up = VIEWS[view]
+    shades = cluster_shades(cluster_regions)
+    colours = np.full((len(vertices), 3), 0.8)
+    known = vertex_cluster >= 0
+    colours[known] = shades[vertex_cluster[known]]
+    mesh = pv.PolyData(np.asarray(vertices, float),
+                       np.column_stack([np.full(len(faces), 3), faces]).ravel())
+    mesh.point_data["rgb"] = (colours * 255).astype(np.uint8)
+    plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    plotter.set_background("white")
+    plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True, ambient=0.35,
+                     diffuse=0.7, specular=0.0)
+    visible = np.ones(len(marker_positions), bool)
+    if view == "profile":  # only the side facing the camera, the far side would show through
+        visible = marker_positions[:, 0] >= np.median(vertices[:, 0]) - 1.0
+    extent = float(np.ptp(vertices, axis=0).max())
+    lift = np.asarray(direction) * extent * 0.01  # keep spheres and labels in front of the skin
+    for region in sorted(set(cluster_regions)):
+        pick = np.array([r == region for r in cluster_regions]) & visible
+        if pick.any():
+            plotter.add_mesh(pv.PolyData(marker_positions[pick] + lift), color=region_colour(
+                region, tint=-0.35), point_size=16, render_points_as_spheres=True)
+    if visible.any():
+        plotter.add_point_labels(marker_positions[visible] + 2.5 * lift,
+                                 [str(n) for n, v in zip(numbers, visible) if v],
+                                 font_size=22, text_color="black", shape_color="white",
+                                 shape_opacity=0.75, point_size=0, always_visible=True,
+                                 margin=2, fill_shape=True, show_points=False)
+    centre = np.asarray(vertices).mean(axis=0)
+    plotter.camera.focal_point = centre
+    plotter.camera.position = centre + np.asarray(direction) * extent * 4.0
+    plotter.camera.up = up
+    plotter.enable_parallel_projection()
+    plotter.reset_camera()
+    plotter.camera.zoom(1.15)
+    with atomic_path(path, force=force) as tmp:
+        plotter.screenshot(str(tmp))
+    plotter.close()
+    return Path(path)

@@ -1,0 +1,134 @@
+"""Skin weights: smooth, interpolating thin-shell weights, shaped by the influence regions, capped.
+
+1. **Thin-shell interpolation** (Le, Zhu & Deng 2013; :mod:`mocaptk.thin_shell`):
+   ``W = Â⁻¹B̂`` (V, J) - each vertex follows the joints (pinned at their marker vertices) with
+   the minimal stretching + bending energy; ``W`` is exactly 1 on a joint's own vertex, 0 on the
+   other joints' vertices, smooth in between, rows sum to 1. It is purely geometric.
+2. **Region shaping** (the paper's influence regions "extended smoothly past cluster borders"):
+   the clustering says which vertices move with which marker. Each joint's column is multiplied
+   by a mask that is 1 inside its main influence region and falls smoothly (smoothstep of the
+   geodesic distance) to 0 at ``falloff_mm`` past the region's border; negative thin-shell
+   lobes are clipped; rows are renormalized. Marker vertices stay exact (their own joint's mask
+   is 1 there). ``falloff_mm=None`` keeps the pure thin-shell weights.
+3. **Capping**: top ``max_influences`` per vertex, drop weights < ``min_weight``, renormalize to
+   sum 1; a vertex left with nothing gets its fallback joint (nearest joint) at weight 1.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from mocaptk.errors import OptionError
+from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
+
+from .influence import geodesic_distance
+
+__all__ = ["cap_weights", "region_masks", "shape_by_regions", "thin_shell_weights"]
+
+
+def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: np.ndarray, *,
+                       graph: sp.csr_matrix, ks: float = 1.0, kb: float = 10.0) -> np.ndarray:
+    """Interpolating weights (V, J) of the joints pinned at ``joint_vertices`` (J,).
+
+    Solved per connected mesh part (``graph``: the mesh edge graph); a part holding no joint
+    follows its Euclidean-nearest joint rigidly (weight 1).
+    """
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    joint_vertices = np.asarray(joint_vertices, dtype=np.int64)
+    if len(np.unique(joint_vertices)) != len(joint_vertices):
+        raise OptionError("two layout markers land on the same mesh vertex; use a finer mesh")
+    n, n_joints = len(vertices), len(joint_vertices)
+    weights = np.zeros((n, n_joints))
+    _, part = connected_components(graph, directed=False)
+    face_part = part[faces[:, 0]]
+    for p in np.unique(part):
+        members = np.flatnonzero(part == p)
+        pinned = np.flatnonzero(part[joint_vertices] == p)
+        if len(pinned) == 0 or len(members) == 1:
+            nearest = np.argmin(np.linalg.norm(vertices[members][:, None, :]
+                                               - vertices[joint_vertices][None], axis=2), axis=1)
+            weights[members, nearest] = 1.0
+            continue
+        local = np.full(n, -1, dtype=np.int64)
+        local[members] = np.arange(len(members))
+        op = thin_shell_operator(vertices[members], local[faces[face_part == p]], ks=ks, kb=kb)
+        weights[np.ix_(members, pinned)] = interpolation_weights(op, local[joint_vertices[pinned]])
+    return weights
+
+
+def region_masks(graph: sp.csr_matrix, regions: np.ndarray, n_joints: int, *,
+                 falloff_mm: float) -> np.ndarray:
+    """(V, J) masks: 1 in joint j's main influence region, smoothstep to 0 at ``falloff_mm``
+    (geodesic) past its border."""
+    masks = np.zeros((graph.shape[0], n_joints))
+    for j in range(n_joints):
+        inside = np.flatnonzero(regions == j)
+        if len(inside) == 0:
+            continue
+        if falloff_mm > 0:
+            dist = geodesic_distance(graph, inside, limit=falloff_mm)
+            t = np.clip(1.0 - np.nan_to_num(dist / falloff_mm, posinf=1.0), 0.0, 1.0)
+            masks[:, j] = t * t * (3.0 - 2.0 * t)
+        masks[inside, j] = 1.0
+    return masks
+
+
+def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Clip negative weights, multiply by the region masks, renormalize rows (V, J).
+
+    Rows the masks zero out entirely keep their clipped, renormalized thin-shell weights.
+    """
+    clipped = np.clip(weights, 0.0, None)
+    shaped = clipped * masks
+    total = shaped.sum(axis=1, keepdims=True)
+    empty = total[:, 0] <= 1e-12
+    shaped[empty] = clipped[empty]
+    total[empty] = clipped[empty].sum(axis=1, keepdims=True)
+    return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
+
+
+def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: float = 1e-3,
+                fallback: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Keep each vertex's ``max_influences`` largest weights >= ``min_weight``, sum 1.
+
+    Parameters
+    ----------
+    weights : (V, J) float
+    fallback : (V,) int, optional
+        Joint given weight 1 where no weight survives (default: the row's largest weight).
+
+    Returns
+    -------
+    index : (V, k) int64
+        Joint indices, strongest first; unused slots 0.
+    value : (V, k) float64
+        Weights, rows summing to 1; unused slots 0.
+    """
+    if max_influences < 1:
+        raise OptionError(f"--max-influences must be >= 1, got {max_influences}")
+    w = np.asarray(weights, dtype=float)
+    k = min(max_influences, w.shape[1])
+    order = np.argsort(-w, axis=1, kind="stable")[:, :k]
+    value = np.take_along_axis(w, order, axis=1)
+    while True:  # renormalizing can push a kept weight under min_weight (rows summing > 1)
+        value[value < min_weight] = 0.0
+        total = value.sum(axis=1)
+        empty = total <= 0
+        if np.any(empty):
+            fb = np.argmax(w, axis=1) if fallback is None else np.asarray(fallback, dtype=np.int64)
+            order[empty, 0] = fb[empty]
+            value[empty] = 0.0
+            value[empty, 0] = 1.0
+            total[empty] = 1.0
+        value /= total[:, None]
+        if not np.any((value > 0) & (value < min_weight)):
+            break
+    index = np.where(value > 0, order, 0).astype(np.int64)
+    if k < max_influences:  # fewer joints than slots: pad
+        pad = max_influences - k
+        index = np.pad(index, ((0, 0), (0, pad)))
+        value = np.pad(value, ((0, 0), (0, pad)))
+    return index, value
