@@ -57,7 +57,8 @@ def write_c3d(traj: Trajectories, path: str | os.PathLike[str], *, force: bool =
     points[:3] = np.where(missing[..., None], 0.0, traj.positions).transpose(2, 1, 0)
     points[3] = 1.0
     residual = np.zeros((n_frames, n_markers)) if traj.residuals is None else traj.residuals
-    residual = np.where(missing | ~np.isfinite(residual), -1.0, np.clip(residual, 0, 255))
+    # a valid point without a residual (e.g. gap-filled) gets 0, C3D's "interpolated" residual
+    residual = np.where(missing, -1.0, np.where(np.isfinite(residual), np.clip(residual, 0, 255), 0.0))
     c3d["data"]["points"] = points
     c3d["data"]["meta_points"] = {
         "residuals": residual.T[None].astype(np.float64),
