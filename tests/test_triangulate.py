@@ -178,3 +178,23 @@ def test_cli_triangulate_bad_inputs(tmp_path, run_cli):
     assert result.exit_code == 2 and "min-views" in result.stderr
     for r in (result,):
         assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_cli_triangulate_with_qualisys_rig(tmp_path, run_cli):
+    calib = shared_path("multicam", "pose2sim_demo", "Calib.qca.txt")
+    rig = read_qca(calib)
+    rng = np.random.default_rng(7)
+    points = rng.uniform([-500, -500, 200], [500, 500, 1800], (5, 30, 3))  # mm, the lab volume
+    obs = project_markers(rig, points, pixel_noise=0.5, rng=8)
+    reordered = [3, 1, 0, 2]  # rows given in another camera order, named
+    np.savez(tmp_path / "obs.npz", points2d=obs[reordered],
+             camera_names=np.array([rig.names[i] for i in reordered]))
+    out = tmp_path / "lab.trc"
+    result = run_cli("triangulate", calib, tmp_path / "obs.npz", out, "--threshold", "3")
+    assert result.exit_code == 0, result.stderr
+    from mocaptk.acquisition.formats import read_trajectories
+
+    back = read_trajectories(out)
+    assert back.labels[0] == "M001" and back.n_frames == 5
+    err = np.linalg.norm(back.positions - points, axis=-1)
+    assert np.nanmedian(err) < 1.5 and np.isfinite(err).mean() > 0.95
