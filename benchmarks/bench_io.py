@@ -1,0 +1,142 @@
+"""Benchmark: C3D read time of mocaptk vs raw ezc3d vs py-c3d on generated sessions.
+
+Files of 100 / 300 markers x 12,000 / 60,000 / 120,000 frames (float storage, 5 % gaps) are
+generated once into ``--folder``. Timed, each the best of ``--repeat`` runs:
+
+* mocaptk: ``read_c3d(path)`` (header/parameter check, ezc3d in a guarded child, NaN gaps, mm);
+* raw ezc3d: ``ezc3d.c3d(path)`` in-process + ``points[:3].transpose(2, 1, 0)`` into one array;
+* py-c3d: ``c3d.Reader`` + ``read_frames()`` stacked into one array.
+
+Note ezc3d 1.7.2 reads at most 65,535 frames (the C3D header field), so on the 120,000-frame
+files it returns only the first 65,535 (shown in the table); mocaptk reads those files with its
+own reader. A reader whose estimated memory exceeds half the available memory is skipped.
+
+    python benchmarks/bench_io.py [--quick] [--repeat 3] [--folder /work/scratch/io-c3d]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from mocaptk import Trajectories
+from mocaptk.acquisition import c3d_ezc3d, c3d_raw
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.acquisition.c3d_write import write_c3d
+
+SIZES = [(100, 12_000), (300, 12_000), (100, 60_000), (300, 60_000), (100, 120_000),
+         (300, 120_000)]
+QUICK = [(100, 12_000), (300, 12_000)]
+#: ezc3d's memory per (frame, marker) sample, measured (~210 B) with margin; py-c3d's is small.
+EZC3D_BYTES_PER_SAMPLE = 300
+BLOCK_FRAMES = 12_000
+
+
+def generate(folder: Path, markers: int, frames: int) -> Path:
+    """A session file, written by write_c3d in blocks of 12,000 frames and tiled to ``frames``.
+
+    Tiling keeps ezc3d's writer memory small: the data block is repeated and the frame counts
+    in the header and parameters (POINT:FRAMES, TRIAL:ACTUAL_END_FIELD) are patched.
+    """
+    path = folder / f"bench_{markers}x{frames}.c3d"
+    if path.exists() and c3d_raw.read_structure(path).n_frames == frames:
+        return path
+    rng = np.random.default_rng(markers)
+    block = min(frames, BLOCK_FRAMES)
+    pos = rng.normal(0, 300, (block, markers, 3)).cumsum(axis=0) * 0.01
+    pos[rng.random((block, markers)) < 0.05] = np.nan
+    seed = write_c3d(Trajectories(pos, [f"Actor:M{k:03d}" for k in range(markers)], 120.0,
+                                  first_frame=1), folder / f"seed_{markers}x{block}.c3d")
+    if frames == block:
+        return seed.rename(path)
+    data = bytearray(seed.read_bytes())
+    structure = c3d_raw.read_structure(seed)
+    head = data[:structure.data_offset]
+    body = bytes(data[structure.data_offset:structure.data_offset + block * structure.frame_bytes])
+    shown = min(frames, 0xFFFF)
+    head[8:10] = shown.to_bytes(2, "little")  # header last frame (first frame is 1)
+    _patch(head, b"FRAMES", 4, shown.to_bytes(2, "little"))
+    _patch(head, b"ACTUAL_END_FIELD", 5, frames.to_bytes(4, "little"))
+    with open(path, "wb") as handle:
+        handle.write(head)
+        for start in range(0, frames, block):
+            handle.write(body[:(min(block, frames - start)) * structure.frame_bytes])
+    seed.unlink()
+    assert c3d_raw.read_structure(path).n_frames == frames
+    return path
+
+
+def _patch(head: bytearray, name: bytes, skip: int, value: bytes) -> None:
+    at = head.index(name, 512) + len(name) + skip
+    head[at:at + len(value)] = value
+
+
+def time_interleaved(funcs: dict[str, object], repeat: int) -> dict[str, float]:
+    """Best wall time of each function; runs alternate (A B A B...) so load drifts hit all."""
+    best = {name: float("inf") for name in funcs}
+    for _ in range(repeat):
+        for name, func in funcs.items():
+            gc.collect()
+            start = time.perf_counter()
+            result = func()
+            best[name] = min(best[name], time.perf_counter() - start)
+            del result
+    return best
+
+
+def raw_ezc3d(path: Path) -> np.ndarray:
+    import ezc3d
+
+    return np.ascontiguousarray(ezc3d.c3d(str(path))["data"]["points"][:3].transpose(2, 1, 0))
+
+
+def py_c3d(path: Path) -> np.ndarray:
+    import c3d
+
+    with open(path, "rb") as handle, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return np.array([points[:, :3] for _, points, _ in c3d.Reader(handle).read_frames()])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="only the 12,000-frame files")
+    parser.add_argument("--repeat", type=int, default=3, help="runs per reader (best is shown)")
+    parser.add_argument("--folder", type=Path, default=Path("/work/scratch/io-c3d"),
+                        help="where the generated files go")
+    parser.add_argument("--no-py-c3d", action="store_true", help="skip py-c3d (slow)")
+    args = parser.parse_args()
+    print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    args.folder.mkdir(parents=True, exist_ok=True)
+    print(f"{'markers':>7} {'frames':>7} {'MB':>6} | {'mocaptk s':>9} {'reader':>7} | "
+          f"{'ezc3d s':>8} {'frames':>6} | {'py-c3d s':>8} | {'mocaptk/ezc3d':>13} "
+          f"{'mocaptk/py-c3d':>14}")
+    for markers, frames in (QUICK if args.quick else SIZES):
+        path = generate(args.folder, markers, frames)
+        size_mb = path.stat().st_size / 2**20
+        repeat = args.repeat if size_mb < 100 else 1
+        reader = read_c3d(path).metadata["reader"]
+        available = c3d_ezc3d.available_memory() or 0
+        n_ez = min(frames, 0xFFFF)
+        funcs = {"mocaptk": lambda: read_c3d(path)}
+        if EZC3D_BYTES_PER_SAMPLE * n_ez * markers <= 0.5 * available:
+            funcs["ezc3d"] = lambda: raw_ezc3d(path)
+        times = time_interleaved(funcs, repeat)
+        if not args.no_py_c3d:
+            times.update(time_interleaved({"py-c3d": lambda: py_c3d(path)}, 1))
+        t_ours, t_ez = times["mocaptk"], times.get("ezc3d", float("nan"))
+        t_py = times.get("py-c3d", float("nan"))
+        n_ez = n_ez if "ezc3d" in times else 0
+        print(f"{markers:>7} {frames:>7} {size_mb:>6.0f} | {t_ours:>9.2f} {reader:>7} | "
+              f"{t_ez:>8.2f} {n_ez:>6} | {t_py:>8.2f} | {t_ours / t_ez:>13.2f} "
+              f"{t_ours / t_py:>14.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
