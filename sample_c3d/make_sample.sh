@@ -4,4 +4,4 @@
 set -e
 mocaptk synth sample_c3d/dense_halfface.c3d --half --rig cara --seed 7 --noise 0.2 \
     --expressions 5 --rest 1.5 --hold 2.0 --performance 20 --dropout 0.01 --ghosts 0.002 \
-    --quiet --force
+    --max-gap 6 --quiet --force

@@ -1,7 +1,8 @@
 """``mocaptk synth OUT.c3d``: a synthetic dense facial capture with ground truth.
 
 Face (ICT-FaceKit) → dense marker layout → per-region expression takes → cameras (2-D
-detections with noise, occlusion, dropouts, ghosts) → triangulation → spike removal → OUT.
+detections with noise, occlusion, dropouts, ghosts) → triangulation → spike removal → short-gap
+filling → OUT.
 Beside OUT it writes ``<stem>_regions.json``, ``<stem>_takes.json``, ``<stem>_truth.npz`` and,
 unless ``--performance 0``, a held-out performance ``<stem>_performance<ext>`` with its
 ``<stem>_performance_truth.npz``.
@@ -20,7 +21,7 @@ def companion_paths(target: Path, *, performance: bool) -> dict[str, Path]:
     """Every file ``synth`` writes for ``target`` (by role)."""
     stem, folder = target.stem, target.parent
     paths = {"session": target, "regions": folder / f"{stem}_regions.json",
-             "takes": folder / f"{stem}_takes.json", "truth": folder / f"{stem}_truth.npz"}
+             "takes": folder / f"{stem}_takes.json", "session_truth": folder / f"{stem}_truth.npz"}
     if performance:
         paths["performance"] = folder / f"{stem}_performance{target.suffix}"
         paths["performance_truth"] = folder / f"{stem}_performance_truth.npz"
@@ -83,6 +84,9 @@ def synth(
                                   help="With a rig: fraction of 2-D detections lost."),
     ghosts: float = typer.Option(0.002, "--ghosts",
                                  help="With a rig: fraction of 2-D detections that are wrong."),
+    max_gap: int = typer.Option(6, "--max-gap", metavar="FRAMES",
+                                help="With a rig: fill gaps up to this long by cubic spline, "
+                                     "as capture software does (0: no filling)."),
     model_path: Path = typer.Option(None, "--model", metavar="PATH",
                                     help="ICT-FaceKit FaceXModel .tar.xz or folder (default "
                                          "$MOCAPTK_ICT_FACEKIT or ../shared/data/...)."),
@@ -97,6 +101,7 @@ def synth(
     from ..acquisition.cameras import RIG_PRESETS
     from ..acquisition.face_model import load_face_model
     from ..acquisition.formats import output_format, write_trajectories
+    from ..acquisition.gapfill import fill_gaps
     from ..acquisition.synth_layout import dense_layout
     from ..atomic import check_writable
     from ..errors import OptionError
@@ -108,8 +113,9 @@ def synth(
                           "with the head, so its data stay head-relative")
     if expressions < 1 or rest <= 0 or hold <= 0 or performance < 0 or rate < 0:
         raise OptionError("--expressions must be ≥ 1, --rest/--hold > 0, --performance/--rate ≥ 0")
-    if noise < 0 or gaps < 0 or not 0 <= dropout <= 1 or not 0 <= ghosts <= 1:
-        raise OptionError("--noise/--gaps must be ≥ 0 and --dropout/--ghosts within [0, 1]")
+    if noise < 0 or gaps < 0 or max_gap < 0 or not 0 <= dropout <= 1 or not 0 <= ghosts <= 1:
+        raise OptionError("--noise/--gaps/--max-gap must be ≥ 0 and --dropout/--ghosts within "
+                          "[0, 1]")
     fmt = output_format(target)
     paths = companion_paths(target, performance=performance > 0)
     for path in paths.values():
@@ -138,9 +144,11 @@ def synth(
                                 f"({synthetic.truth.n_frames} frames)..."):
                 traj = ss.camera_capture(model, synthetic.truth, camera_rig, noise_mm=noise,
                                          dropout=dropout, ghost_rate=ghosts, seed=seed)
+            if max_gap > 0:
+                traj, report = fill_gaps(traj, max_gap=max_gap, method="cubic")
+                typer.echo(f"{role}: short gaps filled: {report.summary()}")
         write_trajectories(traj, paths[role], fmt=fmt, force=force)
-        ss.save_ground_truth(synthetic.truth, paths[f"{role}_truth" if role != "session"
-                                                   else "truth"], force=force)
+        ss.save_ground_truth(synthetic.truth, paths[f"{role}_truth"], force=force)
         err = np.linalg.norm(traj.positions - synthetic.truth.positions, axis=2)
         seen = np.isfinite(err)
         rmse = float(np.sqrt(np.mean(err[seen] ** 2))) if seen.any() else float("nan")
@@ -151,4 +159,4 @@ def synth(
     ss.write_regions_file(truth, paths["regions"], force=force)
     ss.write_takes_file(truth.takes, paths["takes"], force=force)
     counts = ", ".join(f"{region} {len(labels)}" for region, labels in truth.regions_dict().items())
-    typer.echo(f"wrote {paths['regions']} ({counts}), {paths['takes']}, {paths['truth']}")
+    typer.echo(f"wrote {paths['regions']} ({counts}), {paths['takes']}, {paths['session_truth']}")
