@@ -199,6 +199,7 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     pdf.set_fill_color(0, 0, 0)
     pdf.set_line_width(0.4)
     pdf.rect(bx, by, SCALE_BAR_MM, 2.0, style="F")
+    pdf.set_line_width(0.15)  # thin ticks: the bar's printed ends stay at 0 and 50 mm
     for k in range(6):
         pdf.line(bx + 10 * k, by - 1.5, bx + 10 * k, by + 3.5)
     pdf.set_font("helvetica", "B", 9)

@@ -1,0 +1,136 @@
+"""Rig building on the bundled synthetic sample: weights, exactness, marker-driven RMSE, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import SAMPLES
+
+
+@pytest.fixture(scope="module")
+def sample():
+    """The sample's noise-free session (ground truth), its layout at factor 1.1, and the rig."""
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
+    from mocaptk.retarget.build import build_rig
+
+    truth = load_ground_truth(SAMPLES / "dense_halfface_truth.npz")
+    session = truth.trajectories()
+    layout = cluster_session(session, options=ClusterOptions(
+        factor=1.1, stabilize=False, takes=truth.takes)).layout
+    return truth, session, layout, build_rig(layout, session)
+
+
+def test_rig_weights_partition_unity_capped_and_exact_at_markers(sample):
+    _, _, layout, build = sample
+    rig = build.rig
+    assert rig.joint_count == len(layout.clusters) + 1
+    assert rig.max_influences == 4
+    np.testing.assert_allclose(rig.weight_value.sum(axis=1), 1.0, atol=1e-12)
+    assert np.all((rig.weight_value > 0).sum(axis=1) >= 1)
+    assert np.all((rig.weight_value == 0) | (rig.weight_value >= 1e-3))
+    # at its marker's vertex a joint has weight exactly 1
+    for j, v in enumerate(build.joint_vertices):
+        assert rig.weight_index[v, 0] == j + 1 and rig.weight_value[v, 0] == 1.0
+    # joints sit at their markers' neutral positions, under one root
+    np.testing.assert_allclose(rig.joint_positions[1:], rig.vertices[build.joint_vertices],
+                               atol=1e-9)
+    assert list(rig.joint_parents) == [-1] + [0] * len(layout.clusters)
+    # every captured dense marker is a vertex of the marker surface and has a region
+    assert np.all(build.regions[build.dense_vertices] >= 0)
+    assert build.report["mesh"]["kind"] == "marker surface"
+
+
+def test_marker_driven_rmse_on_held_out_performance(sample):
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.build import ground_truth_error
+
+    _, _, _, build = sample
+    perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")
+    err = ground_truth_error(build, perf, truth.positions, truth.labels)
+    # measured 0.77-0.85 mm (docs/rig-weights.md); markers carry ~0.3 mm noise
+    assert err.rmse_mm < 1.2 and err.p95_mm < 2.5
+    assert err.vertices == int(build.cloud.captured.sum())
+    # a rigid rig (every vertex follows its nearest joint) is clearly worse: weights matter
+    rigid = build.rig.weight_value.copy()
+    rigid[:, 0], rigid[:, 1:] = 1.0, 0.0
+    from mocaptk.retarget.build import RigBuild
+
+    blunt = RigBuild(build.rig.__class__(**{**_rig_fields(build.rig), "weight_value": rigid}),
+                     build.layout, build.cloud, build.regions, build.dense_vertices,
+                     build.joint_vertices, None, build.check)
+    assert ground_truth_error(blunt, perf, truth.positions, truth.labels).rmse_mm > 1.3 * err.rmse_mm
+
+
+def _rig_fields(rig):
+    return {name: getattr(rig, name) for name in (
+        "vertices", "faces", "joint_names", "joint_parents", "joint_positions", "joint_sides",
+        "joint_regions", "joint_markers", "weight_index", "weight_value")}
+
+
+def test_eight_influences_and_pure_thin_shell(sample):
+    from mocaptk.retarget.build import RigOptions, build_rig
+
+    _, session, layout, build4 = sample
+    build8 = build_rig(layout, session, options=RigOptions(max_influences=8, pure_thin_shell=True,
+                                                            subdivisions=0))
+    assert build8.rig.max_influences == 8
+    assert (build8.rig.weight_value > 0).sum(axis=1).max() > 4
+    assert build8.rig.vertex_count == len(build8.cloud.labels)  # no subdivision
+    assert build8.check.rmse_mm < 1.0 and build4.check.rmse_mm < 1.0
+
+
+def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
+    from mocaptk.clustering.layout import write_layout
+    from mocaptk.retarget.export_json import read_rig_json
+
+    _, _, layout, _ = sample
+    write_layout(layout, tmp_path / "layout.json")
+    session = SAMPLES / "dense_halfface_performance.c3d"
+    out = tmp_path / "rig"
+    result = run_cli("rig", tmp_path / "layout.json", "--session", session, "--out", out,
+                     "--no-stabilize", "--formats", "json,glb")
+    assert result.exit_code == 0, result.stderr
+    assert "marker-driven skinning check: RMSE" in result.stdout
+    for name in ("rig.json", "rig.glb", "guide.pdf", "guide_front.png", "guide_profile.png",
+                 "rig_report.json"):
+        assert (out / name).stat().st_size > 0
+    assert not (out / "rig.fbx").exists()
+    rig = read_rig_json(out / "rig.json")
+    assert rig.joint_count == len(layout.clusters) + 1
+    report = json.loads((out / "rig_report.json").read_text())
+    assert report["skinning_check"]["rmse_mm"] < 1.5
+    # existing outputs are refused without --force, in one line
+    again = run_cli("rig", tmp_path / "layout.json", "--session", session, "--out", out,
+                    "--no-stabilize", "--formats", "json")
+    assert again.exit_code == 2 and again.stderr.count("\n") == 1
+    assert "already exists" in again.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--formats", "json,obj"], "unknown rig format"),
+    (["--max-influences", "0"], "--max-influences"),
+    (["--mesh", "nothere.obj"], "mesh file not found"),
+    (["--falloff", "-1"], "--falloff"),
+])
+def test_cli_rig_bad_input_is_one_line_exit_2(sample, tmp_path, run_cli, args, message):
+    from mocaptk.clustering.layout import write_layout
+
+    _, _, layout, _ = sample
+    write_layout(layout, tmp_path / "layout.json")
+    result = run_cli("rig", tmp_path / "layout.json", "--session",
+                     SAMPLES / "dense_halfface_performance.c3d", "--out", tmp_path / "o",
+                     "--no-stabilize", *args)
+    assert result.exit_code == 2
+    assert result.stderr.startswith("mocaptk: error:") and message in result.stderr
+    assert result.stderr.count("\n") == 1
+
+
+def test_cli_rig_missing_layout(tmp_path, run_cli):
+    result = run_cli("rig", tmp_path / "none.json", "--session", tmp_path / "none.c3d")
+    assert result.exit_code == 2 and "none.json" in result.stderr
