@@ -1,0 +1,128 @@
+"""The input every layout method takes: dense displacements from neutral, plus optional geometry."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ...errors import OptionError
+from ...trajectories import Trajectories
+from ..neutral import neutral_pose
+
+
+@dataclass(frozen=True, eq=False)
+class LayoutProblem:
+    """Choose ``count`` of ``N`` dense points (markers or mesh vertices) as the layout.
+
+    Parameters
+    ----------
+    displacements : (frames, N, 3) float, mm
+        Training displacements from ``neutral``; NaN gaps. For a blendshape model, one "frame"
+        per blendshape (its delta).
+    neutral : (N, 3) float, mm
+    labels : tuple of str, length N (optional)
+    faces : (T, 3) int, optional
+        Surface mesh over the points (vertex i = point i); built on demand for dense markers.
+    regions : {name: point indices}, optional
+        Facial regions (the paper's per-region takes).
+    segments : tuple of (start, end), optional
+        Frame ranges of the takes (0-based, end exclusive): cross-validation folds, per-take shapes.
+    mirror : (N,) int, optional
+        Mirror partner of every point across the sagittal plane (itself on the midline).
+    candidates : (K,) int, optional
+        Points a layout may use (default: all), e.g. the face region of a head mesh.
+    """
+
+    displacements: np.ndarray
+    neutral: np.ndarray
+    labels: tuple[str, ...] = ()
+    faces: np.ndarray | None = None
+    regions: Mapping[str, np.ndarray] = field(default_factory=dict)
+    segments: tuple[tuple[int, int], ...] = ()
+    mirror: np.ndarray | None = None
+    candidates: np.ndarray | None = None
+    #: derived arrays shared between methods (Gram matrices ...), filled on first use
+    cache: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        disp = np.asarray(self.displacements, dtype=np.float64)
+        neutral = np.asarray(self.neutral, dtype=np.float64)
+        if disp.ndim != 3 or disp.shape[2] != 3:
+            raise OptionError(f"displacements must be (frames, points, 3), got {disp.shape}")
+        if neutral.shape != disp.shape[1:]:
+            raise OptionError(f"neutral must be {disp.shape[1:]}, got {neutral.shape}")
+        object.__setattr__(self, "displacements", disp)
+        object.__setattr__(self, "neutral", neutral)
+        object.__setattr__(self, "labels", tuple(self.labels))
+        object.__setattr__(self, "regions",
+                           {k: np.asarray(v, dtype=np.intp) for k, v in self.regions.items()})
+        object.__setattr__(self, "segments", tuple((int(a), int(b)) for a, b in self.segments))
+        if self.faces is not None:
+            object.__setattr__(self, "faces", np.asarray(self.faces, dtype=np.intp))
+        if self.mirror is not None:
+            mirror = np.asarray(self.mirror, dtype=np.intp)
+            if mirror.shape != (self.n_points,) or not np.array_equal(mirror[mirror], np.arange(self.n_points)):
+                raise OptionError("mirror must map every point to a partner whose partner is the point")
+            object.__setattr__(self, "mirror", mirror)
+        if self.candidates is not None:
+            object.__setattr__(self, "candidates", np.unique(np.asarray(self.candidates, dtype=np.intp)))
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.displacements.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        return int(self.displacements.shape[1])
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(frames, N, 3) mm: neutral + displacements."""
+        return self.neutral[None] + self.displacements
+
+    def candidate_points(self) -> np.ndarray:
+        """(K,) intp: the points a layout may use."""
+        return np.arange(self.n_points) if self.candidates is None else self.candidates
+
+    def complete_frames(self) -> np.ndarray:
+        """(F', N, 3) the training frames where every point is present (for gap-free methods).
+
+        Falls back to all frames with gaps set to 0 (at rest) when fewer than 2 frames are complete.
+        """
+        complete = np.isfinite(self.displacements).all(axis=(1, 2))
+        if complete.sum() >= 2:
+            return self.displacements[complete]
+        return np.nan_to_num(self.displacements, nan=0.0)
+
+    def surface_faces(self) -> np.ndarray:
+        """(T, 3) the surface mesh over the points (``faces``, else triangulated from ``neutral``)."""
+        if self.faces is not None:
+            return self.faces
+        from ...surface_mesh import marker_surface_mesh
+        return np.asarray(marker_surface_mesh(self.neutral).faces, dtype=np.intp)
+
+
+def layout_problem(session: Trajectories, *, neutral: np.ndarray | None = None,
+                   regions: Mapping[str, Sequence[int]] | None = None,
+                   faces: np.ndarray | None = None, mirror: np.ndarray | None = None) -> LayoutProblem:
+    """A :class:`LayoutProblem` from a dense session (neutral default: per-marker median)."""
+    positions = session.positions
+    rest = neutral_pose(positions) if neutral is None else np.asarray(neutral, dtype=np.float64)
+    if not np.isfinite(rest).all():
+        missing = [session.labels[i] for i in np.flatnonzero(~np.isfinite(rest).all(axis=1))]
+        raise OptionError(f"markers never seen, no neutral position: {', '.join(missing[:5])}")
+    if regions is None:
+        regions = _regions_from_metadata(session)
+    return LayoutProblem(positions - rest[None], rest, labels=session.labels, faces=faces,
+                         regions=regions or {}, mirror=mirror,
+                         segments=tuple((t.start, t.end) for t in session.takes))
+
+
+def _regions_from_metadata(session: Trajectories) -> dict[str, Any]:
+    regions = session.metadata.get("regions")
+    if isinstance(regions, Mapping):
+        return {str(k): session.index(v) for k, v in regions.items()}
+    return {}

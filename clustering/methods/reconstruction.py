@@ -1,0 +1,224 @@
+"""Reconstruction-aware selection: markers whose motion best explains every other marker's.
+
+All in the Gram space of the (frames × 3·N) displacement matrix, so a step costs O(N²) instead
+of touching the frames:
+
+* ``pivoted_qr_layout`` — column-pivoted QR (LAPACK ``geqp3``) of the centred matrix; markers in the
+  order their first coordinate column is pivoted.
+* ``greedy_layout`` — forward selection over 3-column marker blocks: add the marker whose block
+  removes the most residual variance from all columns (block Gram–Schmidt), then optionally
+* ``swap_refine`` — exchange a layout marker for an unused one while the cross-validated error of
+  the team's ridge reconstruction (:mod:`mocaptk.clustering.evaluation`, the same model
+  and ridge) goes down. Folds are the session's takes (leave one out) or contiguous blocks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+from ...errors import OptionError
+from ..evaluation import DEFAULT_RIDGE, holdout_splits
+from ...trajectories import Take
+from .problem import LayoutProblem
+
+
+def _design(disp: np.ndarray) -> np.ndarray:
+    """(F, 3N) centred displacement matrix from (F, N, 3)."""
+    flat = disp.reshape(disp.shape[0], -1)
+    return flat - flat.mean(axis=0)
+
+
+def training_gram(problem: LayoutProblem) -> np.ndarray:
+    """(3N, 3N) Gram matrix of the centred gap-free training displacements (cached on the problem)."""
+    if "gram" not in problem.cache:
+        design = _design(training_frames(problem)[0])
+        problem.cache["gram"] = design.T @ design
+    return problem.cache["gram"]
+
+
+def _blocks(points: np.ndarray) -> np.ndarray:
+    """Column indices (3·len,) of the points' x, y, z columns."""
+    return (3 * np.asarray(points, dtype=np.intp)[:, None] + np.arange(3)).ravel()
+
+
+def pivoted_qr_layout(problem: LayoutProblem, count: int, *, seed: int = 0) -> np.ndarray:
+    """``count`` points by column-pivoted QR of the centred displacements (sorted indices)."""
+    cand = problem.candidate_points()
+    _check(count, cand.size)
+    cols = _blocks(cand)
+    # Same pivots as QR of the tall design matrix (D = U·S with U orthonormal), on a square
+    # factor S of its Gram matrix: 3N×3N instead of frames×3N.
+    vals, vecs = np.linalg.eigh(training_gram(problem)[np.ix_(cols, cols)])
+    square = np.sqrt(np.maximum(vals, 0.0))[:, None] * vecs.T
+    _, piv = sla.qr(square, pivoting=True, mode="r", check_finite=False)
+    order = list(dict.fromkeys(int(c) // 3 for c in piv))
+    chosen = order[:count]
+    if len(chosen) < count:  # fewer informative columns than points: pad deterministically
+        chosen += [i for i in range(cand.size) if i not in set(chosen)][: count - len(chosen)]
+    return np.sort(cand[np.array(chosen, dtype=np.intp)])
+
+
+def _residual_gram(gram: np.ndarray, chosen: Sequence[int], jitter: float) -> np.ndarray:
+    """Gram of the residual after projecting out the chosen points' columns."""
+    cols = _blocks(np.asarray(chosen, dtype=np.intp))
+    if cols.size == 0:
+        return gram.copy()
+    g_sc = gram[cols]
+    g_ss = gram[np.ix_(cols, cols)] + jitter * np.eye(cols.size)
+    return gram - g_sc.T @ np.linalg.solve(g_ss, g_sc)
+
+
+def _gains(resid: np.ndarray, jitter: float) -> np.ndarray:
+    """(N,) residual variance of all columns that each point's block would explain."""
+    n = resid.shape[0] // 3
+    blocks = resid.reshape(3 * n, n, 3)
+    cross = np.einsum("ian,iam->anm", blocks, blocks)  # Σ_i G[i,J]ᵀ G[i,J] per point
+    own = np.stack([resid[3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(n)]) + jitter * np.eye(3)
+    return np.einsum("anm,amn->a", np.linalg.inv(own), cross)
+
+
+def greedy_layout(problem: LayoutProblem, count: int, *, fixed: Sequence[int] = (),
+                  seed: int = 0) -> np.ndarray:
+    """Greedy forward selection of ``count`` points (``fixed`` ones are kept and counted)."""
+    cand = problem.candidate_points()
+    _check(count, cand.size)
+    cols = _blocks(cand)
+    gram = training_gram(problem)[np.ix_(cols, cols)]
+    jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
+    pos = {int(p): i for i, p in enumerate(cand)}
+    chosen = [pos[int(p)] for p in fixed]
+    resid = _residual_gram(gram, chosen, jitter)
+    while len(chosen) < count:
+        gain = _gains(resid, jitter)
+        gain[chosen] = -np.inf
+        best = int(np.argmax(gain))
+        cols = _blocks(np.array([best]))
+        g_bc = resid[cols]
+        resid = resid - g_bc.T @ np.linalg.solve(resid[np.ix_(cols, cols)] + jitter * np.eye(3), g_bc)
+        chosen.append(best)
+    return np.sort(cand[np.array(chosen, dtype=np.intp)])
+
+
+@dataclass(frozen=True, eq=False)
+class CrossValidatedError:
+    """Held-out error of the ridge reconstruction for any layout, from per-fold Gram matrices.
+
+    Reproduces :func:`mocaptk.clustering.evaluation.heldout_errors` (same model, intercept, ridge,
+    layout markers copied) on gap-free frames, at O((3L)²·3N) per layout instead of touching frames.
+    """
+
+    train_gram: tuple[np.ndarray, ...]   # centred on the training mean, (3N, 3N) each
+    test_gram: tuple[np.ndarray, ...]    # test frames centred on the training mean
+    n_test_points: int
+    ridge: float
+
+    @classmethod
+    def from_displacements(cls, disp: np.ndarray, splits: Sequence[tuple[np.ndarray, np.ndarray]], *,
+                           ridge: float = DEFAULT_RIDGE) -> CrossValidatedError:
+        flat = disp.reshape(disp.shape[0], -1)
+        total_sum, total_gram = flat.sum(axis=0), flat.T @ flat
+        train_g, test_g, points = [], [], 0
+        for train, test in splits:
+            # train statistics as total minus test (one pass over the frames for all folds)
+            if train.size + test.size == flat.shape[0]:
+                test_sum, test_raw = flat[test].sum(axis=0), flat[test].T @ flat[test]
+                train_sum, train_raw = total_sum - test_sum, total_gram - test_raw
+            else:
+                test_sum, test_raw = flat[test].sum(axis=0), flat[test].T @ flat[test]
+                train_sum, train_raw = flat[train].sum(axis=0), flat[train].T @ flat[train]
+            mean = train_sum / train.size
+            train_g.append(train_raw - train.size * np.outer(mean, mean))
+            cross = np.outer(test_sum, mean)
+            test_g.append(test_raw - cross - cross.T + test.size * np.outer(mean, mean))
+            points += test.size * disp.shape[1]
+        return cls(tuple(train_g), tuple(test_g), points, float(ridge))
+
+    def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
+        """Pooled held-out RMSE (mm) of reconstructing every point from ``layout``."""
+        cols = _blocks(np.unique(np.asarray(layout, dtype=np.intp)))
+        rest = np.setdiff1d(np.arange(self.train_gram[0].shape[0]), cols)
+        total = 0.0
+        for gram, test in zip(self.train_gram, self.test_gram):
+            g_ss = gram[np.ix_(cols, cols)]
+            lam = self.ridge * max(float(np.trace(g_ss)) / cols.size, 1e-12)
+            coef = np.linalg.solve(g_ss + lam * np.eye(cols.size), gram[np.ix_(cols, rest)])
+            t_sr = test[np.ix_(cols, rest)]
+            total += (np.trace(test[np.ix_(rest, rest)]) - 2.0 * np.einsum("sr,sr->", coef, t_sr)
+                      + np.einsum("sr,st,tr->", coef, test[np.ix_(cols, cols)], coef, optimize=True))
+        return float(np.sqrt(max(total, 0.0) / self.n_test_points))
+
+
+def training_frames(problem: LayoutProblem) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Gap-free training displacements (F', N, 3) and their cross-validation folds.
+
+    Folds leave one take out when ≥ 3 takes keep frames, else 5 contiguous blocks.
+    """
+    complete = np.isfinite(problem.displacements).all(axis=(1, 2))
+    if complete.sum() < 10:
+        complete[:] = True
+    kept = np.flatnonzero(complete)
+    disp = np.nan_to_num(problem.displacements[kept], nan=0.0)
+    takes = []
+    for i, (start, end) in enumerate(problem.segments):
+        lo, hi = np.searchsorted(kept, [start, end])
+        if hi > lo:
+            takes.append(Take(f"take{i}", int(lo), int(hi)))
+    if len(takes) >= 3:
+        return disp, holdout_splits(len(kept), takes, split="takes")
+    return disp, holdout_splits(len(kept), split="blocks", folds=5)
+
+
+def cv_scorer(problem: LayoutProblem, *, ridge: float = DEFAULT_RIDGE) -> CrossValidatedError:
+    """The cross-validated error of the problem's training frames (cached on the problem)."""
+    key = f"cv-{ridge}"
+    if key not in problem.cache:
+        problem.cache[key] = CrossValidatedError.from_displacements(*training_frames(problem), ridge=ridge)
+    return problem.cache[key]
+
+
+def swap_refine(problem: LayoutProblem, layout: Sequence[int] | np.ndarray, *,
+                fixed: Sequence[int] = (), candidates_per_swap: int = 8, max_passes: int = 3,
+                ridge: float = DEFAULT_RIDGE) -> tuple[np.ndarray, float]:
+    """Swap layout points for unused ones while the cross-validated RMSE drops.
+
+    For each layout point, the ``candidates_per_swap`` unused points that would explain most of
+    the residual left without it are tried; the best improving swap is kept (first-improvement per
+    point, ``max_passes`` sweeps). ``fixed`` points never leave. Returns (sorted layout, CV RMSE mm).
+    """
+    scorer = cv_scorer(problem, ridge=ridge)
+    gram = training_gram(problem)
+    jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
+    allowed = np.zeros(problem.n_points, dtype=bool)
+    allowed[problem.candidate_points()] = True
+    current = [int(i) for i in layout]
+    keep = {int(i) for i in fixed}
+    best = scorer.rmse(current)
+    for _ in range(max_passes):
+        improved = False
+        for slot in range(len(current)):
+            if current[slot] in keep:
+                continue
+            others = current[:slot] + current[slot + 1:]
+            gain = _gains(_residual_gram(gram, others, jitter), jitter)
+            gain[~allowed] = -np.inf
+            gain[current] = -np.inf
+            order = np.argsort(-gain, kind="stable")[:candidates_per_swap]
+            for cand in order:
+                if not np.isfinite(gain[cand]):
+                    break
+                trial = others[:slot] + [int(cand)] + others[slot:]
+                score = scorer.rmse(trial)
+                if score < best - 1e-12:
+                    best, current, improved = score, trial, True
+        if not improved:
+            break
+    return np.sort(np.array(current, dtype=np.intp)), best
+
+
+def _check(count: int, available: int) -> None:
+    if not 1 <= count <= available:
+        raise OptionError(f"layout size must be between 1 and {available} markers, got {count}")

@@ -1,0 +1,447 @@
+"""Le, Zhu & Deng (2013): choose the markers from which a thin-shell surface best follows the data.
+
+Reconstruction ``X' = W·X[H]`` with ``W = Â⁻¹B̂`` (:mod:`mocaptk.thin_shell`): every vertex moves
+as the thin shell pinned at the markers ``H``. Block coordinate descent, one marker at a time:
+the expected trajectory of marker j is ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` (``Rj`` = data minus the other
+markers' contribution); the marker moves to the vertex whose trajectory is closest to ``H̄j``;
+``W`` is updated; sweeps repeat until no marker moves. Random restarts keep the best layout.
+
+**Factorization reuse.** ``A`` is factored once (sparse LU of ``K = A + ρ·U·Uᵀ``, ``U`` one anchor
+vertex per connected component, which removes the null space of translations). For any marker
+set, ``W`` follows exactly from the cached columns ``K⁻¹e_h`` of the markers plus an
+(M + c)-sized dense system (a Schur-complement / capacitance solve, see
+:meth:`ThinShellWeights.weights`). Moving a marker costs one pair of triangular solves — never a
+refactorization.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components
+
+from ...errors import OptionError
+from ...thin_shell import thin_shell_operator
+from .problem import LayoutProblem
+
+
+@dataclass(eq=False)
+class ThinShellWeights:
+    """Interpolation weights of the thin shell for any marker set, from one factorization.
+
+    ``W`` minimizes ``xᵀAx`` per column subject to ``x[markers] = I``. With ``A = K − ρ·U·Uᵀ``:
+    ``x = K⁻¹Pᵀλ + ρ·K⁻¹U·s``; the (M + c) unknowns ``λ, s`` solve ``P·x = I`` and ``Uᵀx = s``.
+    Components of the mesh without a marker keep weight 0 (they stay at rest).
+    """
+
+    operator: sp.spmatrix
+    solves: int = 0
+    _green: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        op = sp.csr_matrix(self.operator)
+        n = op.shape[0]
+        n_comp, comp = connected_components(op, directed=False)
+        anchors = np.array([int(np.flatnonzero(comp == c)[0]) for c in range(n_comp)])
+        diag = op.diagonal()
+        self.rho = float(diag[diag > 0].mean()) if (diag > 0).any() else 1.0
+        basis = sp.csr_matrix((np.ones(n_comp), (anchors, np.arange(n_comp))), shape=(n, n_comp))
+        self.component = comp
+        self.anchors = anchors
+        self._lu = spla.splu((op + self.rho * (basis @ basis.T)).tocsc(), permc_spec="COLAMD")
+        self._anchor_green = self._solve(basis.toarray())  # K⁻¹U (V, c)
+
+    def _solve(self, rhs: np.ndarray) -> np.ndarray:
+        self.solves += rhs.shape[1]
+        return self._lu.solve(np.asarray(rhs, dtype=np.float64))
+
+    def green(self, vertices: Sequence[int]) -> np.ndarray:
+        """(V, len) columns ``K⁻¹e_v`` (cached; missing ones solved together)."""
+        missing = [int(v) for v in dict.fromkeys(int(v) for v in vertices) if int(v) not in self._green]
+        if missing:
+            rhs = np.zeros((self._lu.shape[0], len(missing)))
+            rhs[missing, np.arange(len(missing))] = 1.0
+            for v, col in zip(missing, self._solve(rhs).T):
+                self._green[v] = col
+        return np.stack([self._green[int(v)] for v in vertices], axis=1)
+
+    def forget(self, keep: Sequence[int]) -> None:
+        """Drop cached columns except ``keep`` (bounds memory over long optimizations)."""
+        keep_set = {int(v) for v in keep}
+        self._green = {v: c for v, c in self._green.items() if v in keep_set}
+
+    def weights(self, markers: Sequence[int]) -> np.ndarray:
+        """(V, M) interpolation weights for the marker vertices ``markers``."""
+        markers = np.asarray(markers, dtype=np.intp)
+        green = self.green(markers)
+        used = np.unique(self.component[markers])
+        anchor_green = self._anchor_green[:, used]
+        anchors = self.anchors[used]
+        m, c = markers.size, used.size
+        system = np.zeros((m + c, m + c))
+        system[:m, :m] = green[markers]
+        system[:m, m:] = self.rho * anchor_green[markers]
+        system[m:, :m] = green[anchors]
+        system[m:, m:] = self.rho * anchor_green[anchors] - np.eye(c)
+        rhs = np.zeros((m + c, m))
+        rhs[:m] = np.eye(m)
+        coef = np.linalg.solve(system, rhs)
+        out = green @ coef[:m] + self.rho * (anchor_green @ coef[m:])
+        out[markers] = np.eye(m)  # exact at the markers
+        return out
+
+
+@dataclass(frozen=True)
+class ThinShellResult:
+    """Best layout (sorted vertex indices), its training RMSE (mm) and optimizer statistics."""
+
+    layout: np.ndarray
+    rmse_mm: float
+    iterations: list[int]
+    moves: int
+    solves: int
+    factor_seconds: float
+    seconds: float
+
+
+def trajectory_matrix(displacements: np.ndarray) -> np.ndarray:
+    """(V, 3F) one row per vertex: its displacement trajectory (x, y, z per frame)."""
+    disp = np.asarray(displacements, dtype=np.float64)
+    return disp.transpose(1, 0, 2).reshape(disp.shape[1], -1)
+
+
+def mirrored_frames(displacements: np.ndarray, mirror: np.ndarray, *, axis: int = 0) -> np.ndarray:
+    """The data plus its mirror image (frames doubled): vertex v takes its partner's motion, flipped."""
+    flipped = displacements[:, mirror].copy()
+    flipped[..., axis] *= -1.0
+    return np.concatenate([displacements, flipped], axis=0)
+
+
+def border_vertices(faces: np.ndarray, count: int, positions: np.ndarray) -> np.ndarray:
+    """``count`` vertices spread along the mesh boundary (farthest-point along the border), sorted."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    border = np.unique(uniq[counts == 1])
+    if count > border.size:
+        raise OptionError(f"the mesh border has {border.size} vertices, {count} requested")
+    pts = positions[border]
+    chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    while len(chosen) < count:
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[chosen[-1]], axis=1))
+    return np.sort(border[chosen])
+
+
+class _Layout:
+    """Marker set as units (a single vertex, or a mirrored pair) that move together."""
+
+    def __init__(self, units: list[tuple[int, ...]], movable: list[bool]) -> None:
+        self.units = units
+        self.movable = movable
+
+    @property
+    def markers(self) -> list[int]:
+        return [v for unit in self.units for v in unit]
+
+
+def compress_trajectories(trajectories: np.ndarray, *, max_rank: int = 96,
+                          energy: float = 0.99999) -> np.ndarray:
+    """(V, r) coordinates of the trajectories in their principal subspace (r ≤ ``max_rank``).
+
+    Distances between trajectories and reconstruction errors ``‖X − W·X_H‖`` are preserved
+    exactly when the data's rank is ≤ r (and up to the discarded ``1 − energy`` otherwise), so the
+    optimizer works on V×r instead of V×3F numbers.
+    """
+    x = np.asarray(trajectories, dtype=np.float64)
+    if x.shape[1] <= max_rank:
+        return x
+    vals, vecs = np.linalg.eigh(x.T @ x)
+    vals, vecs = vals[::-1], vecs[:, ::-1]
+    cumulative = np.cumsum(np.maximum(vals, 0.0))
+    rank = int(np.searchsorted(cumulative, energy * cumulative[-1]) + 1) if cumulative[-1] > 0 else 1
+    return x @ vecs[:, :min(rank, max_rank)]
+
+
+def mesh_neighbours(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, V) vertex adjacency (1-ring) of a triangle mesh."""
+    f = np.asarray(faces, dtype=np.intp)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
+    adj = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n_vertices, n_vertices))
+    adj.data[:] = 1.0
+    return adj
+
+
+def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, count: int, *,
+                        candidates: np.ndarray | None = None, fixed: Sequence[int] = (),
+                        mirror: np.ndarray | None = None, neighbours: sp.spmatrix | None = None,
+                        iterations: int = 10, restarts: int = 10,
+                        initial: Sequence[int] | None = None, verify: bool = True,
+                        candidates_per_move: int = 3, seed: int = 0) -> ThinShellResult:
+    """Block coordinate descent of Le et al. over ``restarts`` starts.
+
+    Parameters
+    ----------
+    trajectories : (V, 3F) float, mm
+        Per-vertex displacement trajectories (:func:`trajectory_matrix`).
+    solver : ThinShellWeights
+        Factorized thin-shell operator of the mesh.
+    count : int
+        Markers in the layout (``fixed`` ones included).
+    candidates : (K,) int, optional
+        Vertices a marker may occupy (default all).
+    fixed : vertex indices
+        Markers that never move (boundary constraint; a smaller layout kept for multiresolution).
+    mirror : (V,) int, optional
+        Symmetry constraint: markers come in mirrored pairs ``(v, mirror[v])``, or sit on the
+        midline (``mirror[v] == v``). Pass mirrored data (:func:`mirrored_frames`) with it.
+    neighbours : (V, V) sparse, optional
+        Mesh adjacency; with ``verify`` the 1-ring of a marker is tried too.
+    initial : vertex indices, optional
+        Start of the first restart (default: markers inserted one by one where the fit is worst);
+        later restarts are random.
+    verify : bool
+        Our extension of the paper's step. ``False``: Le et al. as written — each marker moves to
+        the vertex whose trajectory is closest to its expected trajectory, until no marker moves.
+        ``True`` (default): the ``candidates_per_move`` closest vertices and the marker's 1-ring are
+        scored by the actual reconstruction error and the best is kept only if the error drops
+        (monotone descent), and when a sweep moves nothing, one marker may jump to a
+        badly-fitted vertex. As written, the step is not stable: even next to the optimum the
+        other markers' expected trajectories are biased by the misplaced one and they drift.
+    """
+    started = time.perf_counter()
+    x = compress_trajectories(trajectories)
+    n = x.shape[0]
+    allowed = np.zeros(n, dtype=bool)
+    allowed[np.arange(n) if candidates is None else np.asarray(candidates, dtype=np.intp)] = True
+    fixed = [int(v) for v in fixed]
+    if not 1 <= count <= int(allowed.sum()) + len(fixed) or len(fixed) > count:
+        raise OptionError(f"layout size must be between {max(len(fixed), 1)} and {int(allowed.sum())}, "
+                          f"got {count}")
+    sq_norm = np.einsum("ij,ij->i", x, x)
+    ring = None if neighbours is None else sp.csr_matrix(neighbours)
+    rng = np.random.default_rng(seed)
+    best: tuple[float, list[int]] | None = None
+    iteration_counts: list[int] = []
+    moves = 0
+    for restart in range(restarts):
+        if restart == 0 and initial is None:
+            initial = _insertion_start(x, solver, count, fixed, allowed, mirror)
+        layout = _start(count, fixed, allowed, mirror, rng, initial if restart == 0 else None)
+        current = _error(x, solver.weights(layout.markers), layout.markers)
+        sweeps = 0
+        for _ in range(iterations):
+            sweeps += 1
+            moved = False
+            for u in rng.permutation(len(layout.units)):
+                if not layout.movable[u]:
+                    continue
+                markers = layout.markers
+                weights = solver.weights(markers)
+                targets = _closest_units(x, sq_norm, weights, markers, layout, int(u), allowed, mirror,
+                                         candidates_per_move if verify else 1)
+                if not verify:
+                    if targets:
+                        layout.units[u] = targets[0]
+                        moved, moves = True, moves + 1
+                    continue
+                targets += _ring_units(ring, layout, int(u), allowed, mirror)
+                old = layout.units[u]
+                best_unit = old
+                for unit in dict.fromkeys(targets):
+                    layout.units[u] = unit
+                    err = _error(x, solver.weights(layout.markers), layout.markers)
+                    if err < current * (1.0 - 1e-12):
+                        current, best_unit = err, unit
+                layout.units[u] = best_unit
+                if best_unit != old:
+                    moved, moves = True, moves + 1
+            if verify and not moved:
+                jumped = _jump(x, solver, layout, allowed, mirror, current)
+                if jumped is not None:
+                    current, moved, moves = jumped, True, moves + 1
+            solver.forget(layout.markers)
+            if not moved:
+                break
+        iteration_counts.append(sweeps)
+        markers = layout.markers
+        err = _error(x, solver.weights(markers), markers)
+        if best is None or err < best[0]:
+            best = (err, sorted(markers))
+    assert best is not None
+    rmse = float(np.sqrt(best[0] / (n * np.asarray(trajectories).shape[1] / 3)))
+    return ThinShellResult(np.array(best[1], dtype=np.intp), rmse, iteration_counts, moves,
+                           solver.solves, 0.0, time.perf_counter() - started)
+
+
+def _ring_units(ring: sp.csr_matrix | None, layout: _Layout, unit: int, allowed: np.ndarray,
+                mirror: np.ndarray | None) -> list[tuple[int, ...]]:
+    """The unit moved to each free 1-ring neighbour of its first vertex."""
+    if ring is None:
+        return []
+    members = layout.units[unit]
+    v = members[0]
+    taken = set(layout.markers) - set(members)
+    out: list[tuple[int, ...]] = []
+    for w in ring.indices[ring.indptr[v]:ring.indptr[v + 1]]:
+        w = int(w)
+        if not allowed[w] or w in taken:
+            continue
+        if len(members) == 1:
+            if mirror is None or mirror[w] == w:
+                out.append((w,))
+        elif mirror[w] != w and int(mirror[w]) not in taken and allowed[mirror[w]]:
+            out.append((w, int(mirror[w])))
+    return out
+
+
+def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.ndarray,
+          mirror: np.ndarray | None, current: float, targets: int = 4) -> float | None:
+    """Relocate one unit to one of the ``targets`` worst-fitted free vertices if that lowers the
+    error; returns the new error (None: no improving jump)."""
+    markers = layout.markers
+    residual = x - solver.weights(markers) @ x[markers]
+    per_vertex = np.einsum("ij,ij->i", residual, residual)
+    free = allowed.copy()
+    free[markers] = False
+    if mirror is not None:
+        free[mirror[markers]] = False
+    best_err, best_move = current * (1.0 - 1e-12), None
+    on_midline = None if mirror is None else mirror == np.arange(len(mirror))
+    for u, unit in enumerate(layout.units):
+        if not layout.movable[u]:
+            continue
+        mask = free.copy()
+        if on_midline is not None:
+            mask &= on_midline if len(unit) == 1 else ~on_midline
+        places = np.flatnonzero(mask)
+        for v in places[np.argsort(-per_vertex[places], kind="stable")[:targets]]:
+            new_unit = (int(v),) if len(unit) == 1 else (int(v), int(mirror[v]))
+            trial = layout.units[:u] + [new_unit] + layout.units[u + 1:]
+            trial_markers = [w for t in trial for w in t]
+            err = _error(x, solver.weights(trial_markers), trial_markers)
+            if err < best_err:
+                best_err, best_move = err, (u, new_unit)
+    if best_move is None:
+        return None
+    layout.units[best_move[0]] = best_move[1]
+    return best_err
+
+
+def _insertion_start(x: np.ndarray, solver: ThinShellWeights, count: int, fixed: list[int],
+                     allowed: np.ndarray, mirror: np.ndarray | None) -> list[int]:
+    """Markers added one by one at the worst-reconstructed allowed vertex (largest motion first)."""
+    chosen = list(fixed)
+    free = allowed.copy()
+    free[chosen] = False
+    while len(chosen) < count and free.any():
+        residual = x - solver.weights(chosen) @ x[chosen] if chosen else x
+        per_vertex = np.einsum("ij,ij->i", residual, residual)
+        v = int(np.flatnonzero(free)[np.argmax(per_vertex[free])])
+        new = [v] if mirror is None or count - len(chosen) < 2 else list(dict.fromkeys([v, int(mirror[v])]))
+        chosen += new
+        free[new] = False
+    return chosen
+
+
+def _error(x: np.ndarray, weights: np.ndarray, markers: list[int]) -> float:
+    return float(np.sum((x - weights @ x[markers]) ** 2))
+
+
+def _closest_units(x: np.ndarray, sq_norm: np.ndarray, weights: np.ndarray, markers: list[int],
+                   layout: _Layout, unit: int, allowed: np.ndarray, mirror: np.ndarray | None,
+                   how_many: int) -> list[tuple[int, ...]]:
+    """The unit's ``how_many`` best new places (trajectories closest to the expected ones) that
+    beat staying put, best first (empty if staying is best)."""
+    members = list(layout.units[unit])
+    start = sum(len(layout.units[k]) for k in range(unit))
+    cols = list(range(start, start + len(members)))
+    gram = weights[:, cols].T @ weights  # (len(cols), M)
+    others = [k for k in range(len(markers)) if k not in cols]
+    other_traj = x[[markers[k] for k in others]]
+    cost = np.zeros(x.shape[0])
+    for member, col in enumerate(cols):
+        # H̄j = Wjᵀ(X − Σ_{k∉unit} Wk X[hk]) / (WjᵀWj)
+        expected = (weights[:, col] @ x - gram[member, others] @ other_traj) / gram[member, col]
+        dist = sq_norm - 2.0 * (x @ expected)
+        cost += dist if member == 0 else dist[mirror]  # the pair's second vertex is mirror[v]
+    free = allowed.copy()
+    taken = [markers[k] for k in others]
+    free[taken] = False
+    if mirror is not None:
+        free[mirror[taken]] = False
+        on_midline = mirror == np.arange(x.shape[0])
+        free &= on_midline if len(members) == 1 else ~on_midline
+    free[members[0]] = False
+    stay = cost[members[0]] - 1e-12 * abs(cost[members[0]])
+    places = np.flatnonzero(free & (cost < stay))
+    places = places[np.argsort(cost[places], kind="stable")[:how_many]]
+    return [(int(v),) if len(members) == 1 else (int(v), int(mirror[v])) for v in places]
+
+
+def _start(count: int, fixed: list[int], allowed: np.ndarray, mirror: np.ndarray | None,
+           rng: np.random.Generator, initial: Sequence[int] | None) -> _Layout:
+    units: list[tuple[int, ...]] = [(v,) for v in fixed]
+    movable = [False] * len(units)
+    used = set(fixed)
+    pool = [int(v) for v in (initial if initial is not None else rng.permutation(np.flatnonzero(allowed)))]
+    if initial is not None:  # top up a short initial layout with random vertices
+        pool += [int(v) for v in rng.permutation(np.flatnonzero(allowed))]
+    remaining = count - len(fixed)
+    for v in pool:
+        if remaining <= 0:
+            break
+        if v in used or not allowed[v]:
+            continue
+        if mirror is None or mirror[v] == v:
+            unit: tuple[int, ...] = (v,)
+        elif remaining >= 2 and int(mirror[v]) not in used and allowed[mirror[v]]:
+            unit = (v, int(mirror[v]))
+        else:
+            continue
+        units.append(unit)
+        movable.append(True)
+        used.update(unit)
+        remaining -= len(unit)
+    if remaining:
+        raise OptionError("cannot place that many markers under the symmetry constraint")
+    return _Layout(units, movable)
+
+
+def thin_shell_layout(problem: LayoutProblem, count: int, *, ks: float = 1.0, kb: float = 10.0,
+                      iterations: int = 10, restarts: int = 10, fixed: Sequence[int] = (),
+                      border_markers: int = 0, symmetric: bool = False,
+                      initial: Sequence[int] | None = None, verify: bool = True,
+                      seed: int = 0) -> ThinShellResult:
+    """Le et al.'s optimizer on a layout problem (mesh = ``problem.surface_faces()``).
+
+    ``border_markers`` fixed markers are spread along the mesh border (boundary constraint);
+    ``fixed`` keeps given points (multiresolution); ``symmetric`` needs ``problem.mirror`` and uses
+    mirrored data with paired markers. Gap-free frames only (:meth:`LayoutProblem.complete_frames`).
+    """
+    faces = problem.surface_faces()
+    t0 = time.perf_counter()
+    solver = ThinShellWeights(thin_shell_operator(problem.neutral, faces, ks=ks, kb=kb))
+    factor_seconds = time.perf_counter() - t0
+    disp = problem.complete_frames()
+    mirror = None
+    if symmetric:
+        if problem.mirror is None:
+            raise OptionError("symmetric layouts need the mirror partner of every point")
+        mirror = problem.mirror
+        disp = mirrored_frames(disp, mirror)
+    pinned = list(dict.fromkeys([int(v) for v in fixed]
+                                + ([int(v) for v in border_vertices(faces, border_markers, problem.neutral)]
+                                   if border_markers else [])))
+    result = optimize_thin_shell(trajectory_matrix(disp), solver, count,
+                                 candidates=problem.candidate_points(), fixed=pinned, mirror=mirror,
+                                 neighbours=mesh_neighbours(faces, problem.n_points), iterations=iterations,
+                                 restarts=restarts, initial=initial, verify=verify, seed=seed)
+    return ThinShellResult(result.layout, result.rmse_mm, result.iterations, result.moves,
+                           result.solves, factor_seconds, result.seconds + factor_seconds)
