@@ -3,7 +3,8 @@
 Where markers may go (the *marker zone*), on the face region of the neutral mesh:
 
 - inside the face outline seen from the front: the Multi-PIE jaw-contour landmarks (0–16) closed
-  over the forehead by an arc ``FOREHEAD_HEIGHT_MM`` above the brows (no ears, neck, scalp);
+  over the forehead by an arc ``FOREHEAD_HEIGHT_MM`` above the brows, and in front of the
+  outermost contour landmarks (0, 16, at the tragus): no ears, neck or scalp;
 - on skin that faces the front (vertex normal ``z`` ≥ ``MIN_FORWARD_NORMAL``: no nostril
   interior, no under-nose or under-chin skin);
 - not on the eyelids or the inner lips: mesh-graph distance to the eye openings ≥
@@ -149,6 +150,8 @@ def marker_zone(model: FaceModel) -> np.ndarray:
     arc_y = brow_top + FOREHEAD_HEIGHT_MM * np.sqrt(1.0 - (arc_x / jaw[16, 0]) ** 2 * 0.6)
     outline = np.vstack([jaw, np.column_stack([arc_x, arc_y])])
     inside = _inside_polygon(vertices[:, :2], outline)
+    # the ear's concha and tragus project inside the outline: keep to skin in front of the ear
+    inside &= vertices[:, 2] >= marks[[0, 16], 2].min()
     forward = vertex_normals(vertices, faces)[:, 2] >= MIN_FORWARD_NORMAL
 
     graph = _edge_graph(vertices, faces)

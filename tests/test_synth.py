@@ -100,6 +100,8 @@ def test_markers_sit_on_skin_that_faces_forward(model, half):
     assert np.allclose(half.barycentric.sum(axis=1), 1.0)
     assert np.allclose(half.positions(model.neutral), model.neutral[half.vertices])
     # nothing on the eyeballs' openings or deep in the mouth: no marker behind the lips' front
+    # nothing in the ears: all in front of the face contour's ends at the tragus
+    assert (half.positions(model.neutral)[:, 2] >= model.neutral[model.landmarks[16], 2]).all()
     lips_front = model.neutral[model.landmarks[60:68], 2].min()
     mouth = np.array(half.regions) == "mouth"
     assert (half.positions(model.neutral)[mouth, 2] > lips_front - 15).all()
