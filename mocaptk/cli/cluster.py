@@ -19,6 +19,7 @@ import typer
 
 from ..errors import OutputError
 from .app import app
+from .rig import cluster_rig_outputs, rig_options
 
 
 def default_out_dir(session: Path) -> Path:
@@ -125,6 +126,11 @@ def cluster(
     units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress or summary (warnings still shown)."),
+    mesh: Path = typer.Option(None, "--mesh", help="Character face mesh for the rig (OBJ, PLY, glTF; "
+                              "default: a surface through the dense markers)."),
+    max_influences: int = typer.Option(4, "--max-influences", help="Rig joints per vertex (1-8)."),
+    formats: str = typer.Option("json,fbx,glb", "--formats", help="Rig files to write (json,fbx,glb) "
+                                "with guide.pdf; 'none' skips the rig and the guide."),
 ) -> None:
     """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra)."""
     from rich.console import Console
@@ -137,6 +143,7 @@ def cluster(
     if out_dir.is_dir() and any(out_dir.iterdir()) and not force:  # fail before the slow part
         raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
     console = Console(stderr=True, quiet=quiet)
+    rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     traj, source = load_session(session, rate=rate, units=units)
     options = ClusterOptions(
         factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror,
@@ -149,6 +156,8 @@ def cluster(
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:
         write_cluster_outputs(result, folder)
+        cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
+                            formats=formats, quiet=quiet)
     if not quiet:
         typer.echo(summary_text(result), nl=False)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

@@ -111,3 +111,27 @@ def rig(
                    f"{check.p95_mm:.2f} mm ({check.vertices} dense markers, {check.frames} frames)")
         for path in written.values():
             typer.echo(f"wrote {path}")
+
+
+def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influences: int,
+                        formats: str, quiet: bool) -> None:
+    """What ``mocaptk cluster`` adds to its output folder: rig files + guide (``formats`` may be
+    ``none`` to skip both). ``result`` is the clustering pipeline's ``ClusterResult``."""
+    from rich.console import Console
+
+    from ..retarget.build import write_rig_outputs
+
+    chosen = parse_formats(formats)
+    if chosen == ("none",):
+        return
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("building the rig") as status:
+        build, _ = write_rig_outputs(
+            result.layout, result.trajectories, folder, mesh_path=mesh,
+            options=rig_options(max_influences, None, False, 1), formats=chosen,
+            title=f"{result.layout.source.get('path', '')} factor "
+                  f"{result.layout.parameters.get('factor')}",
+            force=True, progress=lambda text: status.update(text))
+    if not quiet:
+        typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
+                   f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
