@@ -1,12 +1,12 @@
 """Robust, vectorized multi-view triangulation of labelled 2-D detections.
 
-All points are solved together: per camera we undistort every detection at once, build the
-DLT rows, and solve the batched 3x3 normal equations of the inhomogeneous DLT for every point
-in one ``np.linalg.solve``. Outlier views are rejected by consensus: every camera pair
-proposes a two-view point for all points at once, the proposal with most views within
+All points are solved together: every camera's detections are undistorted at once, the DLT
+normal equations of all points come from one matrix product and are solved in closed form
+(batched 3x3). Outlier views are rejected by consensus: every camera pair proposes a
+two-view point for all doubtful points at once, the proposal with most views within
 ``outlier_threshold_px`` wins per point, and the point is refit on those inlier views.
-A few reweighting steps (depth-normalized DLT = Gauss-Newton-like refinement on the
-reprojection error) finish each fit.
+Reweighting steps (rows scaled by focal / depth, so the algebraic error becomes the
+reprojection error in px: a Gauss-Newton-like refinement) finish each fit.
 """
 
 from __future__ import annotations
