@@ -16,9 +16,10 @@ Nothing here imports ezc3d.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+
 import numpy as np
 
 from mocaptk.errors import InputFileError
@@ -293,7 +294,7 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
 
 
 def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,
-                  header_ratio: int, rate: float, frame_size: Any, n_frames: int,
+                  header_ratio: int, rate: float, frame_size: Callable[[int], int], n_frames: int,
                   data_bytes: int) -> int:
     """Analog samples per frame: the header's count unless another reading of header and
     parameters is the one that fills the data section (MotionMonitorC3D.c3d stores the channel
@@ -335,6 +336,11 @@ def read_points(structure: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
     except OSError as exc:
         raise InputFileError(s.path, f"cannot read ({exc.strerror or exc})") from None
     _check(s.path, len(block) == s.n_frames, "truncated C3D file (point data cut short)")
+    with np.errstate(over="ignore", invalid="ignore"):  # garbage values become inf / NaN
+        return _decode_points(block, s)
+
+
+def _decode_points(block: np.ndarray, s: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
     if s.processor == "dec" and s.float_storage:
         block = _dec(block)
     xyz = block[..., :3].astype(np.float64)
@@ -345,7 +351,7 @@ def read_points(structure: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
         xyz *= abs(s.scale)
         residual_word = fourth.astype(np.float64)
     invalid = residual_word < 0
-    code = np.where(invalid, 0, residual_word).astype(np.int64)
+    code = np.clip(np.where(invalid, 0, residual_word), 0, 0xFFFF).astype(np.int64)
     residuals = np.where(invalid, -1.0, (code & 0xFF) * abs(s.scale))
     return xyz, residuals
 

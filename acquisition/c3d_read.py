@@ -60,10 +60,11 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
     mm_per_unit, units = _units(structure)
     labels = _labels(structure, notes)
     xyz, residual, reader = _read_point_values(structure, notes)
-    missing = (residual < 0) | ~np.isfinite(xyz).all(axis=2)
-    xyz *= mm_per_unit
-    xyz[missing] = np.nan
-    residual = np.where(missing, np.nan, residual * mm_per_unit)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge values become inf: gaps
+        xyz *= mm_per_unit
+        missing = (residual < 0) | ~np.isfinite(xyz).all(axis=2)
+        xyz[missing] = np.nan
+        residual = np.where(missing, np.nan, residual * mm_per_unit)
     metadata: dict[str, Any] = {
         "source": str(path), "format": "c3d", "original_units": units,
         "subjects": _subjects(structure, labels),
