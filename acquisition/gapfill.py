@@ -22,6 +22,7 @@ from .runs import take_segments, true_runs
 METHODS = ("auto", "cubic", "akima", "neighbours")
 _MIN_TRAINING_FRAMES = 10
 _MAX_TRAINING_FRAMES = 4000
+_CORRELATION_FRAMES = 600  # frames used to rank neighbours by correlation
 
 
 @dataclass(frozen=True)
@@ -179,16 +180,17 @@ def _neighbour_fill(out: np.ndarray, missing: np.ndarray, m: int, segment: tuple
     training = _training_frames(~missing[:, m], segment)
     if training.size < _MIN_TRAINING_FRAMES:
         return "too few frames where the marker is seen"
-    target = out[training, m]
-    cand = out[training][:, candidates]  # (T, C, 3)
-    seen = visible_now[training][:, candidates]
+    sample = training[np.linspace(0, training.size - 1, min(training.size, _CORRELATION_FRAMES)).astype(int)]
+    target = out[sample, m]
+    cand = out[np.ix_(sample, candidates)]  # (T, C, 3)
+    seen = visible_now[np.ix_(sample, candidates)]
     score = _displacement_correlation(target, cand, seen)
     order = np.argsort(-score, kind="stable")[:k]
     chosen = candidates[order]
-    rows = training[visible_now[training][:, chosen].all(axis=1)]
+    rows = training[visible_now[np.ix_(training, chosen)].all(axis=1)]
     if rows.size < _MIN_TRAINING_FRAMES:
         return "too few frames where the marker and its neighbours are seen together"
-    x = out[rows][:, chosen].reshape(len(rows), -1)
+    x = out[np.ix_(rows, chosen)].reshape(len(rows), -1)
     y = out[rows, m]
     x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
     xc, yc = x - x_mean, y - y_mean
@@ -199,8 +201,8 @@ def _neighbour_fill(out: np.ndarray, missing: np.ndarray, m: int, segment: tuple
     inside = (span >= 0) & (span < out.shape[0])
     pred = np.full((len(span), 3), np.nan)
     ok = inside.copy()
-    ok[inside] &= visible_now[span[inside]][:, chosen].all(axis=1)
-    pred[ok] = (out[span[ok]][:, chosen].reshape(ok.sum(), -1) - x_mean) @ beta + y_mean
+    ok[inside] &= visible_now[np.ix_(span[inside], chosen)].all(axis=1)
+    pred[ok] = (out[np.ix_(span[ok], chosen)].reshape(ok.sum(), -1) - x_mean) @ beta + y_mean
     # shift the prediction so it meets the observed marker at the gap edges (linear blend)
     s, e = segment
     before = gs - 1 >= s and not missing[gs - 1, m] and ok[0]

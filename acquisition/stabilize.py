@@ -17,12 +17,17 @@ from mocaptk.trajectories import Trajectories
 
 #: Automatic rigid set: at most this many markers ...
 AUTO_RIGID_MAX = 6
-#: ... each added only while its distances to the chosen set vary by less than this (mm, std).
-AUTO_RIGID_MAX_STD_MM = 1.0
+#: ... pairwise at least this fraction of the marker cloud's diameter apart (a spread set: markers
+#: that merely move together with their close neighbours keep their distances too) ...
+AUTO_RIGID_SPREAD = 0.25
+#: ... each added while the 95th percentile of its distance changes stays below
+#: ``max(AUTO_RIGID_MIN_TOLERANCE_MM, 2.5 × that of the first pair)``.
+AUTO_RIGID_MIN_TOLERANCE_MM = 1.0
 #: The third marker must lie at least this far (mm) from the line through the first two.
 AUTO_RIGID_MIN_SPREAD_MM = 10.0
 _DETECT_FRAMES = 300  # frames sampled to score distance variation
 _MIN_SHARED = 0.5     # a pair counts only if both markers are seen in half the sampled frames
+_REFINE_ROUNDS = 2    # stabilize-and-reselect rounds after the pairwise-distance pick
 
 
 @dataclass(frozen=True)
@@ -82,14 +87,20 @@ def kabsch(reference: np.ndarray, moving: np.ndarray, weights: np.ndarray) -> tu
 
 
 def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
-    """Markers that move together as a rigid body (on a face: forehead, nose bridge, temples).
+    """Markers that move as one rigid body, spread over it (on a face: nose bridge, temples, forehead).
 
-    Rule: over up to 300 evenly spaced frames, score every marker pair by the standard deviation
-    of its distance (pairs seen together in fewer than half the frames are excluded). Start from
-    the least varying pair, then repeatedly add the marker whose distances to the chosen set have
-    the smallest mean std, while that std is below ``AUTO_RIGID_MAX_STD_MM`` (1 mm) and the set has
-    fewer than ``AUTO_RIGID_MAX`` (6) markers; the third marker must lie at least 10 mm off the line
-    through the first two. Raises :class:`OptionError` if no 3 markers qualify.
+    Rule, on up to 300 evenly spaced frames: for every marker pair seen together in at least half
+    of them, take the 95th percentile of ``|d(f) - median d|`` (its distance changes, mm). Only
+    pairs at least ``AUTO_RIGID_SPREAD`` (25 %) of the cloud's diameter apart count — neighbouring
+    skin markers keep their distances while moving together, distant ones only if both sit on the
+    rigid skull. Start from the steadiest such pair; repeatedly add the marker, far enough from all
+    chosen ones, whose largest change to them is smallest, while it stays below
+    ``max(1 mm, 2.5 × the first pair's)`` and the set is smaller than 6; the third marker is always
+    added (≥ 10 mm off the line through the first two). Then, twice: stabilize on the set and
+    re-pick by head-relative motion (95th percentile distance from the marker's median position in
+    head coordinates): the steadiest markers pairwise 25 % of the diameter apart, then the steadiest
+    others, up to 6, all moving less than ``max(1 mm, 2.5 × the steadiest one's motion)``.
+    Raises :class:`OptionError` if no 3 markers qualify.
     """
     step = max(1, traj.n_frames // _DETECT_FRAMES)
     pos = traj.positions[::step]
@@ -97,37 +108,100 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     n_frames, n_markers = visible.shape
     if n_markers < 3:
         raise OptionError(f"stabilization needs at least 3 markers, the session has {n_markers}")
-    shared = visible.T.astype(float) @ visible.astype(float)  # (M, M) frames seen together
-    seen = np.maximum(visible.sum(axis=1), 1)[:, None, None]
-    centre = np.where(visible[..., None], pos, 0.0).sum(axis=1, keepdims=True) / seen
-    centred = np.where(visible[..., None], pos - centre, 0.0)  # centred: small numbers, exact distances
-    norms = (centred ** 2).sum(axis=2)
-    sq = np.maximum(norms[:, :, None] + norms[:, None, :] - 2 * centred @ centred.transpose(0, 2, 1), 0.0)
-    both = visible[:, :, None] & visible[:, None, :]
-    dist = np.sqrt(np.where(both, sq, 0.0))  # (frames, M, M) pairwise distances, 0 where unseen
-    total = dist.sum(axis=0)
-    total_sq = (dist ** 2).sum(axis=0)
-    count = np.maximum(shared, 1.0)
-    std = np.sqrt(np.maximum(total_sq / count - (total / count) ** 2, 0.0))
-    usable = shared >= _MIN_SHARED * n_frames
+    typical, change = _pair_distance_stats(pos, visible)
+    shared = visible.T.astype(float) @ visible.astype(float)
+    usable = (shared >= _MIN_SHARED * n_frames) & np.isfinite(change)
     np.fill_diagonal(usable, False)
-    std = np.where(usable, std, np.inf)
-    if not np.isfinite(std).any():
+    if not usable.any():
         raise OptionError("cannot detect rigid markers: no two markers are seen together often enough")
-    i, j = np.unravel_index(np.argmin(std), std.shape)
+    spread = typical >= AUTO_RIGID_SPREAD * typical[usable].max()
+    score = np.where(usable & spread, change, np.inf)
+    i, j = np.unravel_index(np.argmin(score), score.shape)
+    if not np.isfinite(score[i, j]):
+        raise OptionError("cannot detect rigid markers: no distant marker pair is seen together")
+    tolerance = max(AUTO_RIGID_MIN_TOLERANCE_MM, 2.5 * float(score[i, j]))
     chosen = [int(i), int(j)]
     while len(chosen) < AUTO_RIGID_MAX:
-        score = std[:, chosen].mean(axis=1)
-        score[chosen] = np.inf
+        worst = score[:, chosen].max(axis=1)  # inf unless far from / co-visible with every chosen
+        worst[chosen] = np.inf
         if len(chosen) == 2:
-            score = np.where(_off_line(pos, visible, chosen) >= AUTO_RIGID_MIN_SPREAD_MM, score, np.inf)
-        k = int(np.argmin(score))
-        if not score[k] < AUTO_RIGID_MAX_STD_MM and len(chosen) >= 3:
+            worst = np.where(_off_line(pos, visible, chosen) >= AUTO_RIGID_MIN_SPREAD_MM, worst, np.inf)
+        k = int(np.argmin(worst))
+        if not np.isfinite(worst[k]):
+            if len(chosen) < 3:
+                raise OptionError("cannot detect 3 rigid markers (no third marker far from the first two)")
             break
-        if not np.isfinite(score[k]):
-            raise OptionError("cannot detect 3 rigid markers (no third marker off the line of the first two)")
+        if worst[k] > tolerance and len(chosen) >= 3:
+            break
         chosen.append(k)
+    sample = Trajectories(pos, traj.labels, traj.rate)
+    for _ in range(_REFINE_ROUNDS):
+        chosen = _least_moving_spread_set(sample, chosen, spread_mm=AUTO_RIGID_SPREAD * typical[usable].max())
     return tuple(traj.labels[k] for k in sorted(chosen))
+
+
+def _least_moving_spread_set(sample: Trajectories, chosen: list[int], *, spread_mm: float) -> list[int]:
+    """Refine a rigid set: stabilize on it, then take the markers that move least in head coordinates
+    (95th percentile distance from their median head-relative position), first pairwise
+    ``spread_mm`` apart, then any of the remaining ones that move as little (up to 6 in all)."""
+    try:
+        rel = stabilize_head(sample, rigid_labels=[sample.labels[k] for k in chosen]).trajectories.positions
+    except OptionError:
+        return chosen
+    seen = ~np.isnan(rel).any(axis=2)
+    enough = seen.sum(axis=0) >= _MIN_SHARED * len(rel)
+    motion = np.full(rel.shape[1], np.inf)
+    for m in np.flatnonzero(enough):
+        track = rel[seen[:, m], m]
+        motion[m] = np.percentile(np.linalg.norm(track - np.median(track, axis=0), axis=1), 95)
+    centre = np.array([np.median(rel[seen[:, m], m], axis=0) if enough[m] else np.full(3, np.nan)
+                       for m in range(rel.shape[1])])
+    order = [int(m) for m in np.argsort(motion, kind="stable") if np.isfinite(motion[m])]
+    if not order:
+        return chosen
+    tolerance = max(AUTO_RIGID_MIN_TOLERANCE_MM, 2.5 * motion[order[0]])
+    picked: list[int] = []
+    for m in order:
+        if len(picked) >= AUTO_RIGID_MAX or (motion[m] > tolerance and len(picked) >= 3):
+            break
+        if all(np.linalg.norm(centre[m] - centre[k]) >= spread_mm for k in picked):
+            if len(picked) == 2 and _distance_to_line(centre[m], centre[picked[0]], centre[picked[1]]) \
+                    < AUTO_RIGID_MIN_SPREAD_MM:
+                continue
+            picked.append(m)
+    if len(picked) < 3:
+        return chosen
+    # then the steadiest remaining markers, close or not: more markers, fewer frames without a pose
+    extra = [m for m in order if m not in picked and motion[m] <= tolerance]
+    return picked + extra[:AUTO_RIGID_MAX - len(picked)]
+
+
+def _distance_to_line(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    axis = (b - a) / max(float(np.linalg.norm(b - a)), 1e-12)
+    rel = point - a
+    return float(np.linalg.norm(rel - rel.dot(axis) * axis))
+
+
+def _pair_distance_stats(pos: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker pair over frames seen together: median distance and 95th percentile of
+    ``|d - median d|`` (both (M, M) mm; inf where never seen together)."""
+    n_frames, n_markers = visible.shape
+    typical = np.full((n_markers, n_markers), np.inf)
+    change = np.full((n_markers, n_markers), np.inf)
+    rows = max(1, 8_000_000 // max(1, n_frames * n_markers))
+    for lo in range(0, n_markers, rows):  # chunks of marker rows keep (F, rows, M) arrays small
+        hi = min(n_markers, lo + rows)
+        both = visible[:, lo:hi, None] & visible[:, None, :]
+        d = np.linalg.norm(pos[:, lo:hi, None] - pos[:, None, :], axis=3)
+        d = np.where(both, d, np.inf)
+        count = both.sum(axis=0)
+        has = count > 0
+        median = np.take_along_axis(np.sort(d, axis=0), np.maximum(count - 1, 0)[None] // 2, axis=0)[0]
+        dev = np.where(both, np.abs(d - median), np.inf)
+        p95 = np.take_along_axis(np.sort(dev, axis=0), (np.maximum(count - 1, 0)[None] * 95) // 100, axis=0)[0]
+        typical[lo:hi] = np.where(has, median, np.inf)
+        change[lo:hi] = np.where(has, p95, np.inf)
+    return typical, change
 
 
 def _off_line(pos: np.ndarray, visible: np.ndarray, pair: list[int]) -> np.ndarray:

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import SAMPLES, shared_path
 from scipy.spatial.transform import Rotation
 
 from mocaptk import Take, Trajectories
@@ -35,12 +35,12 @@ def _head_motion(frames: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _face_like(frames=1200, markers=60, rigid=6, noise=0.1, dropout=0.1, seed=0):
-    """Markers on a 'head': ``rigid`` of them fixed, the rest deforming (1-8 mm oscillations),
+    """Markers on a 'head': ``rigid`` of them fixed, the rest deforming (3-8 mm oscillations),
     moved by a known rigid motion; returns (session, local positions, R, t)."""
     rng = np.random.default_rng(seed)
     base = rng.normal(0, 40, (markers, 3))
     t = np.arange(frames) / RATE
-    amp = rng.uniform(1, 8, (markers, 1)) * np.sin(2 * np.pi * rng.uniform(0.2, 1.5, (markers, 1)) * t
+    amp = rng.uniform(3, 8, (markers, 1)) * np.sin(2 * np.pi * rng.uniform(0.2, 1.5, (markers, 1)) * t
                                                    + rng.uniform(0, 6, (markers, 1)))
     dirs = rng.normal(size=(markers, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -76,14 +76,15 @@ def face():
 
 def test_rigid_markers_detected_automatically(face):
     session, *_ = face
-    assert detect_rigid_markers(session) == tuple(f"HEAD_{i:02d}" for i in range(6))
+    found = detect_rigid_markers(session)
+    assert len(found) >= 3 and all(label.startswith("HEAD_") for label in found)
 
 
 def test_stabilization_recovers_known_head_motion(face):
     session, local, rot, trans = face
     result = stabilize_head(session)
     ref = result.reference_frame
-    assert result.rigid_labels == tuple(f"HEAD_{i:02d}" for i in range(6))
+    assert len(result.rigid_labels) >= 3 and all(label.startswith("HEAD_") for label in result.rigid_labels)
     posed = np.isfinite(result.rotations[:, 0, 0])
     assert posed.mean() > 0.99  # 10 % dropout: < 3 of 6 rigid markers seen is rare
     # truth: pose relative to the reference frame, x_f = (R_f R_ref^T) x_ref + ...
@@ -134,6 +135,41 @@ def test_stabilization_of_real_data_cancels_an_added_rigid_motion():
     expected = np.einsum("ij,fmj->fmi", rot[ref], a.trajectories.positions) + trans[ref]
     np.testing.assert_allclose(b.trajectories.positions, expected, atol=1e-6)
     assert np.nanmedian(a.rms_residual_mm) < 0.5  # the box really is rigid
+
+
+@pytest.fixture(scope="module")
+def sample_face():
+    """The bundled synthetic dense half-face performance (ICT-FaceKit, 127 markers, 0.27 mm noise)
+    and its noise-free ground truth."""
+    from mocaptk.acquisition.synth_session import load_ground_truth
+
+    observed = read_trajectories(SAMPLES / "dense_halfface_performance.c3d")
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")
+    assert observed.labels == truth.labels
+    return observed, truth
+
+
+def test_stabilization_of_a_facial_session_with_added_head_motion(sample_face):
+    """No face marker is perfectly rigid (the model's most stable ones move 0.5-1.7 mm): the
+    automatic set must still be spread over skull-like places and recover the head pose."""
+    observed, truth = sample_face
+    rot, trans = _head_motion(observed.n_frames, seed=2)
+    moved = observed.replace(positions=np.einsum("fij,fmj->fmi", rot, observed.positions) + trans[:, None])
+    result = stabilize_head(moved)
+    assert 3 <= len(result.rigid_labels) <= 6
+    assert not any(label.startswith(("MOUTH", "CHIN")) for label in result.rigid_labels)
+    ref = result.reference_frame
+    rel_rot = np.einsum("fij,kj->fik", rot, rot[ref])
+    posed = np.isfinite(result.rotations[:, 0, 0])
+    angle = _angle_deg(result.rotations[posed], rel_rot[posed])
+    expected = np.einsum("ij,fmj->fmi", rot[ref], truth.positions) + trans[ref]
+    err = np.linalg.norm(result.trajectories.positions - expected, axis=2)
+    print(f"facial sample + head motion: rigid set {', '.join(result.rigid_labels)}; rotation error "
+          f"median {np.median(angle):.3f} deg, p99 {np.percentile(angle, 99):.3f} deg; head-relative "
+          f"position error vs truth median {np.nanmedian(err):.3f} mm, p99 {np.nanpercentile(err, 99):.3f} mm")
+    assert posed.mean() > 0.99
+    assert np.median(angle) < 0.6 and np.percentile(angle, 99) < 2.0
+    assert np.nanmedian(err) < 0.6 and np.nanpercentile(err, 99) < 2.5
 
 
 def test_stabilization_bad_options(face):
@@ -190,6 +226,31 @@ def test_gap_filling_error_on_held_out_real_gaps(complete_real, length):
         assert rmse["neighbours"] < 3.0 and rmse["neighbours"] < 0.5 * rmse["cubic"]
         assert rmse["auto"] == rmse["neighbours"]
     assert not np.isnan(auto.positions).any()
+
+
+def test_gap_filling_error_on_held_out_facial_gaps(sample_face):
+    """Held-out 30-frame (0.5 s) gaps in the facial sample, error vs the noise-free truth."""
+    observed, truth = sample_face
+    observed, truth_positions = observed.frames(0, 600), truth.positions[:600]
+    rng = np.random.default_rng(5)
+    cut = observed.positions.copy()
+    holes = []
+    for m in range(0, observed.n_markers, 3):
+        start = int(rng.integers(10, observed.n_frames - 40))
+        if not np.isnan(observed.positions[start - 1:start + 31, m]).any():
+            cut[start:start + 30, m] = np.nan
+            holes.append((m, start))
+    session = observed.replace(positions=cut)
+    rmse = {}
+    for method, max_gap in (("cubic", 1000), ("neighbours", 10)):
+        filled, _ = fill_gaps(session, max_gap=max_gap, method=method)
+        err = np.concatenate([np.linalg.norm(filled.positions[s:s + 30, m] - truth_positions[s:s + 30, m], axis=1)
+                              for m, s in holes])
+        rmse[method] = float(np.sqrt(np.mean(err ** 2)))
+    print(f"facial sample, {len(holes)} held-out 30-frame gaps, RMSE vs truth: cubic {rmse['cubic']:.3f} mm, "
+          f"neighbours {rmse['neighbours']:.3f} mm (noise 0.27 mm)")
+    assert len(holes) >= 25
+    assert rmse["neighbours"] < 0.6 and rmse["neighbours"] < 0.3 * rmse["cubic"]
 
 
 def test_leading_and_trailing_gaps_respect_the_limit(complete_real):
