@@ -30,7 +30,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data"))
 FORMATS = ("c3d", "vicon_csv", "trc", "generic_csv")
-MAX_SEED_BYTES = 60_000  # text seeds are cut to whole lines: big files add no new structure
+MAX_SEED_BYTES = 20_000  # text seeds are cut to whole lines: big files add no new structure
+MAX_C3D_SEED_BYTES = 1_000_000  # bigger C3D seeds only slow the campaign (same structures)
 
 #: The worker reads one case path per stdin line and answers one JSON line per case.
 WORKER = r"""
@@ -57,15 +58,40 @@ for line in sys.stdin:
 """
 
 
-def seed_files() -> dict[str, list[Path]]:
-    """Seed files per format (small real files; missing folders are skipped)."""
+SAMPLE = REPO / "sample_c3d" / "dense_halfface.c3d"
+
+
+def seed_files(writer_dir: Path | None = None) -> dict[str, list[Path]]:
+    """Seed files per format (small real files; missing folders are skipped).
+
+    With ``writer_dir``, our own writers' output of the bundled sample (120 frames across a take
+    boundary) is added: the Vicon CSV Events section and the C3D MOCAPTK group get fuzzed too.
+    """
     pools = {
-        "c3d": sorted(p for p in (SHARED / "c3d").rglob("*") if p.suffix.lower() == ".c3d"),
+        "c3d": sorted(p for p in (SHARED / "c3d").rglob("*")
+                      if p.suffix.lower() == ".c3d" and p.stat().st_size <= MAX_C3D_SEED_BYTES),
         "vicon_csv": sorted((SHARED / "csv_trc" / "pyomeca").glob("markers*.csv")),
         "trc": sorted((SHARED / "csv_trc").rglob("*.trc")),
         "generic_csv": sorted((SHARED / "facial_mocap" / "blenderface").glob("Subject_*.csv")),
     }
+    if writer_dir is not None and SAMPLE.exists():
+        from mocaptk.acquisition.formats import read_trajectories, write_trajectories
+
+        sample = read_trajectories(SAMPLE)
+        cut = sample.takes[1].start if len(sample.takes) > 1 else 60
+        short = sample.frames(max(0, cut - 60), cut + 60)  # across a take boundary
+        pools["c3d"].append(SAMPLE)
+        for fmt, ext in (("c3d", ".c3d"), ("vicon_csv", ".csv"), ("trc", ".trc")):
+            pools[fmt].append(write_trajectories(short, writer_dir / f"writer_seed{ext}"))
     return {fmt: [p for p in paths if 0 < p.stat().st_size] for fmt, paths in pools.items()}
+
+
+def seed_name(path: Path) -> str:
+    """A seed's name relative to the shared data or the repository (writer seeds: file name)."""
+    for root in (SHARED, REPO):
+        if path.is_relative_to(root):
+            return str(path.relative_to(root))
+    return path.name
 
 
 def load_seed(path: Path) -> bytes:
@@ -173,10 +199,26 @@ def _c3d_huge_params(data: bytes, rng: random.Random) -> bytes:
     return bytes(buf)
 
 
+def _text_huge_numbers(data: bytes, rng: random.Random) -> bytes:
+    # a frame number, time, rate or coordinate far out of range (10^9 frames, 1e308 mm...)
+    lines = _text_lines(data)
+    for _ in range(rng.randint(1, 3)):
+        i = rng.randrange(len(lines))
+        sep = b"\t" if b"\t" in lines[i] else (b";" if b";" in lines[i] else b",")
+        cells = lines[i].split(sep)
+        numeric = [j for j, c in enumerate(cells) if c.strip()[:1].isdigit() or c.strip()[:1] == b"-"]
+        if numeric:
+            j = rng.choice(numeric[:2] if rng.random() < 0.5 else numeric)
+            cells[j] = rng.choice([b"1000000000", b"999999999999", b"-1000000000", b"1e308",
+                                   b"9223372036854775808", b"0", b"-0", b"1e-320"])
+            lines[i] = sep.join(cells)
+    return b"\n".join(lines)
+
+
 MUTATIONS = {
     "c3d": [_flip_bytes, _truncate, _c3d_parameter_corruption, _c3d_huge_counts, _c3d_huge_params],
-    "text": [_flip_bytes, _truncate, _text_huge_counts, _text_nan_inf, _text_wrong_units,
-             _text_duplicate_labels, _text_non_utf8],
+    "text": [_flip_bytes, _truncate, _text_huge_counts, _text_huge_numbers, _text_nan_inf,
+             _text_wrong_units, _text_duplicate_labels, _text_non_utf8],
 }
 
 
@@ -193,6 +235,7 @@ class Campaign:
     cases: int = 0
     outcomes: Counter = field(default_factory=Counter)
     findings: list[dict] = field(default_factory=list)
+    mutations: Counter = field(default_factory=Counter)
     seconds: float = 0.0
 
 
@@ -237,38 +280,46 @@ class Worker:
             self.proc.wait(timeout=10)
 
 
+def make_case(fmt: str, blobs: list[tuple[Path, bytes]], seed: int, i: int) -> tuple[Path, str, bytes]:
+    """Case ``i`` of a campaign: (seed file, mutation name, bytes); depends only on its arguments."""
+    rng = random.Random(f"{seed}:{fmt}:{i}")
+    source, data = rng.choice(blobs)
+    name, mutated = mutate(data, fmt, rng)
+    return source, name, mutated
+
+
 def run_campaign(fmt: str, seeds: list[Path], cases: int, *, seed: int = 0, timeout: float = 20.0,
-                 memory_limit: int = 4 << 30, workers: int = 2,
-                 workdir: Path | None = None) -> Campaign:
+                 memory_limit: int = 4 << 30, workers: int = 2, workdir: Path | None = None,
+                 progress: bool = False) -> Campaign:
     """Run ``cases`` mutated files of one format through the readers; returns the tally.
 
-    Cases are generated deterministically from ``seed``; ``workers`` reader processes share them.
+    Case ``i`` is generated from ``(seed, fmt, i)`` alone (reproducible one by one, written just
+    before it is read); ``workers`` reader processes share the cases.
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    rng = random.Random(f"{seed}:{fmt}")
     blobs = [(p, load_seed(p)) for p in seeds]
     # generic CSV files carry no rate: give one, as a user would with --rate
     rate = 100.0 if fmt == "generic_csv" else None
     result = Campaign(cases=cases)
     start = time.perf_counter()
+    finished = Counter()
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         def run_share(share: int) -> list[tuple[int, Path, str, dict]]:
             worker, done = Worker(memory_limit), []
             for i in range(share, cases, workers):
-                source, name, case = plan[i]
+                source, name, data = make_case(fmt, blobs, seed, i)
+                case = Path(tmp) / f"case_{fmt}_{i}{source.suffix}"
+                case.write_bytes(data)
                 done.append((i, source, name, worker.read(str(case), timeout, rate)))
                 case.unlink()
+                finished["n"] += 1
+                if progress and finished["n"] % 1000 == 0:
+                    print(f"  {fmt}: {finished['n']} cases, {time.perf_counter() - start:.0f} s",
+                          flush=True)
             worker.close()
             return done
 
-        plan = []
-        for i in range(cases):
-            source, data = rng.choice(blobs)
-            name, mutated = mutate(data, fmt, rng)
-            case = Path(tmp) / f"case_{fmt}_{i}{source.suffix}"
-            case.write_bytes(mutated)
-            plan.append((source, name, case))
         with ThreadPoolExecutor(workers) as pool:
             answers = sorted(a for share in pool.map(run_share, range(workers)) for a in share)
     for i, source, name, out in answers:
@@ -276,8 +327,9 @@ def run_campaign(fmt: str, seeds: list[Path], cases: int, *, seed: int = 0, time
         if outcome == "error" and not (out["one_line"] and out["names_file"]):
             outcome = "bad_message"
         result.outcomes[outcome] += 1
+        result.mutations[name] += 1
         if outcome not in ("loaded", "error"):
-            result.findings.append({"format": fmt, "seed_file": str(source.relative_to(SHARED)),
+            result.findings.append({"format": fmt, "seed_file": seed_name(source),
                                     "mutation": name, "case": i, **out})
     result.seconds = time.perf_counter() - start
     return result
@@ -292,22 +344,24 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="reader processes")
     parser.add_argument("--json", type=Path, help="write the summary here")
     args = parser.parse_args()
-    pools = seed_files()
+    writer_dir = tempfile.TemporaryDirectory(prefix="fuzz_seeds_")
+    pools = seed_files(Path(writer_dir.name))
     summary = {}
     for fmt in args.formats.split(","):
         if not pools.get(fmt):
             print(f"{fmt}: no seed files under {SHARED}; skipped")
             continue
         camp = run_campaign(fmt, pools[fmt], args.cases, seed=args.seed, timeout=args.timeout,
-                            workers=args.workers)
-        summary[fmt] = {"cases": camp.cases, "seconds": round(camp.seconds, 1),
-                        "outcomes": dict(camp.outcomes), "findings": camp.findings[:50]}
+                            workers=args.workers, progress=True)
+        summary[fmt] = {"cases": camp.cases, "seconds": round(camp.seconds, 1), "seeds": len(pools[fmt]),
+                        "outcomes": dict(camp.outcomes), "mutations": dict(camp.mutations),
+                        "findings": camp.findings[:50]}
         print(f"{fmt:12s} {camp.cases:6d} cases {camp.seconds:7.1f} s  "
               + "  ".join(f"{k}={v}" for k, v in sorted(camp.outcomes.items())), flush=True)
         for finding in camp.findings[:10]:
             print("   ", json.dumps(finding))
-    if args.json:
-        args.json.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        if args.json:  # after each format: a stopped campaign keeps what it finished
+            args.json.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":
