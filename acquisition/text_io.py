@@ -13,6 +13,14 @@ from mocaptk.errors import InputFileError, OptionError
 #: Millimetres per unit for the length units the text formats declare.
 MM_PER_UNIT: dict[str, float] = {"mm": 1.0, "cm": 10.0, "dm": 100.0, "m": 1000.0, "in": 25.4}
 
+#: Largest text marker file read: parsing needs ~18 bytes of memory per byte of text (~9 GB here).
+MAX_TEXT_BYTES = 512 * 2**20
+
+#: Frame numbering may skip frames (they become gap frames), but the span may not exceed
+#: ``MAX_GAP_FACTOR`` times the rows in the file plus ``MAX_GAP_FRAMES``: a corrupt frame number
+#: (10^9) must not allocate billions of empty frames.
+MAX_GAP_FACTOR, MAX_GAP_FRAMES = 10, 100_000
+
 #: Cell texts that mean "no value" (besides the empty cell).
 MISSING_CELLS = frozenset({"", "na", "nan", "n/a", "null", "none", "-"})
 
@@ -21,6 +29,10 @@ def read_text(path: str | os.PathLike[str]) -> str:
     """The whole file as text; one-line :class:`InputFileError` if unreadable, empty or not UTF-8."""
     target = Path(path)
     try:
+        size = target.stat().st_size
+        if size > MAX_TEXT_BYTES:
+            raise InputFileError(path, f"text file of {size / 2**20:,.0f} MB, more than the "
+                                       f"{MAX_TEXT_BYTES // 2**20} MB mocaptk reads as text (export C3D instead)")
         data = target.read_bytes()
     except FileNotFoundError:
         raise InputFileError(path, "no such file") from None
@@ -74,7 +86,7 @@ def cells_to_array(rows: Sequence[Sequence[str]], width: int, *, path: str | os.
     if decimal_comma:
         cells = np.char.replace(cells, ",", ".")
     missing = np.isin(np.char.lower(cells), list(MISSING_CELLS))
-    cells[missing] = "nan"
+    cells = np.where(missing, "nan", cells)  # not in place: a <U2 array would store "na"
     try:
         return cells.astype(np.float64)
     except ValueError:
@@ -130,14 +142,18 @@ def rows_by_frame(frame_numbers: np.ndarray, values: np.ndarray, *,
     Frames missing from the file (numbering jumps) become NaN rows, so positions stay on a
     uniform time base. Numbers must be integers and strictly increasing.
     """
-    if not np.all(np.isfinite(frame_numbers)) or np.any(frame_numbers != np.round(frame_numbers)):
-        raise InputFileError(path, "frame column holds non-integer values")
+    if (not np.all(np.isfinite(frame_numbers)) or np.any(frame_numbers != np.round(frame_numbers))
+            or np.any(np.abs(frame_numbers) > 2**53)):
+        raise InputFileError(path, "frame column holds non-integer or out-of-range values")
     frames = frame_numbers.astype(np.int64)
     if np.any(np.diff(frames) <= 0):
         raise InputFileError(path, "frame numbers are not strictly increasing")
     first = int(frames[0])
     if frames[-1] - first + 1 == len(frames):
         return first, values
+    if frames[-1] - first + 1 > MAX_GAP_FACTOR * len(frames) + MAX_GAP_FRAMES:  # corrupt numbering
+        raise InputFileError(path, f"frame numbers run from {first} to {frames[-1]} but the file holds "
+                                   f"only {len(frames)} rows: corrupt frame column?")
     out = np.full((int(frames[-1]) - first + 1,) + values.shape[1:], np.nan)
     out[frames - first] = values
     return first, out

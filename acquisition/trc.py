@@ -64,7 +64,7 @@ def read_trc(path: str | os.PathLike[str], *, units: str | None = None) -> Traje
     try:
         n_declared = int(float(header["NumMarkers"]))
         n_frames_declared = int(float(header["NumFrames"])) if "NumFrames" in header else None
-    except ValueError:
+    except (ValueError, OverflowError):
         raise InputFileError(path, f"bad TRC header values: {rows[2][:5]}") from None
     names = [cell.strip() for cell in rows[3][2:]]
     labels = [name for name in names if name]
@@ -77,7 +77,9 @@ def read_trc(path: str | os.PathLike[str], *, units: str | None = None) -> Traje
     last_cell = max((i for row in data_rows for i in range(len(row) - 1, -1, -1) if row[i].strip()),
                     default=1)
     # unlabelled coordinate triples past the labels (or NumMarkers 0) are kept as extra markers
-    n_markers = max(len(labels), n_declared, -(-(last_cell - 1) // 3))
+    # a NumMarkers beyond the labels and data columns is only noted (a corrupt count must not
+    # allocate 10^9 empty markers)
+    n_markers = max(len(labels), -(-(last_cell - 1) // 3))
     labels += numbered_labels(n_markers - len(labels), start=len(labels) + 1, total=n_markers)
     check_labels(labels, path=path)
     table = cells_to_array(data_rows, 2 + 3 * n_markers, path=path, first_line=data_start + 1)

@@ -143,7 +143,7 @@ def _read_takes(rows: list[list[str]], sections: dict[str, int], *, rate: float,
             continue  # ordinary Nexus events (Foot Strike...)
         try:
             frame = int(round(float(cells[3]) * rate))
-        except ValueError:
+        except (ValueError, OverflowError):
             raise InputFileError(path, f"event {kind!r} of take {name!r} has a bad time {cells[3]!r}") from None
         if kind == "Take Start":
             starts[name] = (frame, region)
