@@ -157,13 +157,22 @@ def _parse_parameters(path: Path, data: bytes, processor: str) -> dict[str, dict
     return params
 
 
+def _text(raw: bytes) -> str:
+    """UTF-8 (what ezc3d writes) or, failing that, Latin-1; trailing blanks removed."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    return text.rstrip(" \0")
+
+
 def _decode_value(raw: bytes, size: int, dims: list[int], processor: str) -> ParamValue:
     if size == -1:
         if not dims:
-            return [raw.decode("latin-1").rstrip(" \0")]
+            return [_text(raw)]
         width = dims[0]
         n = len(raw) // width if width else 0
-        return [raw[k * width:(k + 1) * width].decode("latin-1").rstrip(" \0") for k in range(n)]
+        return [_text(raw[k * width:(k + 1) * width]) for k in range(n)]
     if size == 1:
         return np.frombuffer(raw, np.int8).astype(np.int64)
     if size == 2:

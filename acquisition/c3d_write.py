@@ -31,6 +31,9 @@ def write_c3d(traj: Trajectories, path: str | os.PathLike[str], *, force: bool =
     """
     import ezc3d
 
+    if traj.n_frames == 0 or traj.n_markers == 0:
+        raise OutputError(f"{path}: nothing to write ({traj.n_frames} frames, "
+                          f"{traj.n_markers} markers)")
     c3d = ezc3d.c3d()
     params = c3d["parameters"]
     params["POINT"]["RATE"]["value"] = np.array([traj.rate])

@@ -125,3 +125,15 @@ def test_read_of_write_is_identity(tmp_path, frames, markers, gaps, scale, seed)
     traj = session(frames, markers, seed=seed, gaps=gaps)
     traj = traj.replace(positions=traj.positions * scale)
     assert_same(read_c3d(write_c3d(traj, tmp_path / "h.c3d")), traj)
+
+
+def test_non_ascii_labels_round_trip(tmp_path):
+    traj = Trajectories(np.ones((3, 3, 3)), ["Ánna:nez_é", "Ωmega", "plain"], 60.0)
+    back = read_c3d(write_c3d(traj, tmp_path / "utf8.c3d"))
+    assert back.labels == traj.labels and back.metadata["subjects"] == ["Ánna"]
+
+
+def test_nothing_to_write_is_refused(tmp_path):
+    with pytest.raises(OutputError, match="nothing to write"):
+        write_c3d(Trajectories(np.zeros((0, 2, 3)), ["a", "b"], 100.0), tmp_path / "e.c3d")
+    assert not list(tmp_path.iterdir())
