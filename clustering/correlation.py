@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import blas
 
 #: A standard deviation at or below this (mm) counts as no motion on that axis.
 STATIC_SD_MM = 1e-6
@@ -61,8 +62,6 @@ def consolidated_correlation(positions: np.ndarray) -> Correlation:
         matrix = _complete_correlation(centred, sd, static_axes)
     else:
         matrix = _pairwise_correlation(centred, present, static_axes)
-    np.add(matrix, matrix.T, out=matrix)  # exact symmetry (BLAS results may differ in the last bit)
-    matrix *= 0.5
     np.clip(matrix, -3.0, 3.0, out=matrix)
     return Correlation(matrix, static_axes)
 
@@ -72,7 +71,15 @@ def _complete_correlation(centred: np.ndarray, sd: np.ndarray, static_axes: np.n
     scale = np.zeros_like(sd)
     np.divide(1.0, sd * np.sqrt(n_frames), out=scale, where=~static_axes)
     z = (centred * scale[None]).transpose(2, 0, 1).reshape(3 * n_frames, n_markers)
-    return z.T @ z  # sum over the three axes of the per-axis Pearson matrices
+    # z.T @ z = sum over the three axes of the per-axis Pearson matrices; syrk computes one
+    # triangle only (half the work), the other is copied in blocks (no full-size temporaries)
+    matrix = blas.dsyrk(1.0, np.asfortranarray(z), trans=1, lower=0)
+    for lo in range(0, n_markers, _BLOCK):
+        hi = min(lo + _BLOCK, n_markers)
+        matrix[lo:hi, :lo] = matrix[:lo, lo:hi].T
+        block = matrix[lo:hi, lo:hi]
+        block[np.tril_indices(hi - lo, -1)] = block.T[np.tril_indices(hi - lo, -1)]
+    return matrix.T  # symmetric, so the transpose (a C-ordered view) is the same matrix
 
 
 def _pairwise_correlation(centred: np.ndarray, present: np.ndarray, static_axes: np.ndarray) -> np.ndarray:
@@ -104,6 +111,8 @@ def _pairwise_correlation(centred: np.ndarray, present: np.ndarray, static_axes:
             r = np.zeros_like(cov)
             np.divide(cov, denom, out=r, where=ok)
             matrix[lo:hi] += np.clip(r, -1.0, 1.0)
+    matrix += matrix.T  # exact symmetry (blocks of BLAS products may differ in the last bit)
+    matrix *= 0.5
     return matrix
 
 

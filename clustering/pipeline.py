@@ -76,8 +76,10 @@ def stabilize(traj: Trajectories) -> tuple[Trajectories, dict[str, Any]]:
         raise OptionError("head stabilization is not available in this installation; "
                           "use --no-stabilize for already head-relative data") from None
     result = stabilize_head(traj)
+    residual = np.asarray(result.rms_residual_mm, dtype=np.float64)
+    residual = residual[np.isfinite(residual)]
     return result.trajectories, {"rigid_labels": list(result.rigid_labels),
-                                 "rms_residual_mm": float(result.rms_residual_mm)}
+                                 "rms_residual_mm": float(residual.mean()) if residual.size else None}
 
 
 def check_options(options: ClusterOptions, n_frames: int) -> None:

@@ -1,0 +1,117 @@
+"""``mocaptk cluster`` / ``sweep`` / ``evaluate`` end to end: synthetic files, the sample, real data."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from clustering_synthetic import planted_session
+from conftest import SAMPLES, shared_path
+
+
+@pytest.fixture(scope="module")
+def session_files(tmp_path_factory):
+    """A planted half-face session as .npz plus its takes file."""
+    folder = tmp_path_factory.mktemp("planted")
+    traj, group_of = planted_session(seed=21, per_group=3, frames=300)
+    path = folder / "planted.npz"
+    np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
+    takes = folder / "takes.json"
+    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    return path, takes, group_of
+
+
+def test_cluster_writes_all_outputs_deterministically(run_cli, session_files, tmp_path):
+    path, takes, group_of = session_files
+    first = run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "a")
+    assert first.exit_code == 0, first.stderr
+    assert "total" in first.stdout
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert names == ["correlation_forehead_brow.png", "correlation_mouth.png", "correlation_nose.png",
+                     "guide.pdf", "guide_front.png", "guide_profile.png",
+                     "layout.json", "layout.png", "regions.png", "rig.fbx", "rig.glb", "rig.json",
+                     "rig_report.json", "summary.txt"]
+    second = run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "b", "--quiet",
+                     "--formats", "none")
+    assert second.exit_code == 0 and second.stdout == ""
+    assert (tmp_path / "a" / "layout.json").read_bytes() == (tmp_path / "b" / "layout.json").read_bytes()
+    data = json.loads((tmp_path / "a" / "layout.json").read_text())
+    measured = [c for c in data["clusters"] if c["mirrored_from"] is None]
+    assert len(measured) == len(set(group_of.values()))
+    assert data["parameters"]["stabilized"] is False and data["parameters"]["mirror"] is True
+    assert data["source"]["sha256"] and data["source"]["path"] == "planted.npz"
+    assert "forehead_brow" in (tmp_path / "a" / "summary.txt").read_text()
+
+
+def test_cluster_refuses_existing_folder_and_bad_options(run_cli, session_files, tmp_path):
+    path, takes, _ = session_files
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    for args, needle in [
+        ((), "--force"),
+        (("--force", "--factor", "0"), "factor"),
+        (("--force", "--step", "100000"), "step"),
+        (("--force", "--regions", path.with_name("missing.json")), "missing.json"),
+    ]:
+        result = run_cli("cluster", path, "--no-stabilize", "--out", out, *args)
+        assert result.exit_code == 2, (args, result.stderr)
+        lines = result.stderr.strip().splitlines()
+        assert lines[-1].startswith("mocaptk: error:") and needle in lines[-1]
+    regions = tmp_path / "regions.json"
+    regions.write_text(json.dumps({"mouth": ["MOUTH_01_L", "NOT_A_MARKER"]}))
+    result = run_cli("cluster", path, "--no-stabilize", "--out", out, "--force", "--regions", regions)
+    assert result.exit_code == 2 and "NOT_A_MARKER" in result.stderr
+    result = run_cli("cluster", path.with_name("nope.c3d"), "--no-stabilize")
+    assert result.exit_code == 2 and "nope.c3d" in result.stderr
+    ok = run_cli("cluster", path, "--no-stabilize", "--out", out, "--force", "--quiet", "--takes", takes,
+                 "--formats", "none")
+    assert ok.exit_code == 0 and (out / "keep.txt").read_text() == "mine" and (out / "layout.json").exists()
+
+
+def test_evaluate_and_sweep(run_cli, session_files, tmp_path):
+    path, takes, group_of = session_files
+    assert run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "L",
+                   "--quiet", "--formats", "none").exit_code == 0
+    result = run_cli("evaluate", path, "--layout", tmp_path / "L" / "layout.json", "--takes", takes,
+                     "--seeds", "2", "--folds", "3")
+    assert result.exit_code == 0, result.stderr
+    assert "random" in result.stdout and "kmeans" in result.stdout
+    report = json.loads((tmp_path / "L" / "evaluation.json").read_text())
+    counts = {m["count"] for m in report["methods"].values()}
+    assert counts == {len(set(group_of.values()))}
+    assert report["methods"]["paper"]["rmse_mm"] < report["methods"]["random"]["rmse_mm"]
+    sweep = run_cli("sweep", path, "--takes", takes, "--no-stabilize", "--factors", "0.5,1.5,2.5", "--folds", "3",
+                    "--out", tmp_path / "S", "--quiet")
+    assert sweep.exit_code == 0, sweep.stderr
+    rows = json.loads((tmp_path / "S" / "sweep.json").read_text())["rows"]
+    assert [r["factor"] for r in rows] == [0.5, 1.5, 2.5]
+    markers = [r["markers"] for r in rows]
+    assert markers == sorted(markers) and all(np.isfinite(r["rmse_mm"]) for r in rows)
+    assert (tmp_path / "S" / "sweep.png").stat().st_size > 1000
+    bad = run_cli("sweep", path, "--factors", "1.3:0.8:0.1", "--no-stabilize")
+    assert bad.exit_code == 2 and "factors" in bad.stderr
+
+
+def test_cluster_on_real_blenderface_data(run_cli, tmp_path):
+    csv = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
+    result = run_cli("cluster", csv, "--rate", "50", "--no-stabilize", "--out", tmp_path / "bf")
+    assert result.exit_code == 0, result.stderr
+    data = json.loads((tmp_path / "bf" / "layout.json").read_text())
+    assert data["parameters"]["regions_from"].startswith("geometric")
+    members = sorted(m for c in data["clusters"] for m in c["members"])
+    assert len(members) == 16 and len(set(members)) == 16  # a partition of the 16 markers
+    assert 2 <= len(data["layout"]) < 16
+
+
+def test_cluster_on_bundled_sample(run_cli, tmp_path):
+    sessions = sorted(SAMPLES.glob("*.c3d")) if SAMPLES.is_dir() else []
+    dense = [p for p in sessions if "perf" not in p.name.lower()]
+    if not dense:
+        pytest.skip("sample_c3d/ has no session yet")
+    result = run_cli("cluster", dense[0], "--no-stabilize", "--out", tmp_path / "s", "--factor", "1.1")
+    assert result.exit_code == 0, result.stderr
+    data = json.loads((tmp_path / "s" / "layout.json").read_text())
+    assert data["parameters"]["regions_from"] == "label prefixes"
+    assert len(data["layout"]) > 10
