@@ -75,7 +75,8 @@ def visibility(vertices: np.ndarray, faces: np.ndarray, shapes: np.ndarray, *, d
     Ambient-occlusion-style: ``directions`` view directions spread over the frontal hemisphere
     (around +``view_axis``); per direction an orthographic depth buffer of the triangles'
     vertices at ``resolution`` mm; a vertex counts as seen when it faces the direction and no
-    surface in its pixel neighbourhood is in front of it (1 mm tolerance).
+    surface in its pixel neighbourhood is in front of it (1 mm tolerance plus what the local
+    slope explains).
     """
     verts = np.asarray(vertices, dtype=np.float64)
     tris = np.asarray(faces, dtype=np.intp)
@@ -116,7 +117,11 @@ def _seen_from(pos: np.ndarray, normals: np.ndarray, direction: np.ndarray, reso
         for dj in (-1, 0, 1):
             nearest = np.maximum(nearest, buffer[1 + di:shape[0] - 1 + di, 1 + dj:shape[1] - 1 + dj])
     front = nearest[ij[:, 0], ij[:, 1]]
-    return ((normals @ direction > 0.1) & (depth >= front - 1.0)).astype(np.float64)
+    facing = normals @ direction
+    # the pixel neighbourhood of a tilted surface holds its own nearer points: allow their depth
+    slope = np.sqrt(np.maximum(1.0 - facing ** 2, 0.0)) / np.maximum(facing, 0.1)
+    tolerance = 1.0 + 3.0 * resolution * slope
+    return ((facing > 0.1) & (depth >= front - tolerance)).astype(np.float64)
 
 
 def cover_costs(relative: np.ndarray, candidate: np.ndarray, vis: np.ndarray | None, *,
