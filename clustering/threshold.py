@@ -43,16 +43,16 @@ class RegionClusters:
 def threshold_clusters(matrix: np.ndarray, displacement: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """First pass: (representatives (K,), assignment (M,)) by the threshold rule."""
     n = matrix.shape[0]
-    order = np.argsort(-np.asarray(displacement, dtype=np.float64), kind="stable")
+    remaining = np.argsort(-np.asarray(displacement, dtype=np.float64), kind="stable")  # unclustered, in order
     assignment = np.full(n, -1, dtype=np.intp)
     representatives: list[int] = []
-    for rep in order:
-        if assignment[rep] >= 0:
-            continue
-        joins = (assignment < 0) & (matrix[rep] >= threshold)
-        joins[rep] = True
-        assignment[joins] = len(representatives)
+    while remaining.size:
+        rep = remaining[0]
+        joins = matrix[rep, remaining] >= threshold  # only unclustered markers are compared
+        joins[0] = True
+        assignment[remaining[joins]] = len(representatives)
         representatives.append(int(rep))
+        remaining = remaining[~joins]
     return np.array(representatives, dtype=np.intp), assignment
 
 
