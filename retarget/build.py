@@ -5,8 +5,8 @@ adds the files (``rig.json``/``rig.fbx``/``rig.glb``, ``guide.pdf`` and its PNG 
 the one function ``mocaptk rig`` and ``mocaptk cluster`` call.
 
 Frames. The rig is Y up, face looking down +Z (mm). The session's face frame (forward = the
-side the face bulges towards, :func:`~mocaptk.surface_mesh.front_direction`; up = away from
-the most moving markers, as :func:`face_frame` of the clustering stage) is snapped to the nearest signed axis permutation when every axis is within
+side the face bulges towards, :func:`~mocaptk.surface_mesh.front_direction`; lateral = the
+layout's sagittal plane normal, towards the subject's left; up completes it) is snapped to the nearest signed axis permutation when every axis is within
 25° of one (so an already Y-up session is left exactly as is), else used as the rotation.
 
 Half-face captures. A layout mirrored to the other side (clusters with ``mirrored_from``)
@@ -110,14 +110,21 @@ class RigBuild:
     report: dict[str, Any] = field(default_factory=dict)
 
 
-def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
-    """Rotation (3, 3) from session coordinates to the rig frame (X left, Y up, Z forward)."""
+def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray, *,
+                       lateral: np.ndarray | None = None) -> np.ndarray:
+    """Rotation (3, 3) from session coordinates to the rig frame (X left, Y up, Z forward).
+
+    ``lateral``: the subject's left (e.g. the layout's sagittal plane normal); without it the
+    clustering stage's face frame guesses it (less reliable on full, wide faces).
+    """
     ok = np.isfinite(neutral).all(axis=1) & np.isfinite(displacement)
     forward = front_direction(neutral[ok])
-    up = face_frame(neutral[ok], displacement[ok])[1]  # away from the most moving markers
-    up = up - (up @ forward) * forward
-    up /= np.linalg.norm(up)
-    frame = np.array([np.cross(up, forward), up, forward])  # rows: lateral, up, forward
+    if lateral is None:
+        lateral = face_frame(neutral[ok], displacement[ok])[0]
+    lateral = np.asarray(lateral, dtype=float)
+    lateral = lateral - (lateral @ forward) * forward
+    lateral /= np.linalg.norm(lateral)
+    frame = np.array([lateral, np.cross(forward, lateral), forward])  # rows: X, Y, Z
     snapped = np.zeros((3, 3))
     for row, axis in enumerate(frame):
         k = int(np.argmax(np.abs(axis)))
@@ -159,7 +166,10 @@ def dense_cloud(layout: Layout, session: Trajectories, *,
         labels += new
         captured = np.concatenate([captured, np.zeros(len(new), bool)])
     if rotation is None:
-        rotation = rig_frame_rotation(neutral, max_displacement(positions, neutral))
+        plane = layout.extra.get("sagittal_plane")
+        lateral = np.asarray(plane["normal"], float) if isinstance(plane, dict) else None
+        rotation = rig_frame_rotation(neutral, max_displacement(positions, neutral),
+                                      lateral=lateral)
     return DenseCloud(tuple(labels), positions @ rotation.T, neutral @ rotation.T, captured,
                       rotation)
 

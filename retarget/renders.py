@@ -2,7 +2,8 @@
 
 Colours: each facial region has a hue (:data:`REGION_COLOURS`); the influence regions of its
 markers alternate between lighter and darker tints of it, so cluster borders show. Markers are
-drawn as spheres in the region's strong colour with their guide number.
+drawn over the render (matplotlib) as dots in the region's strong colour with their guide number,
+every label shown (VTK's own label placer hides overlapping ones).
 """
 
 from __future__ import annotations
@@ -84,30 +85,60 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndar
     plotter.set_background("white")
     plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True, ambient=0.35,
                      diffuse=0.7, specular=0.0)
-    visible = np.ones(len(marker_positions), bool)
-    if view == "profile":  # only the side facing the camera, the far side would show through
-        visible = marker_positions[:, 0] >= np.median(vertices[:, 0]) - 1.0
-    extent = float(np.ptp(vertices, axis=0).max())
-    lift = np.asarray(direction) * extent * 0.01  # keep spheres and labels in front of the skin
-    for region in sorted(set(cluster_regions)):
-        pick = np.array([r == region for r in cluster_regions]) & visible
-        if pick.any():
-            plotter.add_mesh(pv.PolyData(marker_positions[pick] + lift), color=region_colour(
-                region, tint=-0.35), point_size=16, render_points_as_spheres=True)
-    if visible.any():
-        plotter.add_point_labels(marker_positions[visible] + 2.5 * lift,
-                                 [str(n) for n, v in zip(numbers, visible) if v],
-                                 font_size=22, text_color="black", shape_color="white",
-                                 shape_opacity=0.75, point_size=0, always_visible=True,
-                                 margin=2, fill_shape=True, show_points=False)
     centre = np.asarray(vertices).mean(axis=0)
+    extent = float(np.ptp(vertices, axis=0).max())
     plotter.camera.focal_point = centre
     plotter.camera.position = centre + np.asarray(direction) * extent * 4.0
     plotter.camera.up = up
     plotter.enable_parallel_projection()
     plotter.reset_camera()
     plotter.camera.zoom(1.15)
-    with atomic_path(path, force=force) as tmp:
-        plotter.screenshot(str(tmp))
+    image = plotter.screenshot(return_img=True)
+    pixels = _display_points(plotter, marker_positions, image.shape[0])
     plotter.close()
+    visible = np.ones(len(marker_positions), bool)
+    if view == "profile":  # only the side facing the camera; the far side would show through
+        visible = marker_positions[:, 0] >= np.median(vertices[:, 0]) - 1.0
+    _draw_markers(image, pixels, visible, cluster_regions, numbers, path, force=force)
     return Path(path)
+
+
+def _display_points(plotter, points: np.ndarray, height: int) -> np.ndarray:
+    """Pixel coordinates (N, 2) (x right, y down) of world points in the rendered image."""
+    renderer = plotter.renderer
+    out = np.empty((len(points), 2))
+    for i, p in enumerate(np.asarray(points, float)):
+        renderer.SetWorldPoint(*p, 1.0)
+        renderer.WorldToDisplay()
+        x, y, _ = renderer.GetDisplayPoint()
+        out[i] = (x, height - y)
+    return out
+
+
+def _draw_markers(image: np.ndarray, pixels: np.ndarray, visible: np.ndarray,
+                  cluster_regions: list[str], numbers: list[int],
+                  path: str | os.PathLike[str], *, force: bool) -> None:
+    """Markers (region colour) and their numbers over the render, every label drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    height, width = image.shape[:2]
+    fig = plt.figure(figsize=(width / 100, height / 100), dpi=100)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.imshow(image)
+    ax.set_xlim(0, width)
+    ax.set_ylim(height, 0)
+    ax.axis("off")
+    for (x, y), region, number, show in zip(pixels, cluster_regions, numbers, visible):
+        if not show:
+            continue
+        ax.plot(x, y, "o", ms=7, mfc=region_colour(region, tint=-0.35), mec="white", mew=1.2)
+        ax.annotate(str(number), (x, y), xytext=(5, 4), textcoords="offset points", fontsize=9,
+                    fontweight="bold", color="black",
+                    bbox={"boxstyle": "round,pad=0.12", "fc": "white", "ec": "none",
+                          "alpha": 0.7})
+    with atomic_path(path, force=force) as tmp:
+        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
+    plt.close(fig)
