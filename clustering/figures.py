@@ -100,7 +100,9 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
             ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{name} ({len(pts)})")
     ax.set_aspect("equal")
     ax.legend(loc="best", fontsize=8)
-    ax.set_title("regions")
+    ax.set_xlabel("lateral (mm, + = subject's left)")
+    ax.set_ylabel("up (mm)")
+    ax.set_title("regions (front view)")
     fig.tight_layout()
     return _save(fig, path)
 
