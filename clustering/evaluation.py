@@ -45,32 +45,33 @@ def _ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[n
     intercept = np.zeros(n_out)
     present = np.isfinite(targets)
     patterns, inverse = _row_patterns(present.T)
-    aug = np.hstack([inputs, np.ones((n_frames, 1))])
+    shift = inputs.mean(axis=0)  # centring keeps the normal equations well conditioned
+    aug = np.hstack([inputs - shift, np.ones((n_frames, 1))])
     rhs = aug.T @ np.where(present, targets, 0.0)  # (K+1, T): NaN rows contribute nothing
-    weights = patterns.T.astype(np.float64)  # (F, P)
-    grams = np.zeros((patterns.shape[0], (n_in + 1) ** 2))
-    chunk = max(1, 2_000_000 // (n_in + 1) ** 2)
-    for lo in range(0, n_frames, chunk):
-        block = aug[lo:lo + chunk]
-        outer = (block[:, :, None] * block[:, None, :]).reshape(block.shape[0], -1)
-        grams += weights[lo:lo + chunk].T @ outer
-    grams = grams.reshape(-1, n_in + 1, n_in + 1)
-    for p, gram in enumerate(grams):
+    full = aug.T @ aug
+    for p, rows in enumerate(patterns):
         cols = np.flatnonzero(inverse == p)
-        n_rows = gram[n_in, n_in]
+        n_rows = int(rows.sum())
         if n_rows < 1:
             continue
         if n_rows < 2:
             intercept[cols] = rhs[n_in, cols] / n_rows
             continue
+        if n_rows == n_frames:
+            gram = full.copy()
+        elif n_rows >= n_frames // 2:  # gaps are usually rare: subtract the few missing rows
+            missing = aug[~rows]
+            gram = full - missing.T @ missing
+        else:
+            kept = aug[rows]
+            gram = kept.T @ kept
         sums = gram[n_in, :n_in]
         centred_trace = float(np.trace(gram[:n_in, :n_in]) - sums @ sums / n_rows)
         lam = ridge * max(centred_trace / n_in, 1e-12)
-        system = gram.copy()
-        system[np.arange(n_in), np.arange(n_in)] += lam
-        solution = np.linalg.solve(system, rhs[:, cols])
+        gram[np.arange(n_in), np.arange(n_in)] += lam
+        solution = np.linalg.solve(gram, rhs[:, cols])
         coef[:, cols] = solution[:n_in]
-        intercept[cols] = solution[n_in]
+        intercept[cols] = solution[n_in] - shift @ solution[:n_in]
     return coef, intercept
 
 
