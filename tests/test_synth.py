@@ -228,6 +228,24 @@ def test_synth_cli_writes_everything(model, run_cli, tmp_path, monkeypatch):
     assert again.stderr.count("\n") == 1
     bad = run_cli("synth", tmp_path / "x.c3d", "--rig", "drone")
     assert bad.exit_code == 2 and bad.stderr.startswith("mocaptk: error: --rig")
+    moving = run_cli("synth", tmp_path / "x.c3d", "--rig", "cara", "--head-motion")
+    assert moving.exit_code == 2 and "head-mounted" in moving.stderr
+
+
+def test_synth_cli_through_the_cara_rig(model, run_cli, tmp_path, monkeypatch):
+    monkeypatch.setenv("MOCAPTK_ICT_FACEKIT", str(shared_path(*ICT)))
+    out = tmp_path / "cara.c3d"
+    result = run_cli("synth", out, "--rig", "cara", "--noise", "0.2", "--expressions", "1",
+                     "--rest", "0.3", "--hold", "0.5", "--performance", "0", "--dropout", "0.05",
+                     "--quiet")
+    assert result.exit_code == 0, result.stderr
+    assert "short gaps filled" in result.stdout
+    assert not (tmp_path / "cara_performance.c3d").exists()
+    traj = read_c3d(out)
+    truth = ss.load_ground_truth(tmp_path / "cara_truth.npz")
+    error = np.linalg.norm(traj.positions - truth.positions, axis=2)
+    assert np.isnan(error).mean() < 0.01  # 5 % lost detections, short gaps filled
+    assert np.sqrt(np.nanmean(error ** 2)) < 0.5
 
 
 # -- the bundled sample (always runs) ----------------------------------------------------------
