@@ -62,17 +62,14 @@ def reassign(matrix: np.ndarray, representatives: np.ndarray, assignment: np.nda
     A marker stays where it is when its current representative ties for the best.
     """
     out = assignment.copy()
-    n = matrix.shape[0]
-    is_rep = np.zeros(n, dtype=bool)
-    is_rep[representatives] = True
-    for lo in range(0, n, _BLOCK):
-        cols = np.arange(lo, min(lo + _BLOCK, n))
+    members = np.setdiff1d(np.arange(matrix.shape[0]), representatives)  # representatives stay put
+    for lo in range(0, members.size, _BLOCK):
+        cols = members[lo:lo + _BLOCK]
         corr = matrix[np.ix_(representatives, cols)]  # (K, B)
         best = corr.argmax(axis=0)
         current = corr[assignment[cols], np.arange(cols.size)]
         keep = current >= corr[best, np.arange(cols.size)]
-        new = np.where(keep | is_rep[cols], assignment[cols], best)
-        out[cols] = new
+        out[cols] = np.where(keep, assignment[cols], best)
     return out
 
 
