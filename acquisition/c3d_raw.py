@@ -282,7 +282,12 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
         first = start_field  # 32-bit; equals the header's where both exist in the corpus
     if saturated and n_frames <= header_frames:
         declared = _unsigned(point.get("FRAMES"))
-        n_frames = declared if declared and declared > header_frames else available
+        if declared and declared > header_frames:
+            n_frames = declared
+        else:
+            n_frames = available - _padding_frames(path, file_size, data_offset, frame_bytes,
+                                                   available)
+            notes.append(f"header frame count saturated; {n_frames} frames from the file size")
     if n_points == 0:
         n_frames = header_frames if frame_bytes == 0 else min(header_frames, available)
     _check(path, n_points * max(n_frames, 1) <= MAX_POINT_SAMPLES,
@@ -300,6 +305,27 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
                         n_frames=n_frames, first_frame=first, rate=rate, scale=scale,
                         data_offset=data_offset, frame_bytes=frame_bytes,
                         header_saturated=saturated, notes=tuple(notes))
+
+
+def _padding_frames(path: Path, file_size: int, data_offset: int, frame_bytes: int,
+                    available: int) -> int:
+    """Whole frames at the end that are only the zero padding of the last 512-byte block."""
+    if not frame_bytes or not available:
+        return 0
+    end = data_offset + available * frame_bytes
+    first = max(data_offset, file_size - BLOCK)  # ezc3d adds a whole block when data end on one
+    first_frame = -(-(first - data_offset) // frame_bytes)  # frames starting in the padding
+    if first_frame >= available:
+        return 0
+    try:
+        with open(path, "rb") as handle:
+            handle.seek(data_offset + first_frame * frame_bytes)
+            tail = handle.read(end - data_offset - first_frame * frame_bytes)
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
+    frames = np.frombuffer(tail, np.uint8).reshape(-1, frame_bytes)
+    nonzero = np.flatnonzero(frames.any(axis=1))
+    return len(frames) - (nonzero[-1] + 1 if nonzero.size else 0)
 
 
 def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,

@@ -248,3 +248,36 @@ def test_units_metres_become_millimetres():
 def test_header_frame_count_repairs_are_noted():
     traj = read("ezc3d-testFiles/Optotrak.c3d")  # header declares 1149 frames, holds 29
     assert traj.n_frames == 29 and any("1149" in n for n in traj.metadata["notes"])
+
+
+def test_events_match_ezc3d_and_lie_inside_the_trial():
+    import ezc3d
+
+    rel = "btkdata/PiG/PiG_Motion-FlatFoot-Full.c3d"
+    traj = read(rel)
+    event = ezc3d.c3d(str(shared_path("c3d", rel)))["parameters"]["EVENT"]
+    times = event["TIMES"]["value"].ravel()  # minutes, seconds, minutes, seconds...
+    np.testing.assert_allclose([e["time"] for e in traj.metadata["events"]],
+                               times[0::2] * 60 + times[1::2], atol=1e-5)
+    assert [e["label"] for e in traj.metadata["events"]] == [
+        label.strip() for label in event["LABELS"]["value"]]
+    frames = np.array([e["time"] for e in traj.metadata["events"]]) * traj.rate
+    assert (frames >= traj.first_frame - 1).all() and (frames <= traj.first_frame + traj.n_frames).all()
+
+
+def test_saturated_header_without_trial_fields_uses_the_file_size(tmp_path):
+    """ezc3d writes all 70,000 frames but caps the header and POINT:FRAMES at 65,535 (and reads
+    back only those): mocaptk counts the frames the data section holds."""
+    import ezc3d
+
+    rng = np.random.default_rng(3)
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [200.0]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = ["a", "b"]
+    points = np.ones((4, 2, 70_000))
+    points[:3] = rng.normal(0, 100, (3, 2, 70_000))
+    c3d["data"]["points"] = points
+    c3d.write(str(tmp_path / "ez.c3d"))
+    traj = read_c3d(tmp_path / "ez.c3d")
+    assert traj.n_frames == 70_000 and traj.metadata["reader"] == "mocaptk"
+    np.testing.assert_allclose(traj.positions, points[:3].transpose(2, 1, 0), rtol=2**-23)
