@@ -161,6 +161,17 @@ def test_truth_is_the_deformed_mesh_at_the_anchors(model, half, session):
     assert 0.25 < np.sqrt(np.nanmean(error ** 2)) < 0.45  # 0.2 mm per axis ⇒ 0.35 mm 3-D
 
 
+def test_identity_changes_the_face_not_the_anchors(model, half):
+    coefficients = np.zeros(len(model.identity_names))
+    coefficients[0] = 1.0
+    other = ss.performance_session(model, half, seconds=0.5, identity_coefficients=coefficients)
+    generic = ss.performance_session(model, half, seconds=0.5)
+    assert np.allclose(other.truth.marker_neutral,
+                       half.positions(model.neutral + model.identities[0]))
+    assert np.abs(other.truth.marker_neutral - generic.truth.marker_neutral).max() > 1.0  # mm
+    assert np.array_equal(other.truth.weights, generic.truth.weights)
+
+
 def test_performance_take(model, half):
     perf = ss.performance_session(model, half, seed=0, seconds=12.0, noise_mm=0.0,
                                   gaps_per_minute=0.0)
