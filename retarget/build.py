@@ -42,7 +42,8 @@ from .rig import Rig
 from .weights import cap_weights, region_masks, shape_by_regions, thin_shell_weights
 
 __all__ = ["DenseCloud", "RigBuild", "RigOptions", "build_rig", "dense_cloud", "ground_truth_error",
-           "guide_rows", "marker_driven_error", "rig_frame_rotation", "write_rig_outputs"]
+           "guide_rows", "marker_driven_error", "mesh_ground_truth_error",
+           "rig_frame_rotation", "write_rig_outputs"]
 
 #: Largest angle (degrees) between a face-frame axis and a coordinate axis for snapping.
 SNAP_DEGREES = 25.0
@@ -302,6 +303,28 @@ def ground_truth_error(build: RigBuild, session: Trajectories, truth_positions: 
         raise OptionError(f"ground truth lacks markers: {', '.join(missing[:6])}")
     truth = np.asarray(truth_positions, float)[:, [lookup[label] for label in captured]]
     return marker_driven_error(build, cloud, truth=truth @ build.cloud.rotation.T)
+
+
+def mesh_ground_truth_error(build: RigBuild, session: Trajectories,
+                            truth_vertices: np.ndarray) -> SkinningError:
+    """Skinning error over every mesh vertex against true vertex positions.
+
+    ``truth_vertices`` (F, V, 3) mm in the session frame, vertex i = rig mesh vertex i (e.g. the
+    ICT-FaceKit face deformed by the synthetic session's blendshape weights, with the rig built
+    on that face via ``--mesh``); the rig is driven by ``session``'s layout markers.
+    """
+    cloud = dense_cloud(build.layout, session, rotation=build.cloud.rotation)
+    rig = build.rig
+    bind = build.cloud.neutral[build.cloud.index(build.layout.labels)]
+    joints = cloud.trajectories[:, cloud.index(build.layout.labels)] - bind
+    usable = np.isfinite(joints).all(axis=(1, 2))
+    disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
+    disp[:, 1:] = joints[usable]
+    predicted = skin_vertices(rig.vertices, rig.weight_index, rig.weight_value, disp)
+    truth = np.asarray(truth_vertices, float)[usable] @ build.cloud.rotation.T
+    if truth.shape != predicted.shape:
+        raise OptionError(f"truth has {truth.shape[1]} vertices, the rig mesh {rig.vertex_count}")
+    return skinning_error(predicted, truth)
 
 
 def _subdivide(vertices: np.ndarray, faces: np.ndarray, times: int) -> tuple[np.ndarray, np.ndarray]:
