@@ -132,7 +132,7 @@ def test_ezc3d_crash_or_hang_falls_back_to_own_reader(monkeypatch, tmp_path, sma
     np.testing.assert_array_equal(traj.positions, expected.positions)
 
 
-@settings(max_examples=60, deadline=None, derandomize=True,
+@settings(max_examples=40, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_mutated_files_read_or_fail_cleanly(tmp_path, small_c3d, data):

@@ -117,7 +117,7 @@ def test_atomic_and_force(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["OUT.C3D", "out.c3d"]
 
 
-@settings(max_examples=25, deadline=None, derandomize=True,
+@settings(max_examples=15, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(frames=st.integers(1, 40), markers=st.integers(1, 6), gaps=st.floats(0, 1),
        scale=st.sampled_from([1e-3, 1.0, 1e4]), seed=st.integers(0, 2**16))
