@@ -7,7 +7,8 @@ generated once into ``--folder``. Timed, each the best of ``--repeat`` runs:
 * raw ezc3d: ``ezc3d.c3d(path)`` in-process + ``points[:3].transpose(2, 1, 0)`` into one array;
 * py-c3d: ``c3d.Reader`` + ``read_frames()`` stacked into one array.
 
-Wall and CPU seconds are both shown (CPU = this process + child processes, which includes
+Each read runs in a fresh interpreter (imports excluded from the timing), readers alternating.
+Wall and CPU seconds are both shown (CPU = the process + its child processes, which includes
 mocaptk's ezc3d child); on a busy machine the CPU ratio is the reliable one.
 
 Note ezc3d 1.7.2 reads at most 65,535 frames (the C3D header field), so on the 120,000-frame
@@ -20,9 +21,10 @@ own reader. A reader whose estimated memory exceeds half the available memory is
 from __future__ import annotations
 
 import argparse
-import gc
 import os
 import resource
+import subprocess
+import sys
 import threading
 import time
 import warnings
@@ -89,32 +91,31 @@ def _cpu() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
-def _join_helpers() -> None:
-    """Wait for background threads (mocaptk reaps its ezc3d child in one) so the child's CPU
-    time is counted."""
+def measure(reader: str, path: Path) -> tuple[float, float]:
+    """(wall, CPU) seconds of one read in this process (call it in a fresh one).
+
+    CPU includes child processes (mocaptk's ezc3d child, up to its exit): background threads
+    (mocaptk reaps its child in one) are joined before CPU time is taken.
+    """
+    import c3d  # noqa: F401 - imports outside the timing
+    import ezc3d  # noqa: F401
+
+    func = {"mocaptk": read_c3d, "ezc3d": raw_ezc3d, "py-c3d": py_c3d}[reader]
+    wall, cpu = time.perf_counter(), _cpu()
+    result = func(path)
+    wall = time.perf_counter() - wall
     for thread in threading.enumerate():
         if thread is not threading.main_thread():
-            thread.join(timeout=60)
+            thread.join(timeout=120)
+    del result
+    return wall, _cpu() - cpu
 
 
-def time_interleaved(funcs: dict[str, object], repeat: int) -> dict[str, tuple[float, float]]:
-    """Best (wall, CPU) seconds of each function; runs alternate (A B A B...).
-
-    CPU time (this process + its child processes, incl. mocaptk's ezc3d child up to its exit)
-    is the fairer measure on a shared machine; wall time is what a user waits.
-    """
-    best = {name: (float("inf"), float("inf")) for name in funcs}
-    for _ in range(repeat):
-        for name, func in funcs.items():
-            gc.collect()
-            wall, cpu = time.perf_counter(), _cpu()
-            result = func()
-            wall = time.perf_counter() - wall
-            del result
-            _join_helpers()
-            cpu = _cpu() - cpu
-            best[name] = (min(best[name][0], wall), min(best[name][1], cpu))
-    return best
+def time_fresh(reader: str, path: Path) -> tuple[float, float]:
+    """(wall, CPU) of one read in a fresh interpreter (no heap left over from other readers)."""
+    out = subprocess.run([sys.executable, __file__, "--measure", reader, str(path)],
+                         check=True, capture_output=True, text=True).stdout.split()
+    return float(out[-2]), float(out[-1])
 
 
 def raw_ezc3d(path: Path) -> np.ndarray:
@@ -138,7 +139,12 @@ def main() -> None:
     parser.add_argument("--folder", type=Path, default=Path("/work/scratch/io-c3d"),
                         help="where the generated files go")
     parser.add_argument("--no-py-c3d", action="store_true", help="skip py-c3d (slow)")
+    parser.add_argument("--measure", nargs=2, metavar=("READER", "PATH"),
+                        help=argparse.SUPPRESS)  # internal: one timed read in this process
     args = parser.parse_args()
+    if args.measure:
+        print(*measure(args.measure[0], Path(args.measure[1])))
+        return
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     args.folder.mkdir(parents=True, exist_ok=True)
     print(f"{'markers':>7} {'frames':>7} {'MB':>5} | {'reader':>7} | wall s: "
@@ -150,14 +156,18 @@ def main() -> None:
         size_mb = path.stat().st_size / 2**20
         repeat = args.repeat if size_mb < 100 else 1
         reader = read_c3d(path).metadata["reader"]
-        _join_helpers()
         n_ez = min(frames, 0xFFFF)
-        funcs = {"mocaptk": lambda: read_c3d(path)}
+        readers = ["mocaptk"]
         if EZC3D_BYTES_PER_SAMPLE * n_ez * markers <= 0.5 * (c3d_ezc3d.available_memory() or 0):
-            funcs["ezc3d"] = lambda: raw_ezc3d(path)
-        times = time_interleaved(funcs, repeat)
+            readers.append("ezc3d")
         if not args.no_py_c3d:
-            times.update(time_interleaved({"py-c3d": lambda: py_c3d(path)}, 1))
+            readers.append("py-c3d")
+        times = {}
+        for _ in range(repeat):  # alternate readers so load drifts hit all of them
+            for name in readers:
+                new = time_fresh(name, path)
+                old = times.get(name, new)
+                times[name] = (min(old[0], new[0]), min(old[1], new[1]))
         ours, ez, py = times["mocaptk"], times.get("ezc3d", nan), times.get("py-c3d", nan)
         n_ez = n_ez if "ezc3d" in times else 0
         print(f"{markers:>7} {frames:>7} {size_mb:>5.0f} | {reader:>7} | wall s: "
