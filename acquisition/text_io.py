@@ -81,8 +81,14 @@ def cells_to_array(rows: Sequence[Sequence[str]], width: int, *, path: str | os.
     Rows shorter than ``width`` are padded with NaN, longer rows are cut. ``first_line`` is the
     1-based line number of ``rows[0]``, used to name a bad cell in the error.
     """
-    padded = [list(row[:width]) + [""] * (width - len(row)) for row in rows]
-    cells = np.char.strip(np.array(padded, dtype=str).reshape(len(rows), width))
+    padded = [row[:width] if len(row) >= width else list(row) + [""] * (width - len(row)) for row in rows]
+    cells = np.array(padded, dtype=str).reshape(len(rows), width)
+    if not decimal_comma:  # fast path: numbers and empty cells only (numpy parses them in C)
+        try:
+            return np.where(cells == "", "nan", cells).astype(np.float64)
+        except ValueError:
+            pass
+    cells = np.char.strip(cells)
     if decimal_comma:
         cells = np.char.replace(cells, ",", ".")
     missing = np.isin(np.char.lower(cells), list(MISSING_CELLS))
@@ -99,6 +105,30 @@ def cells_to_array(rows: Sequence[Sequence[str]], width: int, *, path: str | os.
                 raise InputFileError(
                     path, f"line {first_line + r}, column {c + 1}: not a number: {cell[:30]!r}") from None
     raise AssertionError("unreachable: astype failed but every cell parsed")
+
+
+def parse_lines(lines: Sequence[str], width: int, *, delimiter: str, path: str | os.PathLike[str],
+                first_line: int) -> np.ndarray:
+    """Parse delimited number lines to a ``(lines, width)`` float64 array (missing cells NaN).
+
+    Fast path for plain numbers and empty cells (one split of the whole block, parsed in C);
+    anything else (spaces, ``NA``...) goes through :func:`cells_to_array`, which also names a
+    bad cell. Lines with fewer cells are padded, longer lines cut.
+    """
+    fixed = []
+    for line in lines:
+        count = line.count(delimiter) + 1
+        if count < width:
+            line += delimiter * (width - count)
+        elif count > width:
+            line = delimiter.join(line.split(delimiter, width)[:width])
+        fixed.append(line)
+    cells = delimiter.join(fixed).split(delimiter)
+    try:
+        return np.array([cell or "nan" for cell in cells], dtype=np.float64).reshape(len(lines), width)
+    except ValueError:
+        return cells_to_array([line.split(delimiter) for line in lines], width, path=path,
+                              first_line=first_line)
 
 
 def numbered_labels(count: int, *, start: int = 1, total: int | None = None,
@@ -165,8 +195,11 @@ def whole_point_gaps(positions: np.ndarray) -> np.ndarray:
     return positions
 
 
-def format_cells(values: np.ndarray) -> np.ndarray:
-    """Text cells of a float array: 10 significant digits (sub-µm for mm), empty for NaN."""
-    cells = np.char.mod("%.10g", values)
-    cells[np.isnan(values)] = ""
-    return cells
+def format_rows(values: np.ndarray, *, delimiter: str) -> list[str]:
+    """One text line per row of a (rows, columns) float array: 10 significant digits (sub-µm for
+    mm), empty cells for NaN, no line ending."""
+    if values.shape[1] == 0:
+        return [""] * len(values)
+    template = delimiter.join(["%.10g"] * values.shape[1])
+    # one C-level format per row; "nan" never occurs in a formatted finite number
+    return [(template % tuple(row)).replace("nan", "") for row in values.tolist()]

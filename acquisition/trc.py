@@ -26,7 +26,7 @@ from mocaptk.atomic import atomic_open
 from mocaptk.errors import InputFileError
 from mocaptk.trajectories import Trajectories
 
-from .text_io import (cells_to_array, check_labels, format_cells, mm_per_unit, numbered_labels,
+from .text_io import (check_labels, format_rows, mm_per_unit, numbered_labels, parse_lines,
                       rate_from_times, read_text, rows_by_frame, whole_point_gaps)
 
 _HEADER_KEYS = ("DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate",
@@ -55,7 +55,7 @@ def read_trc(path: str | os.PathLike[str], *, units: str | None = None) -> Traje
     delimiter = "\t" if "\t" in lines[0] else ","
     if len(lines) < 5:
         raise InputFileError(path, f"truncated TRC header ({len(lines)} of 5 header lines)")
-    rows = [line.split(delimiter) for line in lines]
+    rows = [line.split(delimiter) for line in lines[:5]]  # header rows
     keys = [k.strip() for k in rows[1]]
     values = [v.strip() for v in rows[2]]
     header = {k: v for k, v in zip(keys, values) if k}
@@ -69,20 +69,21 @@ def read_trc(path: str | os.PathLike[str], *, units: str | None = None) -> Traje
     names = [cell.strip() for cell in rows[3][2:]]
     labels = [name for name in names if name]
     data_start = 5
-    while data_start < len(rows) and not any(c.strip() for c in rows[data_start]):
+    while data_start < len(lines) and not lines[data_start].replace(delimiter, "").strip():
         data_start += 1
-    data_rows = rows[data_start:]
-    if not data_rows:
+    data_lines = lines[data_start:]
+    if not data_lines:
         raise InputFileError(path, "TRC file has no data rows")
-    last_cell = max((i for row in data_rows for i in range(len(row) - 1, -1, -1) if row[i].strip()),
-                    default=1)
+    trailing = " \t\r" + delimiter
+    last_cell = max(max(line.rstrip(trailing).count(delimiter) for line in data_lines), 1)
     # unlabelled coordinate triples past the labels (or NumMarkers 0) are kept as extra markers
     # a NumMarkers beyond the labels and data columns is only noted (a corrupt count must not
     # allocate 10^9 empty markers)
     n_markers = max(len(labels), -(-(last_cell - 1) // 3))
     labels += numbered_labels(n_markers - len(labels), start=len(labels) + 1, total=n_markers)
     check_labels(labels, path=path)
-    table = cells_to_array(data_rows, 2 + 3 * n_markers, path=path, first_line=data_start + 1)
+    table = parse_lines(data_lines, 2 + 3 * n_markers, delimiter=delimiter, path=path,
+                        first_line=data_start + 1)
     first_number, table = rows_by_frame(table[:, 0], table, path=path)
     rate_text = header.get("DataRate") or header.get("CameraRate", "")
     try:
@@ -113,9 +114,9 @@ def write_trc(traj: Trajectories, path: str | os.PathLike[str], *, force: bool =
     first = traj.first_frame
     header_values = [f"{traj.rate:g}", f"{traj.rate:g}", str(n), str(m), "mm", f"{traj.rate:g}",
                      str(first), str(n)]
-    frame_numbers = np.arange(first, first + n)
-    times = np.char.mod("%.6f", np.arange(n) / traj.rate)
-    cells = format_cells(traj.positions.reshape(n, 3 * m))
+    frame_numbers = range(first, first + n)
+    times = [f"{t:.6f}" for t in (np.arange(n) / traj.rate).tolist()]
+    lines = format_rows(traj.positions.reshape(n, 3 * m), delimiter="\t")
     with atomic_open(path, "w", force=force) as handle:
         handle.write(f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}\n")
         handle.write("\t".join(_HEADER_KEYS) + "\n")
@@ -123,6 +124,6 @@ def write_trc(traj: Trajectories, path: str | os.PathLike[str], *, force: bool =
         handle.write("\t".join(["Frame#", "Time"] + [c for lab in traj.labels for c in (lab, "", "")]) + "\n")
         handle.write("\t".join(["", ""] + [f"{a}{i + 1}" for i in range(m) for a in "XYZ"]) + "\n")
         handle.write("\n")
-        for number, time, row in zip(frame_numbers, times, cells):
-            handle.write(f"{number}\t{time}\t" + "\t".join(row) + "\n")
+        handle.writelines(f"{number}\t{time}\t{line}\n"
+                          for number, time, line in zip(frame_numbers, times, lines))
     return Path(path)

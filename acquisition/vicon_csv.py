@@ -19,7 +19,6 @@ ignore.
 from __future__ import annotations
 
 import csv
-import io
 import os
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from mocaptk.atomic import atomic_open
 from mocaptk.errors import InputFileError
 from mocaptk.trajectories import Take, Trajectories
 
-from .text_io import (cells_to_array, check_labels, format_cells, mm_per_unit, read_text,
+from .text_io import (check_labels, format_rows, mm_per_unit, parse_lines, read_text,
                       rows_by_frame, whole_point_gaps)
 
 #: First cell of a section header line in a Nexus CSV export.
@@ -38,22 +37,30 @@ SECTION_NAMES = ("Trajectories", "Devices", "Model Outputs", "Segments", "Joints
 _EVENTS_HEADER = ["Subject", "Context", "Name", "Time (s)", "Description", "Region"]
 
 
-def is_section_line(cells: list[str]) -> bool:
-    """True for a section header line such as ``Trajectories,,,,``."""
-    return bool(cells) and cells[0].strip() in SECTION_NAMES and not any(c.strip() for c in cells[1:])
+def _section_name(line: str) -> str | None:
+    """The section a header line such as ``Trajectories,,,,`` opens, else None."""
+    name = line.split(",", 1)[0].strip().strip('"')
+    if name in SECTION_NAMES and line.replace(",", "").replace('"', "").strip() == name:
+        return name
+    return None
 
 
-def _sections(rows: list[list[str]]) -> dict[str, int]:
-    """Row index of each section header (first occurrence)."""
+def _sections(lines: list[str]) -> dict[str, int]:
+    """Line index of each section header (first occurrence)."""
     found: dict[str, int] = {}
-    for i, cells in enumerate(rows):
-        if is_section_line(cells):
-            found.setdefault(cells[0].strip(), i)
+    for i, line in enumerate(lines):
+        name = _section_name(line)
+        if name is not None:
+            found.setdefault(name, i)
     return found
 
 
-def _blank(cells: list[str]) -> bool:
-    return not any(c.strip() for c in cells)
+def _blank(line: str) -> bool:
+    return not line.replace(",", "").strip()
+
+
+def _parse_rows(lines: list[str]) -> list[list[str]]:
+    return list(csv.reader(lines))
 
 
 def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) -> Trajectories:
@@ -72,28 +79,30 @@ def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) ->
         Positions in mm, labels as written (``Subject:Marker``), ``first_frame`` = first
         exported frame number, takes from ``Take Start``/``Take End`` events.
     """
-    rows = list(csv.reader(io.StringIO(read_text(path))))
-    sections = _sections(rows)
+    lines = read_text(path).splitlines()
+    sections = _sections(lines)
     if "Trajectories" not in sections:
         found = ", ".join(sections) or "none"
         raise InputFileError(path, f"Vicon CSV has no Trajectories section (sections: {found})")
     start = sections["Trajectories"]
-    coord_at = next((i for i in range(start + 3, min(start + 6, len(rows)))
-                     if rows[i] and rows[i][0].strip().lower().startswith("frame")), None)
+    rows = _parse_rows(lines[start:start + 6])  # section header rows (labels may be quoted)
+    coord_at = next((i for i in range(3, len(rows)) if rows[i] and rows[i][0].strip().lower().startswith("frame")),
+                    None)
     if coord_at is None:
         raise InputFileError(path, "Trajectories section is truncated (no label row and Frame/X/Y/Z row)")
     try:
-        rate = float(rows[start + 1][0])
+        rate = float(rows[1][0])
     except (ValueError, IndexError):
-        raise InputFileError(path, f"line {start + 2}: expected the frame rate, got {rows[start + 1][:1]}") from None
+        raise InputFileError(path, f"line {start + 2}: expected the frame rate, got {rows[1][:1]}") from None
     data_at = coord_at + 1
     has_units = data_at < len(rows) and (not rows[data_at] or not rows[data_at][0].strip())
-    end = data_at + has_units
-    while end < len(rows) and not _blank(rows[end]) and not is_section_line(rows[end]):
-        end += 1
     label_row, coord_row = rows[coord_at - 1], rows[coord_at]
     unit_row = rows[data_at] if has_units else []
-    data_rows = rows[data_at + has_units:end]
+    first_data = start + data_at + has_units
+    end = first_data
+    while end < len(lines) and not _blank(lines[end]) and _section_name(lines[end]) is None:
+        end += 1
+    data_lines = lines[first_data:end]
     columns: list[int] = []
     labels: list[str] = []
     for col, label in enumerate(label_row):
@@ -105,10 +114,10 @@ def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) ->
         columns.append(col)
         labels.append(label.strip())
     check_labels(labels, path=path)
-    if not data_rows:
+    if not data_lines:
         raise InputFileError(path, "Trajectories section has no data rows (truncated?)")
     width = max(columns) + 3
-    values = cells_to_array(data_rows, width, path=path, first_line=data_at + has_units + 1)
+    values = parse_lines(data_lines, width, delimiter=",", path=path, first_line=first_data + 1)
     first_number, values = rows_by_frame(values[:, 0], values, path=path)
     col_index = np.array(columns)[:, None] + np.arange(3)[None, :]
     positions = values[:, col_index]  # (frames, markers, 3)
@@ -120,23 +129,24 @@ def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) ->
         scale = np.array([mm_per_unit(u, source=path) for u in file_units])
         original = file_units[0] if len(set(file_units)) == 1 else "mixed"
     positions = whole_point_gaps(positions * scale[None, :, None])
-    takes = _read_takes(rows, sections, rate=rate, n_frames=len(positions), path=path)
+    takes = _read_takes(lines, sections, rate=rate, n_frames=len(positions), path=path)
     meta = {"source": os.fspath(path), "format": "vicon_csv", "original_units": original,
             "subjects": sorted({lab.split(":", 1)[0] for lab in labels if ":" in lab}),
             "takes": takes}
     return Trajectories(positions, labels, rate, first_frame=first_number, metadata=meta)
 
 
-def _read_takes(rows: list[list[str]], sections: dict[str, int], *, rate: float, n_frames: int,
+def _read_takes(lines: list[str], sections: dict[str, int], *, rate: float, n_frames: int,
                 path: str | os.PathLike[str]) -> list[Take]:
     """Takes written by :func:`write_vicon_csv` as Take Start / Take End events."""
     if "Events" not in sections:
         return []
+    end = start = sections["Events"] + 2
+    while end < len(lines) and not _blank(lines[end]) and _section_name(lines[end]) is None:
+        end += 1
     starts: dict[str, tuple[int, str | None]] = {}
     takes: list[Take] = []
-    for cells in rows[sections["Events"] + 2:]:
-        if _blank(cells) or is_section_line(cells):
-            break
+    for cells in _parse_rows(lines[start:end]):
         cells = cells + [""] * (6 - len(cells))
         kind, name, region = cells[2].strip(), cells[4].strip(), cells[5].strip() or None
         if kind not in ("Take Start", "Take End"):
@@ -176,8 +186,7 @@ def write_vicon_csv(traj: Trajectories, path: str | os.PathLike[str], *, force: 
         writer.writerow(["", ""] + [cell for label in traj.labels for cell in (label, "", "")])
         writer.writerow(["Frame", "Sub Frame"] + ["X", "Y", "Z"] * traj.n_markers)
         writer.writerow(["", ""] + ["mm"] * (3 * traj.n_markers))
-        cells = format_cells(traj.positions.reshape(traj.n_frames, -1))
+        lines = format_rows(traj.positions.reshape(traj.n_frames, -1), delimiter=",")
         first = traj.first_frame
-        for i, row in enumerate(cells):
-            handle.write(f"{first + i},0,{','.join(row)}\n")
+        handle.writelines(f"{first + i},0,{line}\n" for i, line in enumerate(lines))
     return Path(path)
