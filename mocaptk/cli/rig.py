@@ -59,7 +59,7 @@ def rig(
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
                                    "index} (>= 3) to start the mesh alignment (default: ICP)."),
     max_influences: int = typer.Option(4, "--max-influences", help="Joints per vertex (1-8; 4 "
-                                       "suits game engines, 8 is smoother)."),
+                                       "suits game engines; 8 changes little, see docs)."),
     formats: str = typer.Option("json,fbx,glb", "--formats", help="Comma-separated rig files to "
                                 "write: json, fbx, glb."),
     falloff: float = typer.Option(None, "--falloff", help="How far (mm along the skin) a joint's "
