@@ -11,9 +11,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from mocaptk.errors import OptionError
 from mocaptk.trajectories import Trajectories
+
+from .runs import take_segments, true_runs
 
 #: Automatic rigid set: at most this many markers ...
 AUTO_RIGID_MAX = 6
@@ -242,7 +245,7 @@ def _reference_frame(traj: Trajectories, rigid: np.ndarray, visible: np.ndarray,
 
 
 def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = None,
-                   outlier_mm: float = 2.0) -> StabilizeResult:
+                   outlier_mm: float = 2.0, max_pose_gap: int = 10) -> StabilizeResult:
     """Remove rigid head motion: fit the rigid marker set in every frame, express all markers in head coordinates.
 
     Parameters
@@ -254,6 +257,10 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         the other rigid markers deviate from the reference shape by more than this (median over
         the others), or when its residual after the fit exceeds ``max(outlier_mm, 3 × median
         residual)``.
+    max_pose_gap : frames without a pose (fewer than 3 consistent rigid markers) in runs of at most
+        this many frames, inside one take and with posed frames on both sides, get a pose
+        interpolated from those neighbours (rotation slerp, linear translation); their
+        ``rms_residual_mm`` stays NaN. Longer runs stay without a pose (NaN output).
 
     Each frame uses only its visible rigid markers (≥ 3). The reference shape is the rigid set in the
     reference frame (the first clean frame with the most rigid markers, in a "neutral" take if
@@ -301,10 +308,25 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     if np.isfinite(r0).all():
         rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
         trans = trans - np.einsum("fij,j->fi", rot, t0)
+    _bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)
     relative = _to_head(traj.positions, rot, trans)
     meta = dict(traj.metadata)
     meta["stabilized"] = {"rigid_labels": list(labels), "reference_frame": ref_frame}
     return StabilizeResult(traj.replace(positions=relative, metadata=meta), rot, trans, labels, rms, ref_frame)
+
+
+def _bridge_poses(rot: np.ndarray, trans: np.ndarray, segments: list[tuple[int, int]], *, max_gap: int) -> None:
+    """Interpolate missing poses (NaN) in place over interior runs of at most ``max_gap`` frames."""
+    missing = np.isnan(rot[:, 0, 0])
+    for s, e in segments:
+        for a, b in true_runs(missing[s:e]):
+            if a == 0 or b == e - s or b - a > max_gap:
+                continue
+            lo, hi = s + a - 1, s + b
+            frames = np.arange(s + a, s + b)
+            rot[frames] = Slerp([lo, hi], Rotation.from_matrix(rot[[lo, hi]]))(frames).as_matrix()
+            w = ((frames - lo) / (hi - lo))[:, None]
+            trans[frames] = (1 - w) * trans[lo] + w * trans[hi]
 
 
 def _keep_three(weights: np.ndarray, fallback: np.ndarray) -> np.ndarray:

@@ -121,6 +121,21 @@ def test_stabilization_ignores_a_glitching_rigid_marker(face):
     assert np.median(angle) < 0.4 and angle.max() < 1.5  # without outlier rejection: up to ~10 deg
 
 
+def test_short_pose_gaps_are_interpolated_long_ones_left(face):
+    session, _, rot, _ = face
+    pos = session.positions.copy()
+    pos[300:306, :6] = np.nan  # all rigid markers lost for 6 frames ...
+    pos[600:640, :6] = np.nan  # ... and for 40 frames
+    result = stabilize_head(session.replace(positions=pos), rigid_labels=[f"HEAD_{i:02d}" for i in range(6)])
+    assert np.isnan(result.rotations[600:640]).all() and np.isnan(result.trajectories.positions[600:640]).all()
+    assert np.isnan(result.rms_residual_mm[300:306]).all()
+    bridged = np.arange(300, 306)
+    rel_rot = np.einsum("fij,kj->fik", rot, rot[result.reference_frame])
+    angle = _angle_deg(result.rotations[bridged], rel_rot[bridged])
+    assert angle.max() < 0.5
+    assert not np.isnan(result.trajectories.positions[bridged, 6:]).all(axis=(1, 2)).any()
+
+
 def test_stabilization_of_real_data_cancels_an_added_rigid_motion():
     """Real capture (pyomeca, Vicon): moving the whole marker cloud rigidly must not change the
     head-relative result beyond the reference frame's own change of coordinates."""
