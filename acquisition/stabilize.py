@@ -29,7 +29,7 @@ AUTO_RIGID_MIN_TOLERANCE_MM = 1.0
 #: The third marker must lie at least this far (mm) from the line through the first two.
 AUTO_RIGID_MIN_SPREAD_MM = 10.0
 _DETECT_FRAMES = 300  # frames sampled to score distance variation
-_MIN_SHARED = 0.5     # a pair counts only if both markers are seen in half the sampled frames
+_MIN_SHARED = 0.5     # a pair counts only if seen together in half the sampled frames that have data
 _REFINE_ROUNDS = 2    # stabilize-and-reselect rounds after the pairwise-distance pick
 
 
@@ -93,7 +93,7 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     """Markers that move as one rigid body, spread over it (on a face: nose bridge, temples, forehead).
 
     Rule, on up to 300 evenly spaced frames: for every marker pair seen together in at least half
-    of them, take the 95th percentile of ``|d(f) - median d|`` (its distance changes, mm). Only
+    of those with data, take the 95th percentile of ``|d(f) - median d|`` (its distance changes, mm). Only
     pairs at least ``AUTO_RIGID_SPREAD`` (25 %) of the cloud's diameter apart count — neighbouring
     skin markers keep their distances while moving together, distant ones only if both sit on the
     rigid skull. Start from the steadiest such pair; repeatedly add the marker, far enough from all
@@ -113,7 +113,8 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
         raise OptionError(f"stabilization needs at least 3 markers, the session has {n_markers}")
     typical, change = _pair_distance_stats(pos, visible)
     shared = visible.T.astype(float) @ visible.astype(float)
-    usable = (shared >= _MIN_SHARED * n_frames) & np.isfinite(change)
+    with_data = max(1, int(visible.any(axis=1).sum()))  # frames outside takes may be empty
+    usable = (shared >= _MIN_SHARED * with_data) & np.isfinite(change)
     np.fill_diagonal(usable, False)
     if not usable.any():
         raise OptionError("cannot detect rigid markers: no two markers are seen together often enough")
@@ -152,7 +153,7 @@ def _least_moving_spread_set(sample: Trajectories, chosen: list[int], *, spread_
     except OptionError:
         return chosen
     seen = ~np.isnan(rel).any(axis=2)
-    enough = seen.sum(axis=0) >= _MIN_SHARED * len(rel)
+    enough = seen.sum(axis=0) >= _MIN_SHARED * max(1, int(seen.any(axis=1).sum()))
     motion = np.full(rel.shape[1], np.inf)
     for m in np.flatnonzero(enough):
         track = rel[seen[:, m], m]

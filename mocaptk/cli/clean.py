@@ -56,12 +56,16 @@ def clean(
         labels = [s.strip() for s in rigid.split(",") if s.strip()] if rigid else None
         result = stabilize_head(traj, rigid_labels=labels)
         traj = result.trajectories
-        posed = np.isfinite(result.rms_residual_mm)
-        median_rms = float(np.median(result.rms_residual_mm[posed])) if posed.any() else float("nan")
+        fitted = np.isfinite(result.rms_residual_mm)
+        no_pose = int(np.isnan(result.rotations[:, 0, 0]).sum())
+        bridged = int((~fitted).sum()) - no_pose
+        median_rms = float(np.median(result.rms_residual_mm[fitted])) if fitted.any() else float("nan")
         typer.echo(f"stabilized on {', '.join(result.rigid_labels)} (reference frame {result.reference_frame}): "
-                   f"median rigid-fit RMS {median_rms:.3f} mm, {int((~posed).sum())} frames without a head pose")
+                   f"median rigid-fit RMS {median_rms:.3f} mm, {bridged} frames with an interpolated head pose, "
+                   f"{no_pose} frames without one")
         doc["stabilization"] = {"rigid_labels": list(result.rigid_labels), "reference_frame": result.reference_frame,
-                                "median_rms_residual_mm": median_rms, "frames_without_pose": int((~posed).sum())}
+                                "median_rms_residual_mm": median_rms, "frames_interpolated_pose": bridged,
+                                "frames_without_pose": no_pose}
     if fill_max_gap > 0:
         traj, fill_report = fill_gaps(traj, max_gap=fill_max_gap)
         typer.echo(f"gap filling: {fill_report.summary()}")
