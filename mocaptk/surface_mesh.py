@@ -5,14 +5,17 @@ face). :func:`marker_surface_mesh` turns them into a triangle mesh whose vertice
 markers (same order), so anything defined per dense marker is defined per vertex:
 
 1. **Chart.** Fit a sphere to the cloud (the face is a cap around a centre inside the head) and
-   map every marker to its (azimuth, elevation) around that centre, scaled to mm. Unlike a flat
+   map every marker to its (azimuth, elevation) around that centre, scaled to mm; azimuth turns
+   around the in-plane axis the face wraps least around (cheek to cheek wraps most). Unlike a flat
    PCA projection this keeps the sides of the face (cheeks, jaw line) from collapsing into
    slivers. A nearly flat cloud falls back to the PCA plane.
 2. **Delaunay** (scipy) in the chart.
 3. **Peel the rim.** The convex hull of the chart adds long, thin triangles along the border;
    boundary triangles with a 3-D edge longer than ``max_edge_factor`` x the local marker
-   spacing (largest nearest-neighbour distance of its three markers), or flat slivers (angle facing the border > ``max_rim_angle_deg``), are removed,
-   repeatedly, from the outside in. Interior triangles are kept (holes such as a missing marker stay filled).
+   spacing (largest nearest-neighbour distance of its three markers), or flat slivers (angle
+   facing the border > ``max_rim_angle_deg``), are removed, repeatedly, from the outside in.
+   Interior triangles are kept (holes such as a missing marker stay filled); markers far from
+   all others form separate small patches.
 4. **Flip** interior edges whose 3-D triangles are badly shaped (improves the smallest angle
    where the chart distorts), and **repair** vertices where two boundary loops touch (bow-ties),
    so the result is an edge-manifold disk.
@@ -290,9 +293,9 @@ def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarra
                  max_rim_angle: float) -> np.ndarray:
     """Remove bad triangles that lie on the border, from the outside in.
 
-    Bad = an edge longer than the largest ``max_edge`` (V,) mm of its three vertices, or a flat rim sliver: the angle facing one of
-    its border edges is wider than ``max_rim_angle`` (degrees) - the long thin triangles the
-    convex hull adds between rim markers.
+    Bad = an edge longer than the largest ``max_edge`` (V,) mm of its three vertices, or a
+    flat rim sliver: the angle facing one of its border edges is wider than ``max_rim_angle``
+    (degrees) - the long thin triangles the convex hull adds between rim markers.
     """
     n = len(vertices)
     keys = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1),

@@ -145,7 +145,8 @@ def _coarse_starts(verts: np.ndarray, pts: np.ndarray) -> list[Similarity]:
     return out
 
 
-def _icp(mesh: SurfaceProximity, pts: np.ndarray, start: Similarity, *, iterations: int, trim: float) -> Similarity:
+def _icp(mesh: SurfaceProximity, pts: np.ndarray, start: Similarity, *, iterations: int,
+         trim: float) -> Similarity:
     """Refine ``start`` (mesh -> markers) by ICP with scale on the trimmed closest pairs."""
     transform = start
     keep = max(3, int(round(trim * len(pts))))

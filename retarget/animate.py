@@ -33,7 +33,8 @@ def skin_vertices(rest: np.ndarray, weight_index: np.ndarray, weight_value: np.n
                                                    np.ravel(weight_index))),
                          shape=(n_vertices, n_joints))
     moved = skin @ disp.transpose(1, 0, 2).reshape(n_joints, -1)  # (V, F*3)
-    return np.asarray(rest, dtype=float)[None] + moved.reshape(n_vertices, n_frames, 3).transpose(1, 0, 2)
+    moved = moved.reshape(n_vertices, n_frames, 3).transpose(1, 0, 2)
+    return np.asarray(rest, dtype=float)[None] + moved
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ Pages (A4 portrait; the 1:1 page grows to A3 if the face does not fit):
    ("must measure 50 mm"), for building a placement mask;
 4+. the marker table: number, label, region, side, position from the nose tip (mm right/left
    of the midline, above/below the tip, in front/behind) and the dense markers it replaces
-   (its cluster).
+   (its cluster; the count, then as many labels as fit).
 
 Numbers are the layout order (1 = first cluster), the same in every view, the table and the
 rig's joints. Landmarks: the nose tip = the most forward dense marker; the midline = the
@@ -214,8 +214,9 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
 
 
 def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
-    cols = [("#", 8), ("label", 38), ("region", 22), ("side", 8), ("from midline", 18),
-            ("vs nose tip", 20), ("depth", 18), ("replaces (dense markers of its cluster)", 54)]
+    cols = [("#", 7), ("label", 34), ("region", 20), ("side", 7), ("from midline", 17),
+            ("vs nose tip", 18), ("depth", 17),
+            ("replaces: count, dense markers of its cluster", 66)]
     row_h = 4.6
     width, height = A4
     rows = list(markers)
@@ -236,8 +237,7 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
         while rows and y + row_h <= height - MARGIN:
             m = rows.pop(0)
             lateral, vertical, depth = _describe(m.from_nose)
-            shown = ", ".join(m.replaces[:5]) + (f" +{len(m.replaces) - 5}" if len(m.replaces) > 5
-                                                 else "")
+            shown = f"{len(m.replaces)}: " + ", ".join(m.replaces) if m.replaces else ""
             values = [str(m.number), m.label, m.region, m.side, lateral, vertical, depth,
                       shown or "-"]
             r, g, b = (int(255 * c) for c in region_colour(m.region, tint=0.75))

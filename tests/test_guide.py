@@ -65,7 +65,7 @@ def test_guide_pdf_pages_and_render(guide):
     text = subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True,
                           text=True).stdout
     for words in ("Front view", "Profile view", "1:1 scale", "must measure 50 mm", "M_00_",
-                  "D_0a, D_0b", "nose tip"):
+                  "2: D_0a, D_0b", "nose tip"):
         assert words in text
 
 
