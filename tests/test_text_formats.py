@@ -135,6 +135,25 @@ def test_vicon_csv_equals_its_c3d_source():
     assert stripped.labels[0] == "gauche_ext"
 
 
+def test_vicon_csv_with_devices_first_other_sections_after_and_no_units_row(tmp_path):
+    markers = shared_path("csv_trc", "pyomeca", "markers.csv").read_text()
+    devices = shared_path("csv_trc", "pyomeca", "analogs.csv").read_text()  # a Devices section
+    model = "Model Outputs\n100\n,,Daphnee:LAnkleAngles,,\nFrame,Sub Frame,X,Y,Z\n,,deg,deg,deg\n1,0,1,2,3\n"
+    combined = tmp_path / "combined.csv"
+    combined.write_text(devices.rstrip("\r\n") + "\n\n" + markers.rstrip("\n") + "\n\n" + model)
+    reference = read_vicon_csv(shared_path("csv_trc", "pyomeca", "markers.csv"))
+    traj = read_trajectories(combined)
+    assert traj.labels == reference.labels and traj.rate == 100.0
+    np.testing.assert_array_equal(traj.positions, reference.positions)
+    lines = markers.splitlines()
+    assert lines[4].startswith(",,mm,mm,mm")
+    no_units = tmp_path / "old_export.csv"
+    no_units.write_text("\n".join(lines[:4] + lines[5:]) + "\n")
+    old = read_trajectories(no_units)
+    assert old.metadata["original_units"] == "mm"
+    np.testing.assert_array_equal(old.positions, reference.positions)
+
+
 def test_headerless_nexus_export_with_rate_equals_full_export():
     full = read_vicon_csv(shared_path("csv_trc", "pyomeca", "markers.csv"))
     bare = read_trajectories(shared_path("csv_trc", "pyomeca", "markers_without_header.csv"), rate=100)
