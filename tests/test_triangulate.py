@@ -142,7 +142,7 @@ def test_cli_triangulate(tmp_path, run_cli, markers):
     labels = np.array([f"FACE_{m:03d}" for m in range(points.shape[1])])
     np.savez(tmp_path / "obs.npz", points2d=obs, labels=labels, rate=60.0,
              camera_names=np.array(rig.names))
-    out = tmp_path / "out.trc"
+    out = tmp_path / "out.c3d"
     result = run_cli("triangulate", tmp_path / "rig.json", tmp_path / "obs.npz", out)
     assert result.exit_code == 0, result.stderr
     assert out.exists() and "median reprojection" in result.stdout
