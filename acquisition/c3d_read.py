@@ -61,10 +61,12 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
     labels = _labels(structure, notes)
     xyz, residual, reader = _read_point_values(structure, notes)
     with np.errstate(over="ignore", invalid="ignore"):  # huge values become inf: gaps
-        xyz *= mm_per_unit
-        missing = (residual < 0) | ~np.isfinite(xyz).all(axis=2)
+        if mm_per_unit != 1.0:
+            xyz *= mm_per_unit
+            residual *= mm_per_unit
+        missing = (residual < 0) | ~np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2])
         xyz[missing] = np.nan
-        residual = np.where(missing, np.nan, residual * mm_per_unit)
+        residual[missing] = np.nan
     metadata: dict[str, Any] = {
         "source": str(path), "format": "c3d", "original_units": units,
         "subjects": _subjects(structure, labels),
