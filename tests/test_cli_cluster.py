@@ -14,7 +14,7 @@ from conftest import SAMPLES, shared_path
 def session_files(tmp_path_factory):
     """A planted half-face session as .npz plus its takes file."""
     folder = tmp_path_factory.mktemp("planted")
-    traj, group_of = planted_session(seed=21, per_group=3, frames=300)
+    traj, group_of = planted_session(seed=21)
     path = folder / "planted.npz"
     np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
     takes = folder / "takes.json"
@@ -24,14 +24,13 @@ def session_files(tmp_path_factory):
 
 def test_cluster_writes_all_outputs_deterministically(run_cli, session_files, tmp_path):
     path, takes, group_of = session_files
-    first = run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "a")
+    first = run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "a",
+                    "--formats", "none")  # rig + guide outputs are tested with the rig commands
     assert first.exit_code == 0, first.stderr
     assert "total" in first.stdout
     names = sorted(p.name for p in (tmp_path / "a").iterdir())
     assert names == ["correlation_forehead_brow.png", "correlation_mouth.png", "correlation_nose.png",
-                     "guide.pdf", "guide_front.png", "guide_profile.png",
-                     "layout.json", "layout.png", "regions.png", "rig.fbx", "rig.glb", "rig.json",
-                     "rig_report.json", "summary.txt"]
+                     "layout.json", "layout.png", "regions.png", "summary.txt"]
     second = run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "b", "--quiet",
                      "--formats", "none")
     assert second.exit_code == 0 and second.stdout == ""
@@ -55,15 +54,16 @@ def test_cluster_refuses_existing_folder_and_bad_options(run_cli, session_files,
         (("--force", "--step", "100000"), "step"),
         (("--force", "--regions", path.with_name("missing.json")), "missing.json"),
     ]:
-        result = run_cli("cluster", path, "--no-stabilize", "--out", out, *args)
+        result = run_cli("cluster", path, "--no-stabilize", "--out", out, "--formats", "none", *args)
         assert result.exit_code == 2, (args, result.stderr)
         lines = result.stderr.strip().splitlines()
         assert lines[-1].startswith("mocaptk: error:") and needle in lines[-1]
     regions = tmp_path / "regions.json"
     regions.write_text(json.dumps({"mouth": ["MOUTH_01_L", "NOT_A_MARKER"]}))
-    result = run_cli("cluster", path, "--no-stabilize", "--out", out, "--force", "--regions", regions)
+    result = run_cli("cluster", path, "--no-stabilize", "--out", out, "--force", "--regions", regions,
+                     "--formats", "none")
     assert result.exit_code == 2 and "NOT_A_MARKER" in result.stderr
-    result = run_cli("cluster", path.with_name("nope.c3d"), "--no-stabilize")
+    result = run_cli("cluster", path.with_name("nope.c3d"), "--no-stabilize", "--formats", "none")
     assert result.exit_code == 2 and "nope.c3d" in result.stderr
     ok = run_cli("cluster", path, "--no-stabilize", "--out", out, "--force", "--quiet", "--takes", takes,
                  "--formats", "none")
@@ -80,7 +80,8 @@ def test_evaluate_and_sweep(run_cli, session_files, tmp_path):
     assert "random" in result.stdout and "kmeans" in result.stdout
     report = json.loads((tmp_path / "L" / "evaluation.json").read_text())
     counts = {m["count"] for m in report["methods"].values()}
-    assert counts == {len(set(group_of.values()))}
+    layout = json.loads((tmp_path / "L" / "layout.json").read_text())
+    assert counts == {sum(c["mirrored_from"] is None for c in layout["clusters"])}
     assert report["methods"]["paper"]["rmse_mm"] < report["methods"]["random"]["rmse_mm"]
     sweep = run_cli("sweep", path, "--takes", takes, "--no-stabilize", "--factors", "0.5,1.5,2.5", "--folds", "3",
                     "--out", tmp_path / "S", "--quiet")
@@ -96,7 +97,7 @@ def test_evaluate_and_sweep(run_cli, session_files, tmp_path):
 
 def test_cluster_on_real_blenderface_data(run_cli, tmp_path):
     csv = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
-    result = run_cli("cluster", csv, "--rate", "50", "--no-stabilize", "--out", tmp_path / "bf")
+    result = run_cli("cluster", csv, "--rate", "50", "--no-stabilize", "--out", tmp_path / "bf", "--formats", "none")
     assert result.exit_code == 0, result.stderr
     data = json.loads((tmp_path / "bf" / "layout.json").read_text())
     assert data["parameters"]["regions_from"].startswith("geometric")
@@ -110,7 +111,8 @@ def test_cluster_on_bundled_sample(run_cli, tmp_path):
     dense = [p for p in sessions if "perf" not in p.name.lower()]
     if not dense:
         pytest.skip("sample_c3d/ has no session yet")
-    result = run_cli("cluster", dense[0], "--no-stabilize", "--out", tmp_path / "s", "--factor", "1.1")
+    result = run_cli("cluster", dense[0], "--no-stabilize", "--out", tmp_path / "s", "--factor", "1.1",
+                     "--formats", "none")
     assert result.exit_code == 0, result.stderr
     data = json.loads((tmp_path / "s" / "layout.json").read_text())
     assert data["parameters"]["regions_from"] == "label prefixes"

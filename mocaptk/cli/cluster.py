@@ -112,8 +112,8 @@ def cluster(
     session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
                                  "region mean correlation; larger gives more markers."),
-    regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: [labels]} or CSV "
-                                 "label,region (default: label prefixes, else geometric)."),
+    regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: list of labels} "
+                                 "or CSV label,region (default: label prefixes, else geometric)."),
     takes: Path = typer.Option(None, "--takes", help="Takes file {\"takes\": [{name, region, start, end}]} "
                                "(default: takes recorded in the session)."),
     step: int = typer.Option(5, "--step", help="Use every STEP-th frame for the correlation matrices."),
