@@ -131,6 +131,20 @@ def test_cli_rig_bad_input_is_one_line_exit_2(sample, tmp_path, run_cli, args, m
     assert result.stderr.count("\n") == 1
 
 
+def test_cli_rig_bad_landmarks_file(sample, tmp_path, run_cli):
+    from mocaptk.clustering.layout import write_layout
+
+    _, _, layout, _ = sample
+    write_layout(layout, tmp_path / "layout.json")
+    for content, message in (('{"NOSE_01_C": 5}', "at least 3"), ("[1, 2", "invalid JSON"),
+                             ('{"a": -1, "b": 2, "c": 3}', "vertex index")):
+        (tmp_path / "lm.json").write_text(content)
+        result = run_cli("rig", tmp_path / "layout.json", "--session",
+                         SAMPLES / "dense_halfface_performance.c3d", "--landmarks",
+                         tmp_path / "lm.json", "--out", tmp_path / "o", "--no-stabilize")
+        assert result.exit_code == 2 and message in result.stderr and "lm.json" in result.stderr
+
+
 def test_cli_rig_missing_layout(tmp_path, run_cli):
     result = run_cli("rig", tmp_path / "none.json", "--session", tmp_path / "none.c3d")
     assert result.exit_code == 2 and "none.json" in result.stderr
