@@ -7,14 +7,17 @@ is scored on the left-out one, errors pooled over folds. The score is the team's
 reconstruction (:mod:`mocaptk.clustering.evaluation`): RMSE and 95th percentile of the per-point
 error over all dense markers, mm. The reconstruction is fitted on the gap-free training frames
 (a frame with any gap is left out of the fit; the evaluation's per-column gap handling costs
-minutes per layout on long sessions and changes the fit by little); test frames keep their gaps.
+minutes per layout on long sessions and changes the fit by little) and evenly subsampled to at
+most 3,000 frames; test frames keep their gaps and are all scored.
 Random layouts are averaged over several seeds.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,6 +25,8 @@ import numpy as np
 from ..errors import OptionError
 from ..trajectories import Trajectories
 from .evaluation import error_summary, heldout_errors, holdout_splits
+from .figures import _pyplot, _save
+from .regions import face_frame
 from .methods import LayoutProblem, method_names, select_layout
 from .neutral import neutral_pose
 
@@ -63,10 +68,17 @@ def _problem(positions: np.ndarray, session: Trajectories, frames: np.ndarray | 
                          segments=tuple(segments))
 
 
+#: At most this many training frames enter the reconstruction fit (evenly subsampled).
+FIT_FRAMES = 3000
+
+
 def _gap_free(positions: np.ndarray) -> np.ndarray:
-    """The frames without any gap (all frames when fewer than 10 are complete)."""
+    """The frames without any gap (all frames when fewer than 10 are complete), subsampled
+    evenly to at most :data:`FIT_FRAMES` (neighbouring frames at 60 Hz add little)."""
     complete = np.isfinite(positions).all(axis=(1, 2))
-    return positions[complete] if complete.sum() >= 10 else positions
+    kept = positions[complete] if complete.sum() >= 10 else positions
+    step = -(-kept.shape[0] // FIT_FRAMES)
+    return kept[::step]
 
 
 def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
@@ -168,3 +180,50 @@ def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
             out.append(f"{rmse} / {r.p95_mm:.3f} ({r.seconds:.2f})")
         lines.append(f"| {m} | " + " | ".join(out) + " |")
     return "\n".join(lines) + "\n"
+
+
+def compare_plot(rows: Sequence[CompareRow], path: str | os.PathLike[str], *, title: str = "") -> Path:
+    """Held-out RMSE (mm) against the number of markers, one line per method (as Le et al. Fig. 12)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    for k, method in enumerate(dict.fromkeys(r.method for r in rows)):
+        pts = sorted((r.count, r.rmse_mm) for r in rows if r.method == method and r.error is None)
+        if pts:
+            xs, ys = zip(*pts)
+            ax.plot(xs, ys, marker="os^vD<>ph*"[k % 10], label=method)
+    ax.set_xlabel("markers in the layout")
+    ax.set_ylabel("held-out RMSE (mm)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title or "held-out reconstruction error")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def layout_gallery(rows: Sequence[CompareRow], neutral: np.ndarray, displacement: np.ndarray,
+                   path: str | os.PathLike[str]) -> Path:
+    """Front views of every layout: one column per method, one row per marker count."""
+    plt = _pyplot()
+    methods = list(dict.fromkeys(r.method for r in rows))
+    counts = sorted({r.count for r in rows})
+    cell = {(r.method, r.count): r for r in rows}
+    frame = face_frame(neutral, displacement)
+    xy = (neutral - neutral.mean(axis=0)) @ frame[:2].T
+    fig, axes = plt.subplots(len(counts), len(methods), squeeze=False,
+                             figsize=(2.3 * len(methods), 2.7 * len(counts)))
+    for i, count in enumerate(counts):
+        for j, method in enumerate(methods):
+            ax = axes[i, j]
+            ax.scatter(xy[:, 0], xy[:, 1], s=4, c="lightgrey")
+            row = cell.get((method, count))
+            if row is not None and row.error is None:
+                chosen = xy[row.layout]
+                ax.scatter(chosen[:, 0], chosen[:, 1], s=22, c="crimson", edgecolors="k", linewidths=0.4)
+                ax.set_title(f"{method} {count}\n{row.rmse_mm:.3f} mm", fontsize=8)
+            else:
+                ax.set_title(f"{method} {count}\n(not reached)", fontsize=8)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    return _save(fig, path)

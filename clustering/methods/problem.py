@@ -102,7 +102,7 @@ class LayoutProblem:
         if self.faces is not None:
             return self.faces
         from ...surface_mesh import marker_surface_mesh
-        return np.asarray(marker_surface_mesh(self.neutral).faces, dtype=np.intp)
+        return np.asarray(marker_surface_mesh(self.neutral)[1], dtype=np.intp)
 
 
 def layout_problem(session: Trajectories, *, neutral: np.ndarray | None = None,

@@ -1,0 +1,101 @@
+"""``mocaptk compare``: every layout method at several marker counts, on one held-out metric."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..errors import InputFileError, OptionError
+from .app import app
+
+
+def parse_counts(text: str) -> list[int]:
+    """``"20,30,40"`` → [20, 30, 40] (OptionError on anything else)."""
+    try:
+        counts = [int(c) for c in text.split(",") if c.strip()]
+    except ValueError:
+        raise OptionError(f"--counts must be comma-separated whole numbers, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise OptionError(f"--counts must be positive whole numbers, got {text!r}")
+    return counts
+
+
+@app.command()
+def compare(
+    session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
+    test: Path = typer.Option(None, "--test", help="Held-out performance (same markers): every method "
+                              "runs on the whole session and is scored on it. Default: leave one take "
+                              "of the session out at a time."),
+    counts: str = typer.Option("20,30,40,60", "--counts", help="Marker counts to compare (comma-separated; "
+                               "counts not below the session's marker count are skipped)."),
+    methods: str = typer.Option(None, "--methods", help="Comma-separated methods (default: paper, random, "
+                                "farthest-point, kmeans, qr, greedy, thin-shell, hybrid; also set-cover)."),
+    out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_compare/ next to it)."),
+    restarts: int = typer.Option(3, "--restarts", help="Random restarts of the thin-shell optimizer."),
+    seed: int = typer.Option(0, "--seed", help="Seed of random layouts, k-means and restarts."),
+    no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
+                                      "(for already head-relative data)."),
+    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
+    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in, or mm per unit)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress and no table on screen."),
+) -> None:
+    """Held-out RMSE and p95 (mm) and run time of every layout method at every count.
+
+    Writes compare.md, compare.json, rmse_vs_markers.png and layouts.png.
+    """
+    from rich.console import Console
+
+    from ..atomic import check_writable, write_text
+    from ..clustering.compare import (DEFAULT_METHODS, compare_methods, compare_plot, layout_gallery,
+                                      rows_as_json, rows_as_markdown)
+    from ..clustering.methods import method_names
+    from ..clustering.neutral import max_displacement, neutral_pose
+    from ..clustering.pipeline import load_session, stabilize
+    from ..jsonio import write_json
+
+    count_list = parse_counts(counts)
+    method_list = [m.strip() for m in methods.split(",") if m.strip()] if methods else list(DEFAULT_METHODS)
+    unknown = [m for m in method_list if m not in method_names()]
+    if unknown:
+        raise OptionError(f"unknown method(s) {', '.join(unknown)} (choose from {', '.join(method_names())})")
+    if restarts < 1:
+        raise OptionError(f"--restarts must be >= 1, got {restarts}")
+    folder = out or session.with_name(session.stem + "_compare")
+    targets = [folder / name for name in ("compare.md", "compare.json", "rmse_vs_markers.png", "layouts.png")]
+    for target in targets:
+        check_writable(target, force=force)
+    console = Console(stderr=True, quiet=quiet)
+    traj, source = load_session(session, rate=rate, units=units)
+    perf = None
+    if test is not None:
+        perf, _ = load_session(test, rate=rate, units=units)
+        missing = [label for label in traj.labels if label not in set(perf.labels)]
+        if missing:
+            raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
+        perf = perf.select(traj.labels)
+    if not no_stabilize:
+        traj, _ = stabilize(traj)
+        perf = stabilize(perf)[0] if perf is not None else None
+    with console.status("comparing") as status:
+        rows = compare_methods(traj, test=perf, counts=count_list, methods=method_list, seed=seed,
+                               options={"thin-shell": {"restarts": restarts}},
+                               progress=lambda text: status.update(f"comparing: {text}"))
+    protocol = (f"methods run on {session.name}, scored on {test.name}" if test is not None
+                else f"leave one take out of {session.name}" if len(traj.takes) >= 2
+                else f"5 contiguous blocks of {session.name}, one held out at a time")
+    table = rows_as_markdown(rows)
+    source["test"] = test.name if test is not None else None
+    write_text(targets[0], f"# Layout methods on {session.name}\n\nProtocol: {protocol}; held-out ridge "
+               "reconstruction of every dense marker (mm); time = seconds per layout.\n\n" + table)
+    write_json(targets[1], rows_as_json(rows, traj.labels, source=source, protocol=protocol))
+    compare_plot(rows, targets[2], title=f"{session.name}: held-out RMSE")
+    neutral = neutral_pose(traj.positions)
+    layout_gallery(rows, neutral, max_displacement(traj.positions, neutral), targets[3])
+    for row in rows:
+        if row.error is not None:
+            typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)
+    if not quiet:
+        typer.echo(table, nl=False)
+        typer.echo(f"wrote {folder}/")

@@ -1,0 +1,92 @@
+"""``mocaptk compare`` and the comparison protocol (methods see training frames only)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mocaptk import Take, Trajectories
+from mocaptk.clustering.compare import compare_methods, rows_as_markdown
+from mocaptk.clustering.evaluation import error_summary, heldout_errors
+from mocaptk.clustering.methods import select_layout
+from mocaptk.clustering.compare import _gap_free, _problem
+
+
+def small_session(*, frames: int = 240, markers: int = 24, seed: int = 0) -> Trajectories:
+    """A face-like patch whose markers follow 4 hidden drivers; 3 takes; a few gaps."""
+    rng = np.random.default_rng(seed)
+    neutral = np.column_stack([rng.uniform(-40, 40, markers), rng.uniform(-50, 50, markers),
+                               rng.uniform(0, 10, markers)])
+    t = np.linspace(0, 12, frames)
+    drivers = np.stack([np.sin((k + 1) * 0.9 * t + k) for k in range(4)], axis=1)  # (F, 4)
+    mix = rng.normal(size=(4, markers, 3)) * 2.0
+    pos = neutral[None] + np.einsum("fk,kmc->fmc", drivers, mix)
+    pos += rng.normal(scale=0.05, size=pos.shape)
+    pos[50:53, 3] = np.nan
+    takes = [Take("a", 0, 80), Take("b", 80, 160), Take("c", 160, 240)]
+    return Trajectories(pos, [f"M{i:02d}" for i in range(markers)], 60.0, metadata={"takes": takes})
+
+
+def test_protocol_scores_layouts_chosen_without_the_test_take():
+    session = small_session()
+    rows = compare_methods(session, counts=[4, 6], methods=["qr", "random"])
+    assert [(r.method, r.count) for r in rows] == [("qr", 4), ("qr", 6), ("random", 4), ("random", 6)]
+    # recompute the qr row by hand: choose on two takes, score on the third
+    errors = np.full(session.positions.shape[:2], np.nan)
+    for take in session.takes:
+        held = np.arange(take.start, take.end)
+        train = np.setdiff1d(np.arange(session.n_frames), held)
+        layout = select_layout(_problem(session.positions, session, train, {}), 4, method="qr").layout
+        errors[held] = heldout_errors(_gap_free(session.positions[train]), layout, [],
+                                      test=session.positions[held])
+    assert rows[0].rmse_mm == pytest.approx(error_summary(errors)["rmse_mm"])
+    assert rows[0].rmse_mm < rows[2].rmse_mm  # pivoted QR beats the mean of random layouts here
+    assert "**" in rows_as_markdown(rows)
+
+
+def test_compare_cli_writes_table_json_plot_and_gallery(tmp_path, run_cli):
+    from mocaptk.acquisition.formats import write_trajectories
+
+    session = write_trajectories(small_session(), tmp_path / "session.c3d")
+    test = write_trajectories(small_session(seed=0).frames(0, 120), tmp_path / "perf.c3d")
+    out = tmp_path / "cmp"
+    result = run_cli("compare", session, "--test", test, "--counts", "4,6,99", "--methods",
+                     "kmeans,qr,hybrid", "--out", out, "--no-stabilize", "--quiet")
+    assert result.exit_code == 0, result.stderr
+    data = json.loads((out / "compare.json").read_text())
+    assert data["format"] == "mocaptk-compare"
+    assert {(r["method"], r["count"]) for r in data["rows"]} == {
+        (m, c) for m in ("kmeans", "qr", "hybrid") for c in (4, 6)}
+    assert all(len(r["layout"]) == r["count"] for r in data["rows"] if r["error"] is None)
+    assert "| hybrid |" in (out / "compare.md").read_text()
+    for png in ("rmse_vs_markers.png", "layouts.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # same input, same options: byte-identical JSON except the run times
+    again = run_cli("compare", session, "--test", test, "--counts", "4,6", "--methods", "kmeans,qr",
+                    "--out", out, "--no-stabilize", "--quiet", "--force")
+    assert again.exit_code == 0
+    rows2 = json.loads((out / "compare.json").read_text())["rows"]
+    assert [(r["layout"], r["rmse_mm"]) for r in rows2] == [
+        (r["layout"], r["rmse_mm"]) for r in data["rows"] if r["method"] in ("kmeans", "qr")]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--counts", "4,x"], "--counts"),
+    (["--methods", "qr,magic"], "unknown method"),
+    (["--restarts", "0"], "--restarts"),
+])
+def test_compare_cli_rejects_bad_options(tmp_path, run_cli, args, message):
+    from mocaptk.acquisition.formats import write_trajectories
+
+    session = write_trajectories(small_session(), tmp_path / "session.c3d")
+    result = run_cli("compare", session, "--out", tmp_path / "o", "--no-stabilize", *args)
+    assert result.exit_code == 2
+    assert result.stderr.startswith("mocaptk: error:") and message in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_compare_cli_missing_file(tmp_path, run_cli):
+    result = run_cli("compare", tmp_path / "nope.c3d", "--out", tmp_path / "o")
+    assert result.exit_code == 2 and "nope.c3d" in result.stderr
