@@ -23,6 +23,7 @@ from . import clean  # noqa: E402,F401
 from . import triangulate  # noqa: E402,F401
 from . import synth  # noqa: E402,F401
 from . import rig  # noqa: E402,F401
+from . import compare  # noqa: E402,F401
 
 
 def main(argv: Sequence[str] | None = None) -> None:
