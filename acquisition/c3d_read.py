@@ -59,7 +59,11 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
     notes = list(structure.notes)
     mm_per_unit, units = _units(structure)
     labels = _labels(structure, notes)
-    xyz, residual, reader = _read_point_values(structure, notes)
+    try:
+        xyz, residual, reader = _read_point_values(structure, notes)
+    except MemoryError:  # within MAX_POINT_SAMPLES but more than this machine/process can hold
+        raise InputFileError(path, f"not enough memory to read {structure.n_frames} frames of "
+                                   f"{structure.n_points} markers") from None
     with np.errstate(over="ignore", invalid="ignore"):  # huge values become inf: gaps
         if mm_per_unit != 1.0:
             xyz *= mm_per_unit
