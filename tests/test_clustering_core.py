@@ -157,6 +157,12 @@ def test_bad_markers_and_options_are_reported_not_crashing():
     one = cluster_session(traj, options=ClusterOptions(stabilize=False, regions={
         "nose": [traj.labels[0]], "rest": list(traj.labels[1:])}))
     assert any("only 1 marker" in n for n in one.notes)
+    partial = cluster_session(traj, options=ClusterOptions(stabilize=False, mirror=False, regions={
+        "nose": [m for m in traj.labels if m.startswith("NOSE")]}))
+    loose = [m for m in traj.labels if not m.startswith("NOSE")]
+    assert partial.layout.extra["unassigned_markers"] == loose
+    assert any("in no region" in n for n in partial.notes)
+    assert {m for c in partial.layout.clusters for m in c.members} == set(traj.labels) - set(loose)
 
 
 def test_regions_files_and_defaults(tmp_path):
