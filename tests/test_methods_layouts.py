@@ -112,3 +112,30 @@ def test_hybrid_reports_its_contenders():
     scores = result.details["cv_rmse_mm"]
     assert set(scores) == {"clusters", "qr", "greedy"}
     assert scores[result.details["winner"]] == min(scores.values())
+
+
+def test_cluster_cli_method_option_keeps_the_papers_marker_count(tmp_path, run_cli):
+    import json
+
+    from mocaptk.acquisition.formats import write_trajectories
+    from mocaptk.trajectories import Trajectories
+
+    problem, _ = driven_problem(n_points=30)
+    labels = [f"{'MOUTH' if i % 2 else 'CHEEK'}_{i:02d}_L" for i in range(30)]
+    takes = [Take(f"t{i}", a, b) for i, (a, b) in enumerate(problem.segments)]
+    session = write_trajectories(Trajectories(problem.positions, labels, 60.0, metadata={"takes": takes}),
+                                 tmp_path / "s.c3d")
+    counts = {}
+    for method in ("paper", "qr"):
+        out = tmp_path / method
+        result = run_cli("cluster", session, "--method", method, "--no-stabilize", "--no-mirror",
+                         "--formats", "none", "--out", out, "--quiet")
+        assert result.exit_code == 0, result.stderr
+        layout = json.loads((out / "layout.json").read_text())
+        assert layout["parameters"]["method"] == method
+        counts[method] = len(layout["layout"])
+        members = [m for c in layout["clusters"] for m in c["members"]]
+        assert sorted(members) == sorted(labels)  # every marker has one influence region
+    assert counts["qr"] == counts["paper"]
+    bad = run_cli("cluster", session, "--method", "magic", "--out", tmp_path / "bad")
+    assert bad.exit_code == 2 and "unknown --method" in bad.stderr

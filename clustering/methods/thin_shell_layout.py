@@ -75,9 +75,8 @@ class ThinShellWeights:
         keep_set = {int(v) for v in keep}
         self._green = {v: c for v, c in self._green.items() if v in keep_set}
 
-    def weights(self, markers: Sequence[int]) -> np.ndarray:
-        """(V, M) interpolation weights for the marker vertices ``markers``."""
-        markers = np.asarray(markers, dtype=np.intp)
+    def _coefficients(self, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(used components, coef (m + c, m)) with ``W = [G, ρ·Ga] @ coef``."""
         green = self.green(markers)
         used = np.unique(self.component[markers])
         anchor_green = self._anchor_green[:, used]
@@ -90,10 +89,73 @@ class ThinShellWeights:
         system[m:, m:] = self.rho * anchor_green[anchors] - np.eye(c)
         rhs = np.zeros((m + c, m))
         rhs[:m] = np.eye(m)
-        coef = np.linalg.solve(system, rhs)
-        out = green @ coef[:m] + self.rho * (anchor_green @ coef[m:])
+        return used, np.linalg.solve(system, rhs)
+
+    def weights(self, markers: Sequence[int]) -> np.ndarray:
+        """(V, M) interpolation weights for the marker vertices ``markers``."""
+        markers = np.asarray(markers, dtype=np.intp)
+        used, coef = self._coefficients(markers)
+        m = markers.size
+        out = self.green(markers) @ coef[:m] + self.rho * (self._anchor_green[:, used] @ coef[m:])
         out[markers] = np.eye(m)  # exact at the markers
         return out
+
+    # -- reduced evaluation: everything through (m + c)-sized products, never V×M --------
+    def bind(self, data: np.ndarray) -> None:
+        """Fix the trajectories ``data`` (V, r) that :meth:`error` and :meth:`column` refer to."""
+        self._data = np.asarray(data, dtype=np.float64)
+        self._proj: dict[int, np.ndarray] = {}
+        self._dots: dict[tuple[int, int], float] = {}
+        self._anchor_proj = self._anchor_green.T @ self._data  # (c_all, r)
+        self._anchor_dots = self._anchor_green.T @ self._anchor_green  # (c_all, c_all)
+        self._anchor_cross: dict[int, np.ndarray] = {}
+        self._data_norm = float(np.sum(self._data ** 2))
+
+    def _basis_products(self, markers: np.ndarray, used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(BᵀX, BᵀB) for ``B = [G, ρ·Ga]`` from cached per-vertex products."""
+        green = None
+        for v in markers:
+            v = int(v)
+            if v not in self._proj:
+                green = self.green([v])[:, 0]
+                self._proj[v] = green @ self._data
+                self._anchor_cross[v] = green @ self._anchor_green
+        m, c = markers.size, used.size
+        gram = np.empty((m + c, m + c))
+        for i, u in enumerate(markers):
+            u = int(u)
+            for j in range(i, m):
+                w = int(markers[j])
+                key = (u, w) if u <= w else (w, u)
+                if key not in self._dots:
+                    self._dots[key] = float(self._green[u] @ self._green[w])
+                gram[i, j] = gram[j, i] = self._dots[key]
+        cross = np.array([self._anchor_cross[int(v)][used] for v in markers]) * self.rho  # (m, c)
+        gram[:m, m:], gram[m:, :m] = cross, cross.T
+        gram[m:, m:] = self.rho ** 2 * self._anchor_dots[np.ix_(used, used)]
+        proj = np.concatenate([np.array([self._proj[int(v)] for v in markers]),
+                               self.rho * self._anchor_proj[used]])
+        return proj, gram
+
+    def error(self, markers: Sequence[int]) -> float:
+        """‖X − W·X_H‖² of the bound data for ``markers``, in O((m + c)²·r)."""
+        markers = np.asarray(markers, dtype=np.intp)
+        used, coef = self._coefficients(markers)
+        proj, gram = self._basis_products(markers, used)
+        fitted = coef @ self._data[markers]  # (m + c, r)
+        return max(self._data_norm - 2.0 * np.sum(proj * fitted) + np.sum((gram @ fitted) * fitted), 0.0)
+
+    def expected_trajectories(self, markers: Sequence[int], cols: Sequence[int]) -> np.ndarray:
+        """(len(cols), r) Le et al.'s expected trajectories ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` of the
+        markers at positions ``cols``, where ``Rj`` leaves out the contribution of all ``cols``."""
+        markers = np.asarray(markers, dtype=np.intp)
+        used, coef = self._coefficients(markers)
+        proj, gram = self._basis_products(markers, used)
+        w_x = coef.T @ proj  # (m, r) = WᵀX
+        w_w = coef.T @ gram @ coef  # (m, m) = WᵀW
+        others = np.setdiff1d(np.arange(markers.size), cols)
+        traj = self._data[markers[others]]
+        return np.stack([(w_x[j] - w_w[j, others] @ traj) / w_w[j, j] for j in cols])
 
 
 @dataclass(frozen=True)
@@ -225,6 +287,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
         raise OptionError(f"layout size must be between {max(len(fixed), 1)} and {int(allowed.sum())}, "
                           f"got {count}")
     sq_norm = np.einsum("ij,ij->i", x, x)
+    solver.bind(x)
     ring = None if neighbours is None else sp.csr_matrix(neighbours)
     rng = np.random.default_rng(seed)
     best: tuple[float, list[int]] | None = None
@@ -234,7 +297,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
         if restart == 0 and initial is None:
             initial = _insertion_start(x, solver, count, fixed, allowed, mirror)
         layout = _start(count, fixed, allowed, mirror, rng, initial if restart == 0 else None)
-        current = _error(x, solver.weights(layout.markers), layout.markers)
+        current = solver.error(layout.markers)
         sweeps = 0
         for _ in range(iterations):
             sweeps += 1
@@ -242,9 +305,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
             for u in rng.permutation(len(layout.units)):
                 if not layout.movable[u]:
                     continue
-                markers = layout.markers
-                weights = solver.weights(markers)
-                targets = _closest_units(x, sq_norm, weights, markers, layout, int(u), allowed, mirror,
+                targets = _closest_units(x, sq_norm, solver, layout, int(u), allowed, mirror,
                                          candidates_per_move if verify else 1)
                 if not verify:
                     if targets:
@@ -256,7 +317,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                 best_unit = old
                 for unit in dict.fromkeys(targets):
                     layout.units[u] = unit
-                    err = _error(x, solver.weights(layout.markers), layout.markers)
+                    err = solver.error(layout.markers)
                     if err < current * (1.0 - 1e-12):
                         current, best_unit = err, unit
                 layout.units[u] = best_unit
@@ -271,7 +332,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                 break
         iteration_counts.append(sweeps)
         markers = layout.markers
-        err = _error(x, solver.weights(markers), markers)
+        err = float(np.sum((x - solver.weights(markers) @ x[markers]) ** 2))  # exact, once per start
         if best is None or err < best[0]:
             best = (err, sorted(markers))
     assert best is not None
@@ -325,7 +386,7 @@ def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.
             new_unit = (int(v),) if len(unit) == 1 else (int(v), int(mirror[v]))
             trial = layout.units[:u] + [new_unit] + layout.units[u + 1:]
             trial_markers = [w for t in trial for w in t]
-            err = _error(x, solver.weights(trial_markers), trial_markers)
+            err = solver.error(trial_markers)
             if err < best_err:
                 best_err, best_move = err, (u, new_unit)
     if best_move is None:
@@ -350,25 +411,19 @@ def _insertion_start(x: np.ndarray, solver: ThinShellWeights, count: int, fixed:
     return chosen
 
 
-def _error(x: np.ndarray, weights: np.ndarray, markers: list[int]) -> float:
-    return float(np.sum((x - weights @ x[markers]) ** 2))
-
-
-def _closest_units(x: np.ndarray, sq_norm: np.ndarray, weights: np.ndarray, markers: list[int],
-                   layout: _Layout, unit: int, allowed: np.ndarray, mirror: np.ndarray | None,
+def _closest_units(x: np.ndarray, sq_norm: np.ndarray, solver: ThinShellWeights, layout: _Layout,
+                   unit: int, allowed: np.ndarray, mirror: np.ndarray | None,
                    how_many: int) -> list[tuple[int, ...]]:
     """The unit's ``how_many`` best new places (trajectories closest to the expected ones) that
     beat staying put, best first (empty if staying is best)."""
+    markers = layout.markers
     members = list(layout.units[unit])
     start = sum(len(layout.units[k]) for k in range(unit))
     cols = list(range(start, start + len(members)))
-    gram = weights[:, cols].T @ weights  # (len(cols), M)
     others = [k for k in range(len(markers)) if k not in cols]
-    other_traj = x[[markers[k] for k in others]]
+    expected_all = solver.expected_trajectories(markers, cols)
     cost = np.zeros(x.shape[0])
-    for member, col in enumerate(cols):
-        # H̄j = Wjᵀ(X − Σ_{k∉unit} Wk X[hk]) / (WjᵀWj)
-        expected = (weights[:, col] @ x - gram[member, others] @ other_traj) / gram[member, col]
+    for member, expected in enumerate(expected_all):
         dist = sq_norm - 2.0 * (x @ expected)
         cost += dist if member == 0 else dist[mirror]  # the pair's second vertex is mirror[v]
     free = allowed.copy()

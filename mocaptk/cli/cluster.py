@@ -112,6 +112,9 @@ def cluster(
     session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
                                  "region mean correlation; larger gives more markers."),
+    method: str = typer.Option("paper", "--method", help="Layout method: paper (the correlation rule) "
+                               "or hybrid, qr, greedy, kmeans, thin-shell, set-cover, farthest-point, "
+                               "random with as many markers as the paper's rule gives (see mocaptk compare)."),
     regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: list of labels} "
                                  "or CSV label,region (default: label prefixes, else geometric)."),
     takes: Path = typer.Option(None, "--takes", help="Takes file {\"takes\": [{name, region, start, end}]} "
@@ -144,6 +147,10 @@ def cluster(
         raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
     console = Console(stderr=True, quiet=quiet)
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
+    from ..clustering.methods import method_names
+    if method not in method_names():  # fail before the slow part
+        from ..errors import OptionError
+        raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
     traj, source = load_session(session, rate=rate, units=units)
     options = ClusterOptions(
         factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror,
@@ -152,6 +159,9 @@ def cluster(
     with console.status("clustering") as status:
         result = cluster_session(traj, options=options, source=source,
                                  progress=lambda text: status.update(text))
+        if method != "paper":  # same marker count, chosen by another layout method
+            from ..clustering.methods.session_layout import relayout
+            result = relayout(result, method=method)
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:

@@ -1,0 +1,69 @@
+"""Swap the paper's layout in a clustering result for another method's (``mocaptk cluster --method``).
+
+The other method chooses the same number of measured markers on the (stabilized) session; each
+region's markers then join the chosen marker of their region they correlate with most (the
+paper's reassignment rule, on the paper's consolidated correlation matrices), or — in a region
+without a chosen marker — the nearest chosen marker. Mirroring follows the paper's run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..layout import Cluster
+from ..pipeline import ClusterResult
+from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
+from . import LayoutProblem, select_layout
+
+
+def relayout(result: ClusterResult, *, method: str, seed: int = 0) -> ClusterResult:
+    """``result`` with its clusters chosen by ``method`` (same number of measured markers)."""
+    if method == "paper":
+        return result
+    layout = result.layout
+    traj, neutral = result.trajectories, result.neutral
+    labels = list(traj.labels)
+    index = {label: i for i, label in enumerate(labels)}
+    measured = [c for c in layout.clusters if c.mirrored_from is None]
+    regions = {r.name: np.array([index[m] for m in r.markers], dtype=np.intp) for r in layout.regions}
+    problem = LayoutProblem(traj.positions - neutral[None], neutral, labels=traj.labels, regions=regions,
+                            segments=tuple((t.start, t.end) for t in traj.takes))
+    chosen = select_layout(problem, len(measured), method=method, seed=seed).layout
+    plane_info = layout.extra["sagittal_plane"]
+    plane = SagittalPlane(np.asarray(plane_info["point"]), np.asarray(plane_info["normal"]))
+    sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
+    members: dict[int, list[tuple[int, float]]] = {int(c): [] for c in chosen}
+    region_of = {int(c): next((n for n, idx in regions.items() if c in idx), "") for c in chosen}
+    for name, matrix in result.matrices.items():
+        idx = np.array([index[m] for m in matrix.labels], dtype=np.intp)
+        reps = [k for k, p in enumerate(idx) if p in members]
+        for k, p in enumerate(idx):
+            if reps:
+                best = max(reps, key=lambda r: (matrix.matrix[r, k], -r))
+                members[int(idx[best])].append((int(p), float(matrix.matrix[best, k])))
+            else:  # no chosen marker in this region: the nearest one (correlation not defined: 0)
+                near = int(chosen[np.argmin(np.linalg.norm(neutral[chosen] - neutral[p], axis=1))])
+                members[near].append((int(p), 0.0))
+    clusters = []
+    for rep in chosen:
+        rep = int(rep)
+        group = [(rep, 3.0)] + [(p, c) for p, c in members[rep] if p != rep]
+        clusters.append(Cluster(
+            representative=labels[rep], region=region_of[rep], members=tuple(labels[p] for p, _ in group),
+            member_correlation={labels[p]: c for p, c in group},
+            position=tuple(float(x) for x in neutral[rep]), side=sides[labels[rep]]))
+    if bool(layout.parameters.get("mirror")):
+        midline = {label for label, side in sides.items() if side == "C"}
+        clusters += mirror_clusters(clusters, plane, labels, midline)
+    region_results = tuple(dataclasses.replace(r, representatives=tuple(
+        c.representative for c in clusters if c.mirrored_from is None and c.region == r.name))
+        for r in layout.regions)
+    parameters = dict(layout.parameters, method=method)
+    new_layout = dataclasses.replace(layout, parameters=parameters, regions=region_results,
+                                     clusters=tuple(clusters))
+    return dataclasses.replace(result, layout=new_layout)
+
+
+__all__ = ["relayout"]
