@@ -64,9 +64,11 @@ def evaluate(
     rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
     units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
-    quiet: bool = typer.Option(False, "--quiet", help="Do not print the table."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress and no table."),
 ) -> None:
     """Reconstruct every dense marker from the layout's markers; compare with baselines of equal size."""
+    from rich.console import Console
+
     from ..atomic import check_writable
     from ..clustering.evaluation import evaluate_layout
     from ..clustering.layout import read_layout
@@ -91,9 +93,10 @@ def evaluate(
     regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
     name = str(lay.parameters.get("method", "layout"))
     take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
-    result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
-                             test=test_positions, regions=regions, name=name, split=split, folds=folds,
-                             n_random=seeds, ridge=ridge)
+    with Console(stderr=True, quiet=quiet).status(f"evaluating {len(measured)}-marker layouts"):
+        result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
+                                 test=test_positions, regions=regions, name=name, split=split, folds=folds,
+                                 n_random=seeds, ridge=ridge)
     result.update({"format": "mocaptk.evaluation", "version": 1, "units": "mm", "source": source,
                    "layout": layout.name, "test": test.name if test else None})
     write_json(out_path, result, force=True)
