@@ -18,6 +18,7 @@ from .symmetry import (  # noqa: E402
 )
 from .takes import read_takes, region_segments, sample_frames  # noqa: E402
 from .threshold import RegionClusters, cluster_region, reassign, threshold_clusters  # noqa: E402
+from .methods import LayoutProblem, LayoutResult, layout_problem, method_names, select_layout  # noqa: E402
 
 __all__: list[str] = [
     "baseline_layouts", "compare_layouts", "error_summary", "evaluate_layout", "farthest_point_layout",
@@ -29,4 +30,5 @@ __all__: list[str] = [
     "is_half_capture", "load_session", "mean_off_diagonal", "mirror_clusters", "mirror_label", "read_layout",
     "read_regions", "read_takes", "reassign", "region_segments", "regions_from_prefixes", "sample_frames",
     "side_tag", "stabilize", "threshold_clusters", "write_layout",
+    "LayoutProblem", "LayoutResult", "layout_problem", "method_names", "select_layout",
 ]
