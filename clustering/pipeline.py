@@ -68,8 +68,18 @@ class ClusterResult:
     notes: list[str] = field(default_factory=list)
 
 
+#: A session whose automatically chosen rigid markers already stay this close (RMS, mm) to their
+#: reference positions is head-relative (a head-mounted rig, or cleaned data): fitting a head pose
+#: to it would only turn the rigid set's own skin motion into a spurious head motion.
+HEAD_RELATIVE_RMS_MM = 1.0
+
+
 def stabilize(traj: Trajectories) -> tuple[Trajectories, dict[str, Any]]:
-    """Remove rigid head motion (acquisition stage); returns the session and a report."""
+    """Remove rigid head motion (acquisition stage); returns the session and a report.
+
+    A session that is already head-relative (its automatically detected rigid set moves less
+    than :data:`HEAD_RELATIVE_RMS_MM`) is returned unchanged; the report says so.
+    """
     try:
         from ..acquisition.stabilize import stabilize_head
     except ImportError:
@@ -78,8 +88,14 @@ def stabilize(traj: Trajectories) -> tuple[Trajectories, dict[str, Any]]:
     result = stabilize_head(traj)
     residual = np.asarray(result.rms_residual_mm, dtype=np.float64)
     residual = residual[np.isfinite(residual)]
-    return result.trajectories, {"rigid_labels": list(result.rigid_labels),
-                                 "rms_residual_mm": float(residual.mean()) if residual.size else None}
+    rigid = traj.positions[:, traj.index(result.rigid_labels)]
+    offsets = np.linalg.norm(rigid - rigid[result.reference_frame], axis=2)
+    rigid_motion = float(np.sqrt(np.nanmean(offsets ** 2))) if np.isfinite(offsets).any() else 0.0
+    applied = rigid_motion >= HEAD_RELATIVE_RMS_MM
+    report = {"rigid_labels": list(result.rigid_labels), "applied": applied,
+              "rigid_set_motion_rms_mm": rigid_motion,
+              "rms_residual_mm": float(residual.mean()) if residual.size else None}
+    return (result.trajectories if applied else traj), report
 
 
 def check_options(options: ClusterOptions, n_frames: int) -> None:
@@ -123,6 +139,11 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         if progress:
             progress("stabilizing")
         traj, stabilization = stabilize(traj)
+        if not stabilization["applied"]:
+            notes.append("the session is already head-relative (the rigid set "
+                         f"{', '.join(stabilization['rigid_labels'])} moves "
+                         f"{stabilization['rigid_set_motion_rms_mm']:.2f} mm RMS < "
+                         f"{HEAD_RELATIVE_RMS_MM} mm): not stabilized")
     labels = list(traj.labels)
     neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
@@ -194,7 +215,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     if mirror:
         midline = {label for label, side in sides.items() if side == "C"}
         mirrored = mirror_clusters(clusters, plane, labels, midline)
-    parameters = {"factor": options.factor, "step": options.step, "stabilized": options.stabilize,
+    stabilized = bool(options.stabilize and stabilization.get("applied"))
+    parameters = {"factor": options.factor, "step": options.step, "stabilized": stabilized,
                   "mirror": mirror, "method": "paper", "regions_from": region_method,
                   "takes": [t.as_dict() for t in takes]}
     extra = {"stabilization": stabilization, "excluded_markers": excluded, "unassigned_markers": loose,

@@ -77,8 +77,9 @@ def summary_text(result) -> str:
                      f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}")
     total_in = sum(len(r.markers) for r in layout.regions)
     lines.append(f"{'total':<16}{total_in:>8}{len(layout.clusters):>8}")
-    rigid = layout.extra.get("stabilization", {}).get("rigid_labels")
-    if rigid:
+    stabilization = layout.extra.get("stabilization", {})
+    rigid = stabilization.get("rigid_labels")
+    if rigid and stabilization.get("applied"):
         lines.append(f"stabilized on rigid set: {', '.join(rigid)}")
     for note in result.notes:
         lines.append(f"warning: {note}")
