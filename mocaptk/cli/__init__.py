@@ -12,18 +12,18 @@ from collections.abc import Sequence
 from ..errors import MocaptkError
 from .app import app
 
-# Command modules register themselves on import (one line per module).
-# from . import <command_module>  # noqa: E402,F401  (helpers add lines here)
-from . import cluster  # noqa: E402,F401
-from . import evaluate  # noqa: E402,F401
-from . import sweep  # noqa: E402,F401
+# Command modules register themselves on import; this order is the order of `mocaptk --help`
+# (pipeline order: files -> capture -> cleaning -> layout -> evaluation -> rig).
 from . import info  # noqa: E402,F401
 from . import convert  # noqa: E402,F401
-from . import clean  # noqa: E402,F401
-from . import triangulate  # noqa: E402,F401
 from . import synth  # noqa: E402,F401
-from . import rig  # noqa: E402,F401
+from . import triangulate  # noqa: E402,F401
+from . import clean  # noqa: E402,F401
+from . import cluster  # noqa: E402,F401
+from . import sweep  # noqa: E402,F401
+from . import evaluate  # noqa: E402,F401
 from . import compare  # noqa: E402,F401
+from . import rig  # noqa: E402,F401
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -19,7 +19,6 @@ import typer
 
 from ..errors import OutputError
 from .app import app
-from .rig import cluster_rig_outputs, rig_options
 
 
 def default_out_dir(session: Path) -> Path:
@@ -147,6 +146,8 @@ def cluster(
     if out_dir.is_dir() and any(out_dir.iterdir()) and not force:  # fail before the slow part
         raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
     console = Console(stderr=True, quiet=quiet)
+    from .rig import cluster_rig_outputs, rig_options
+
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     from ..clustering.methods import method_names
     if method not in method_names():  # fail before the slow part
