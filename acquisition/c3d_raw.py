@@ -177,7 +177,8 @@ def _decode_value(raw: bytes, size: int, dims: list[int], processor: str) -> Par
         return np.frombuffer(raw, np.int8).astype(np.int64)
     if size == 2:
         return np.frombuffer(raw, _dtypes(processor)[0]).astype(np.int64)
-    return _floats(raw, processor).astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in a corrupt file is just NaN
+        return _floats(raw, processor).astype(np.float64)
 
 
 def _unsigned(value: ParamValue | None) -> int | None:

@@ -194,6 +194,9 @@ def _takes(s: C3DStructure, notes: list[str]) -> list[Take]:
     for k, name in enumerate(names):
         if k >= min(len(starts), len(ends)):
             break
+        if not (np.isfinite(starts[k]) and np.isfinite(ends[k])):
+            notes.append(f"take {name!r} has no valid frame range; ignored")
+            continue
         start, end = int(starts[k]), int(ends[k])
         if not 0 <= start < end <= s.n_frames:
             notes.append(f"take {name!r} [{start}, {end}) outside the data; ignored")

@@ -8,6 +8,7 @@ written by our tools). Detection looks at the bytes, never at the file name.
 from __future__ import annotations
 
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +126,7 @@ def _read_npz(path: str | os.PathLike[str]) -> Trajectories:
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputFileError(path, f"unreadable .npz archive ({exc})") from None
     missing = [key for key in ("positions", "labels", "rate") if key not in arrays]
     if missing:
