@@ -35,7 +35,8 @@ MAX_C3D_SEED_BYTES = 1_000_000  # bigger C3D seeds only slow the campaign (same 
 
 #: The worker reads one case path per stdin line and answers one JSON line per case.
 WORKER = r"""
-import json, resource, sys
+import json, resource, sys, warnings
+warnings.simplefilter("error", RuntimeWarning)  # as in the test suite: a warning is a finding
 limit = int(sys.argv[1])
 resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 from mocaptk.acquisition.formats import read_trajectories
