@@ -1,0 +1,286 @@
+"""Every entry of docs/errors.md, triggered through the CLI: exit code 2 and ONE line
+``mocaptk: error: ...`` containing the documented message (and the file, for file errors).
+
+The table below is the catalogue's test: one row per documented error (ids match docs/errors.md).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from clustering_synthetic import planted_session
+from conftest import REPO
+
+from mocaptk import Trajectories
+from mocaptk.acquisition.formats import write_trajectories
+
+
+@pytest.fixture(scope="module")
+def f(tmp_path_factory) -> dict[str, Path]:
+    """Valid inputs (session, takes, layout, cameras, observations) and broken variants."""
+    from mocaptk.acquisition.cameras import cara_rig, save_rig
+    from mocaptk.clustering.layout import write_layout
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session, load_session
+
+    d = tmp_path_factory.mktemp("catalogue")
+    traj, _ = planted_session(seed=2, per_group=3, frames=120)
+    np.savez(d / "session.npz", positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
+    (d / "takes.json").write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    session, source = load_session(str(d / "session.npz"))
+    result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
+    write_layout(result.layout, d / "layout.json")
+    rig = cara_rig()
+    save_rig(rig, d / "cameras.json")
+    small = Trajectories(np.arange(60.0).reshape(5, 4, 3), ["A", "B", "C", "D"], 100.0)
+    for ext in ("c3d", "trc", "csv"):
+        write_trajectories(small, d / f"good.{ext}")
+    trc = (d / "good.trc").read_text().split("\n")
+    w = {  # name -> content of a broken file
+        "empty.trc": "", "binary.dat": "\x00\x01junk", "words.txt": "hello world\nthis is prose\n",
+        "latin1.trc": None,
+        "trc_header.trc": "\n".join(trc[:2]) + "\n",
+        "trc_values.trc": "\n".join(trc[:2] + ["x\tx\t5\tfour\tmm"] + trc[3:]),
+        "trc_units.trc": "\n".join(trc[:2] + [trc[2].replace("\tmm\t", "\tfurlong\t")] + trc[3:]),
+        "trc_nodata.trc": "\n".join(trc[:5]) + "\n",
+        "trc_dup.trc": "\n".join(trc[:3] + [trc[3].replace("\tB\t", "\tA\t")] + trc[4:]),
+        "trc_cell.trc": "\n".join(trc[:6] + [trc[6].replace("\t0\t", "\tabc\t", 1)] + trc[7:]),
+        "trc_order.trc": "\n".join(trc[:6] + [trc[7], trc[6]] + trc[8:]),
+        "trc_frames.trc": "\n".join(trc[:-2] + ["1000000000" + trc[-2][1:], ""]),
+        "csv_nocoords.csv": "Frame,Time,Speed\n1,0,3\n2,0.01,4\n",
+        "csv_incomplete.csv": "Time,NOSE_x,NOSE_y\n0,1,2\n0.01,1,2\n",
+        "csv_mixed.csv": "Time,A_x (mm),A_y (mm),A_z (mm),B_x (m),B_y (m),B_z (m)\n0,1,2,3,4,5,6\n0.01,1,2,3,4,5,6\n",
+        "csv_dupcol.csv": "Time,A_x,A_y,A_z,A_x\n0,1,2,3,4\n0.01,1,2,3,4\n",
+        "csv_norate.csv": "A_x,A_y,A_z\n1,2,3\n1,2,3\n",
+        "csv_time.csv": "Time,A_x,A_y,A_z\n0,1,2,3\n0.01,1,2,3\n0.5,1,2,3\n",
+        "csv_single.csv": "Time,A_x,A_y,A_z\n0,1,2,3\n",
+        "csv_noframes.csv": "Time,A_x,A_y,A_z\n",
+        "vicon_nosection.csv": "Devices\n100\n,,\n",
+        "vicon_trunc.csv": "Trajectories\n100\n",
+        "vicon_rate.csv": "Trajectories\nfast\n\n,,A,,\nFrame,Sub Frame,X,Y,Z\n,,mm,mm,mm\n1,0,1,2,3\n",
+        "vicon_xyz.csv": "Trajectories\n100\n\n,,A,,\nFrame,Sub Frame,X,Y,Q\n,,mm,mm,mm\n1,0,1,2,3\n",
+        "vicon_nodata.csv": "Trajectories\n100\n\n,,A,,\nFrame,Sub Frame,X,Y,Z\n,,mm,mm,mm\n",
+        "npz_bad.npz": None, "npz_lacks.npz": None,
+        "bad.json": "{nope", "list.json": "[1, 2]",
+        "regions_two.json": json.dumps({"nose": ["NOSE_01_C"], "mouth": ["NOSE_01_C"]}),
+        "regions_unknown.json": json.dumps({"nose": ["NOT_A_MARKER"]}),
+        "regions_empty.json": "{}",
+        "regions_notlist.json": json.dumps({"nose": "NOSE_01_C"}),
+        "regions_row.csv": "NOSE_01_C\n",
+        "takes_outside.json": json.dumps({"takes": [{"name": "a", "start": 0, "end": 100000}]}),
+        "takes_fields.json": json.dumps({"takes": [{"name": "a"}]}),
+        "layout_other.json": json.dumps({"format": "something-else"}),
+        "layout_version.json": None, "layout_malformed.json": None,
+        "rig_other.json": json.dumps({"format": "nope"}),
+        "landmarks_two.json": json.dumps({"A": 1, "B": 2}), "landmarks_neg.json": json.dumps({"A": -1}),
+        "mesh.xyz": "1 2 3\n", "mesh_empty.obj": "# no faces\n",
+    }
+    for name, text in w.items():
+        if text is not None:
+            (d / name).write_text(text, encoding="utf-8")
+    (d / "latin1.trc").write_bytes("\n".join(trc).replace("\tA\t", "\tÄ\t").encode("latin-1"))
+    (d / "cut.c3d").write_bytes((d / "good.c3d").read_bytes()[:1636])  # data from byte 1536
+    (d / "params.c3d").write_bytes((d / "good.c3d").read_bytes()[:1100])
+    (d / "npz_bad.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    np.savez(d / "npz_lacks.npz", positions=np.zeros((2, 1, 3)))
+    doc = json.loads((d / "layout.json").read_text())
+    (d / "layout_version.json").write_text(json.dumps({**doc, "version": 999}))
+    (d / "layout_malformed.json").write_text(json.dumps({**doc, "clusters": 5}))
+    np.savez(d / "obs_none.npz", other=np.zeros(3))
+    np.savez(d / "obs_shape.npz", points2d=np.zeros((len(rig.names), 2, 3)))
+    np.savez(d / "obs_cams.npz", points2d=np.zeros((1, 2, 3, 2)))
+    np.savez(d / "obs_names.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)),
+             camera_names=np.array([f"x{i}" for i in range(len(rig.names))]))
+    np.savez(d / "obs_labels.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)), labels=np.array(["a", "a", "b"]))
+    np.savez(d / "obs_rate.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)), rate=-1.0)
+    (d / "cam_other.json").write_text(json.dumps({"format": "nope"}))
+    (d / "existing.trc").write_text("keep")
+    (d / "full").mkdir()
+    (d / "full" / "keep.txt").write_text("keep")
+    (d / "afile").write_text("x")
+    return {p.name: p for p in d.iterdir()} | {"dir": d}
+
+
+def S(f):  # the valid session
+    return f["session.npz"]
+
+
+# (id in docs/errors.md, argv builder, fragment of the message)  -- {file} is replaced by argv[1]
+CATALOGUE = [
+    # -- any input file
+    ("E-FILE-MISSING", lambda f: ["info", f["dir"] / "missing.c3d"], "{file}: no such file"),
+    ("E-FILE-FOLDER", lambda f: ["info", f["full"]], "is a folder, expected a file"),
+    ("E-FILE-EMPTY", lambda f: ["info", f["empty.trc"]], "file is empty"),
+    ("E-FILE-BINARY", lambda f: ["info", f["binary.dat"]], "binary content that is not C3D"),
+    ("E-FILE-UNKNOWN", lambda f: ["info", f["words.txt"]], "unrecognised content"),
+    ("E-TEXT-UTF8", lambda f: ["info", f["latin1.trc"]], "not UTF-8 text (bad byte at offset"),
+    ("E-C3D-TRUNC", lambda f: ["info", f["cut.c3d"]], "truncated C3D file"),
+    ("E-C3D-PARAMS", lambda f: ["info", f["params.c3d"]], "bad parameter section"),
+    ("E-NPZ-UNREADABLE", lambda f: ["info", f["npz_bad.npz"]], "unreadable .npz archive"),
+    ("E-NPZ-LACKS", lambda f: ["info", f["npz_lacks.npz"]], ".npz lacks labels, rate"),
+    # -- TRC
+    ("E-TRC-HEADER", lambda f: ["info", f["trc_header.trc"]], "truncated TRC header"),
+    ("E-TRC-VALUES", lambda f: ["info", f["trc_values.trc"]], "bad TRC header values"),
+    ("E-TRC-NODATA", lambda f: ["info", f["trc_nodata.trc"]], "TRC file has no data rows"),
+    ("E-UNITS-FILE", lambda f: ["info", f["trc_units.trc"]], "unknown length units 'furlong'"),
+    ("E-LABELS-DUP", lambda f: ["info", f["trc_dup.trc"]], "duplicate marker labels: A"),
+    ("E-TEXT-CELL", lambda f: ["info", f["trc_cell.trc"]], "not a number: 'abc'"),
+    ("E-FRAMES-ORDER", lambda f: ["info", f["trc_order.trc"]], "frame numbers are not strictly increasing"),
+    ("E-FRAMES-SPAN", lambda f: ["info", f["trc_frames.trc"]], "frame numbers run from 0 to 1000000000"),
+    # -- column CSV
+    ("E-CSV-NOCOORDS", lambda f: ["info", f["csv_nocoords.csv"]], "no coordinate columns found"),
+    ("E-CSV-INCOMPLETE", lambda f: ["info", f["csv_incomplete.csv"]], "marker 'NOSE' lacks one of its x/y/z"),
+    ("E-CSV-MIXED", lambda f: ["info", f["csv_mixed.csv"]], "coordinate columns mix units: m, mm"),
+    ("E-CSV-DUPCOL", lambda f: ["info", f["csv_dupcol.csv"]], "duplicate column 'A_x'"),
+    ("E-CSV-NORATE", lambda f: ["info", f["csv_norate.csv"]], "no time column to derive the frame rate"),
+    ("E-CSV-TIME", lambda f: ["info", f["csv_time.csv"]], "time column is not uniformly increasing"),
+    ("E-CSV-ONETIME", lambda f: ["info", f["csv_single.csv"]], "from a single time value"),
+    ("E-CSV-NODATA", lambda f: ["info", f["csv_noframes.csv"]], "no data rows"),
+    # -- Vicon CSV
+    ("E-VICON-SECTION", lambda f: ["info", f["vicon_nosection.csv"]], "Vicon CSV has no Trajectories section"),
+    ("E-VICON-TRUNC", lambda f: ["info", f["vicon_trunc.csv"]], "Trajectories section is truncated"),
+    ("E-VICON-RATE", lambda f: ["info", f["vicon_rate.csv"]], "expected the frame rate"),
+    ("E-VICON-XYZ", lambda f: ["info", f["vicon_xyz.csv"]], "expected X,Y,Z columns"),
+    ("E-VICON-NODATA", lambda f: ["info", f["vicon_nodata.csv"]], "Trajectories section has no data rows"),
+    # -- reading options
+    ("E-OPT-UNITS", lambda f: ["info", "--units", "furlong", f["good.trc"]], "unknown length units 'furlong'"),
+    ("E-OPT-RATE", lambda f: ["info", "--rate", "-5", f["csv_norate.csv"]], "frame rate must be a positive number"),
+    # -- outputs
+    ("E-OUT-EXISTS", lambda f: ["convert", f["good.trc"], f["existing.trc"]], "already exists (use --force"),
+    ("E-OUT-EXT", lambda f: ["convert", f["good.trc"], f["dir"] / "out.xyz"], "unknown output extension '.xyz'"),
+    ("E-OUT-CANNOT", lambda f: ["convert", f["good.trc"], f["afile"] / "x.trc", "--force"], "cannot write"),
+    ("E-OUT-NOTEMPTY", lambda f: ["cluster", S(f), "--out", f["full"]], "folder exists and is not empty"),
+    ("E-OUT-SWEEP-NOTEMPTY", lambda f: ["sweep", S(f), "--out", f["full"]], "folder exists and is not empty"),
+    # -- clean
+    ("E-CLEAN-RIGID", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--no-stabilize", "--rigid", "A,B,C"],
+     "--rigid needs --stabilize"),
+    ("E-CLEAN-LOWPASS", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--no-stabilize", "--lowpass", "80"],
+     "low-pass cut-off must be between 0 and 50 Hz"),
+    ("E-STAB-FEW", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B"],
+     "stabilization needs at least 3 distinct rigid markers"),
+    ("E-LABELS-UNKNOWN", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B,Z"],
+     "unknown marker labels: Z"),
+    # -- cluster / sweep / evaluate inputs and options
+    ("E-CLU-FACTOR", lambda f: ["cluster", S(f), "--factor", "0", "--out", f["dir"] / "o1"], "--factor must be > 0"),
+    ("E-CLU-STEP", lambda f: ["cluster", S(f), "--step", "0", "--out", f["dir"] / "o2"], "--step must be >= 1"),
+    ("E-CLU-STEP-BIG", lambda f: ["cluster", S(f), "--step", "100000", "--out", f["dir"] / "o3"],
+     "is not smaller than the session's"),
+    ("E-CLU-METHOD", lambda f: ["cluster", S(f), "--method", "magic", "--out", f["dir"] / "o4"], "unknown --method 'magic'"),
+    ("E-CLU-INFLUENCES", lambda f: ["cluster", S(f), "--max-influences", "9", "--out", f["dir"] / "o5"],
+     "--max-influences must be 1..8"),
+    ("E-REGIONS-JSON", lambda f: ["cluster", S(f), "--regions", f["bad.json"], "--out", f["dir"] / "o6"], "invalid JSON"),
+    ("E-REGIONS-TWO", lambda f: ["cluster", S(f), "--regions", f["regions_two.json"], "--out", f["dir"] / "o7"],
+     "is in two regions"),
+    ("E-REGIONS-UNKNOWN", lambda f: ["cluster", S(f), "--regions", f["regions_unknown.json"], "--out", f["dir"] / "o8"],
+     "labels are not markers of the session"),
+    ("E-REGIONS-EMPTY", lambda f: ["cluster", S(f), "--regions", f["regions_empty.json"], "--out", f["dir"] / "o9"],
+     "no regions defined"),
+    ("E-REGIONS-LIST", lambda f: ["cluster", S(f), "--regions", f["regions_notlist.json"], "--out", f["dir"] / "oa"],
+     "must be a list of marker labels"),
+    ("E-REGIONS-ROW", lambda f: ["cluster", S(f), "--regions", f["regions_row.csv"], "--out", f["dir"] / "ob"],
+     "expected 'label,region'"),
+    ("E-REGIONS-MISSING", lambda f: ["cluster", S(f), "--regions", f["dir"] / "nope.json", "--out", f["dir"] / "oc"],
+     "nope.json"),
+    ("E-TAKES-SHAPE", lambda f: ["cluster", S(f), "--takes", f["list.json"], "--out", f["dir"] / "od"], 'expected {"takes"'),
+    ("E-TAKES-FIELDS", lambda f: ["cluster", S(f), "--takes", f["takes_fields.json"], "--out", f["dir"] / "oe"],
+     "needs name, start and end"),
+    ("E-TAKES-OUTSIDE", lambda f: ["cluster", S(f), "--takes", f["takes_outside.json"], "--out", f["dir"] / "of"],
+     "is outside the"),
+    ("E-SWEEP-FACTORS", lambda f: ["sweep", S(f), "--factors", "a:b", "--out", f["dir"] / "og"],
+     "--factors: expected START:STOP:STEP"),
+    ("E-SWEEP-FACTORS-POS", lambda f: ["sweep", S(f), "--factors", "0,1", "--out", f["dir"] / "oh"],
+     "--factors: factors must be > 0"),
+    ("E-LAYOUT-JSON", lambda f: ["evaluate", S(f), "--layout", f["bad.json"]], "invalid JSON"),
+    ("E-LAYOUT-FORMAT", lambda f: ["evaluate", S(f), "--layout", f["layout_other.json"]], "not a mocaptk.layout file"),
+    ("E-LAYOUT-VERSION", lambda f: ["evaluate", S(f), "--layout", f["layout_version.json"]], "unsupported layout version"),
+    ("E-LAYOUT-MALFORMED", lambda f: ["evaluate", S(f), "--layout", f["layout_malformed.json"]], "malformed layout"),
+    ("E-EVAL-MARKERS", lambda f: ["evaluate", f["good.trc"], "--layout", f["layout.json"], "--out", f["dir"] / "e.json"],
+     "layout markers are not in good.trc"),
+    ("E-EVAL-TEST", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--test", f["good.trc"],
+                               "--out", f["dir"] / "e2.json"], "lacks"),
+    ("E-EVAL-FOLDS", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--folds", "1",
+                                "--out", f["dir"] / "e3.json"], "need at least 2 folds"),
+    ("E-EVAL-SPLIT", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--split", "coin",
+                                "--out", f["dir"] / "e4.json"], "unknown split 'coin'"),
+    ("E-EVAL-RIDGE", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--ridge", "-1",
+                                "--out", f["dir"] / "e5.json"], "ridge must be >= 0"),
+    # -- rig
+    ("E-RIG-INFLUENCES", lambda f: ["rig", f["layout.json"], "--session", S(f), "--max-influences", "0"],
+     "--max-influences must be 1..8"),
+    ("E-RIG-FALLOFF", lambda f: ["rig", f["layout.json"], "--session", S(f), "--falloff", "-1"], "--falloff must be >= 0"),
+    ("E-RIG-SUBDIV", lambda f: ["rig", f["layout.json"], "--session", S(f), "--subdivisions", "7"],
+     "--subdivisions must be 0..3"),
+    ("E-RIG-FORMATS", lambda f: ["rig", f["layout.json"], "--session", S(f), "--formats", "obj"], "unknown rig format"),
+    ("E-RIG-LANDMARKS-FEW", lambda f: ["rig", f["layout.json"], "--session", S(f), "--landmarks", f["landmarks_two.json"]],
+     "need at least 3 marker/vertex pairs"),
+    ("E-RIG-LANDMARKS-SHAPE", lambda f: ["rig", f["layout.json"], "--session", S(f), "--landmarks",
+                                         f["landmarks_neg.json"]], 'expected {"marker label": vertex index'),
+    ("E-RIG-LANDMARKS-JSON", lambda f: ["rig", f["layout.json"], "--session", S(f), "--landmarks", f["bad.json"]],
+     "invalid JSON"),
+    ("E-MESH-MISSING", lambda f: ["rig", f["layout.json"], "--session", S(f), "--mesh", f["dir"] / "face.obj",
+                                  "--out", f["dir"] / "r1"], "mesh file not found"),
+    ("E-MESH-FORMAT", lambda f: ["rig", f["layout.json"], "--session", S(f), "--mesh", f["mesh.xyz"],
+                                 "--out", f["dir"] / "r2"], "unsupported mesh format '.xyz'"),
+    ("E-MESH-EMPTY", lambda f: ["rig", f["layout.json"], "--session", S(f), "--mesh", f["mesh_empty.obj"],
+                                "--out", f["dir"] / "r3"], "the file holds no triangle mesh"),
+    # -- triangulate
+    ("E-TRI-MINVIEWS", lambda f: ["triangulate", f["cameras.json"], f["obs_none.npz"], f["dir"] / "t.trc",
+                                  "--min-views", "1"], "--min-views must be >= 2"),
+    ("E-TRI-THRESHOLD", lambda f: ["triangulate", f["cameras.json"], f["obs_none.npz"], f["dir"] / "t.trc",
+                                   "--threshold", "0"], "--threshold must be > 0 px"),
+    ("E-CAM-FORMAT", lambda f: ["triangulate", f["cam_other.json"], f["obs_none.npz"], f["dir"] / "t.trc"],
+     "not a camera rig"),
+    ("E-CAM-UNREADABLE", lambda f: ["triangulate", f["words.txt"], f["obs_none.npz"], f["dir"] / "t.trc"],
+     "not a camera rig JSON or Qualisys .qca.txt"),
+    ("E-OBS-UNREADABLE", lambda f: ["triangulate", f["cameras.json"], f["words.txt"], f["dir"] / "t.trc"],
+     "cannot read observations .npz"),
+    ("E-OBS-NONE", lambda f: ["triangulate", f["cameras.json"], f["obs_none.npz"], f["dir"] / "t.trc"],
+     "no 'points2d' array"),
+    ("E-OBS-SHAPE", lambda f: ["triangulate", f["cameras.json"], f["obs_shape.npz"], f["dir"] / "t.trc"],
+     "points2d must have shape (cameras, frames, markers, 2)"),
+    ("E-OBS-CAMERAS", lambda f: ["triangulate", f["cameras.json"], f["obs_cams.npz"], f["dir"] / "t.trc"],
+     "points2d has 1 cameras, the rig has"),
+    ("E-OBS-NAMES", lambda f: ["triangulate", f["cameras.json"], f["obs_names.npz"], f["dir"] / "t.trc"],
+     "do not match the rig's"),
+    ("E-OBS-LABELS", lambda f: ["triangulate", f["cameras.json"], f["obs_labels.npz"], f["dir"] / "t.trc"],
+     "labels must be 3 unique names"),
+    ("E-OBS-RATE", lambda f: ["triangulate", f["cameras.json"], f["obs_rate.npz"], f["dir"] / "t.trc"],
+     "rate must be > 0 Hz"),
+    # -- synth
+    ("E-SYN-RIG", lambda f: ["synth", f["dir"] / "s.c3d", "--rig", "drone"], "--rig must be one of"),
+    ("E-SYN-HEAD", lambda f: ["synth", f["dir"] / "s.c3d", "--rig", "cara", "--head-motion"], "--head-motion needs"),
+    ("E-SYN-TIMING", lambda f: ["synth", f["dir"] / "s.c3d", "--expressions", "0"], "--expressions must be"),
+    ("E-SYN-NOISE", lambda f: ["synth", f["dir"] / "s.c3d", "--noise", "-1"], "--noise/--gaps/--max-gap must be"),
+    ("E-SYN-IDENTITY", lambda f: ["synth", f["dir"] / "s.c3d", "--identity", "a,b"], "--identity must be"),
+    # -- compare
+    ("E-CMP-COUNTS", lambda f: ["compare", S(f), "--counts", "a,b", "--out", f["dir"] / "c1"],
+     "--counts must be comma-separated whole numbers"),
+    ("E-CMP-COUNTS-POS", lambda f: ["compare", S(f), "--counts", "0,5", "--out", f["dir"] / "c2"],
+     "--counts must be positive whole numbers"),
+    ("E-CMP-RESTARTS", lambda f: ["compare", S(f), "--restarts", "0", "--out", f["dir"] / "c3"],
+     "--restarts must be >= 1"),
+    ("E-CMP-METHODS", lambda f: ["compare", S(f), "--methods", "magic", "--out", f["dir"] / "c4"], "unknown method(s) magic"),
+]
+
+
+@pytest.mark.parametrize("entry", CATALOGUE, ids=[e[0] for e in CATALOGUE])
+def test_error_through_the_cli(run_cli, f, entry):
+    _, build, fragment = entry
+    argv = build(f)
+    result = run_cli(*argv)
+    assert result.exit_code == 2, result.stderr[-600:]
+    lines = result.stderr.strip().splitlines()
+    # one error line, last; anything before it is a one-line note/warning of the same command
+    assert lines[-1].startswith("mocaptk: error: ") and "Traceback" not in result.stderr
+    assert all(re.match(r"mocaptk: (note|warning): ", line) for line in lines[:-1]), result.stderr
+    assert fragment.replace("{file}", str(argv[1])) in lines[-1], lines[-1]
+
+
+def test_catalogue_document_lists_every_tested_error():
+    doc = (REPO / "docs" / "errors.md").read_text(encoding="utf-8")
+    documented = set(re.findall(r"`(E-[A-Z0-9-]+)`", doc))
+    tested = {e[0] for e in CATALOGUE}
+    assert tested == documented, (sorted(tested - documented), sorted(documented - tested))
