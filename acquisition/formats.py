@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocaptk.errors import InputFileError, MocaptkError, OptionError
+from mocaptk.errors import InputFileError, MocaptkError, OptionError, unreadable
 from mocaptk.trajectories import Trajectories
 
 FORMATS = ("c3d", "vicon_csv", "trc", "generic_csv", "npz")
@@ -31,14 +31,8 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     try:
         with open(path, "rb") as handle:
             head = handle.read(_SNIFF_BYTES)
-    except FileNotFoundError:
-        raise InputFileError(path, "no such file") from None
-    except IsADirectoryError:
-        raise InputFileError(path, "is a folder, expected a file") from None
-    except PermissionError:
-        raise InputFileError(path, "permission denied") from None
     except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
+        raise unreadable(path, exc) from None
     if not head.strip():
         raise InputFileError(path, "file is empty")
     if head.startswith(b"PK\x03\x04"):

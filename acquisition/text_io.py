@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocaptk.errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError, unreadable
 
 #: Millimetres per unit for the length units the text formats declare.
 MM_PER_UNIT: dict[str, float] = {"mm": 1.0, "cm": 10.0, "dm": 100.0, "m": 1000.0, "in": 25.4}
@@ -34,14 +34,8 @@ def read_text(path: str | os.PathLike[str]) -> str:
             raise InputFileError(path, f"text file of {size / 2**20:,.0f} MB, more than the "
                                        f"{MAX_TEXT_BYTES // 2**20} MB mocaptk reads as text (export C3D instead)")
         data = target.read_bytes()
-    except FileNotFoundError:
-        raise InputFileError(path, "no such file") from None
-    except IsADirectoryError:
-        raise InputFileError(path, "is a folder, expected a file") from None
-    except PermissionError:
-        raise InputFileError(path, "permission denied") from None
     except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
+        raise unreadable(path, exc) from None
     if not data.strip():
         raise InputFileError(path, "file is empty")
     if b"\x00" in data:

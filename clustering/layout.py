@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..errors import InputFileError
-from ..jsonio import write_json
+from ..jsonio import read_json, write_json
 
 FORMAT = "mocaptk.layout"
 VERSION = 1
@@ -88,12 +87,7 @@ def write_layout(layout: Layout, path: str | os.PathLike[str], *, force: bool = 
 def read_layout(path: str | os.PathLike[str]) -> Layout:
     """Read a ``layout.json`` written by :func:`write_layout`."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read layout ({exc.strerror or exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputFileError(path, f"not a {FORMAT} file")
     if data.get("version") != VERSION:

@@ -8,7 +8,6 @@ or correlates across a cut (frames of different takes are only pooled as samples
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,18 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputFileError, OptionError
+from ..jsonio import read_json
 from ..trajectories import Take
 
 
 def read_takes(path: str | os.PathLike[str], n_frames: int) -> list[Take]:
     """Read ``{"takes": [{"name", "start", "end", "region"?}, ...]}`` (0-based, end exclusive)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read takes file ({exc.strerror or exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
+    data = read_json(path)
     items = data.get("takes") if isinstance(data, dict) else None
     if not isinstance(items, list) or not items:
         raise InputFileError(path, 'expected {"takes": [{"name": ..., "start": ..., "end": ...}, ...]}')

@@ -36,3 +36,16 @@ class OptionError(MocaptkError):
 
 class OutputError(MocaptkError):
     """An output cannot be written (exists without --force, folder not writable...)."""
+
+
+def unreadable(path: str | os.PathLike[str], exc: OSError) -> InputFileError:
+    """The :class:`InputFileError` for an ``OSError`` raised while opening or reading ``path``."""
+    if isinstance(exc, FileNotFoundError):
+        problem = "no such file"
+    elif isinstance(exc, IsADirectoryError):
+        problem = "is a folder, expected a file"
+    elif isinstance(exc, PermissionError):
+        problem = "permission denied"
+    else:
+        problem = f"cannot read ({exc.strerror or exc})"
+    return InputFileError(path, problem)

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .atomic import write_text
+from .errors import InputFileError, unreadable
 
 
 def to_plain(value: Any, *, digits: int = 6) -> Any:
@@ -75,3 +76,17 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, digits: int = 6,
                force: bool = True) -> Path:
     """Atomically write ``obj`` as deterministic JSON."""
     return write_text(path, dumps(obj, digits=digits), force=force)
+
+
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """Parse a JSON input file; unreadable or invalid files raise :class:`InputFileError`."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise unreadable(path, exc) from None
+    except UnicodeDecodeError:
+        raise InputFileError(path, "not UTF-8 text: not a JSON file") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None

@@ -5,7 +5,6 @@ Schema in docs/rig-format.md. Positions are millimetres rounded to 1e-6 mm, weig
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from mocaptk.errors import InputFileError
-from mocaptk.jsonio import to_plain, write_json
+from mocaptk.jsonio import read_json, to_plain, write_json
 
 from .rig import MESH_DIGITS, Rig, RigError, mesh_sha256
 
@@ -59,12 +58,7 @@ def read_rig_json(path: str | os.PathLike[str]) -> Rig:
         The file is missing, not JSON, not a ``mocaptk.rig`` document, or inconsistent
         (mesh hash or vertex count mismatch, bad joints or weights).
     """
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputFileError(path, f"not valid JSON ({exc})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputFileError(path, f"not a {FORMAT} document (no format: {FORMAT!r})")
     if doc.get("version") != VERSION:

@@ -18,14 +18,9 @@ def parse_formats(text: str) -> tuple[str, ...]:
 
 def read_landmarks(path: Path) -> dict[str, int]:
     """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs)."""
-    import json
+    from ..jsonio import read_json
 
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, int) and v >= 0 for v in data.values()):
         raise InputFileError(path, "expected {\"marker label\": vertex index, ...}")
     if len(data) < 3:
