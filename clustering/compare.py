@@ -192,6 +192,7 @@ def compare_plot(rows: Sequence[CompareRow], path: str | os.PathLike[str], *, ti
             xs, ys = zip(*pts)
             ax.plot(xs, ys, marker="os^vD<>ph*"[k % 10], label=method)
     ax.set_xlabel("markers in the layout")
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_ylabel("held-out RMSE (mm)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
