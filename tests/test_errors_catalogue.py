@@ -101,6 +101,8 @@ def f(tmp_path_factory) -> dict[str, Path]:
     (d / "full").mkdir()
     (d / "full" / "keep.txt").write_text("keep")
     (d / "afile").write_text("x")
+    (d / "cmp").mkdir()
+    (d / "cmp" / "compare.md").write_text("an earlier comparison")
     return {p.name: p for p in d.iterdir()} | {"dir": d}
 
 
@@ -262,6 +264,8 @@ CATALOGUE = [
      "--counts must be positive whole numbers"),
     ("E-CMP-RESTARTS", lambda f: ["compare", S(f), "--restarts", "0", "--out", f["dir"] / "c3"],
      "--restarts must be >= 1"),
+    ("E-OUT-COMPARE-EXISTS", lambda f: ["compare", S(f), "--out", f["cmp"], "--methods", "random"],
+     "compare.md: already exists (use --force"),
     ("E-CMP-METHODS", lambda f: ["compare", S(f), "--methods", "magic", "--out", f["dir"] / "c4"], "unknown method(s) magic"),
 ]
 
