@@ -102,3 +102,63 @@ def test_existing_output_needs_force_and_folders_are_refused(tmp_path):
 def test_atomic_output_permissions_follow_a_normal_file(tmp_path):
     target = write_text(tmp_path / "x.txt", "x")
     assert os.stat(target).st_mode & 0o777 == 0o644
+
+
+WRITING_METHODS = {"savefig", "savez", "savez_compressed", "save", "output", "write_text", "write_bytes",
+                   "tofile", "to_csv", "screenshot", "export", "write"}
+ATOMIC_CONTEXTS = {"atomic_open", "atomic_path", "staged_folder"}
+
+
+def _stray_writes(path: Path) -> list[str]:
+    """Calls that write files outside a ``with atomic_open/atomic_path/staged_folder`` block."""
+    import ast
+
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found: list[str] = []
+
+    def name_of(call: ast.expr) -> str:
+        func = call.func if isinstance(call, ast.Call) else call
+        return func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+
+    def visit(node: ast.AST, inside: bool) -> None:
+        if isinstance(node, (ast.With, ast.AsyncWith)):
+            inside = inside or any(isinstance(item.context_expr, ast.Call)
+                                   and name_of(item.context_expr) in ATOMIC_CONTEXTS for item in node.items)
+        if isinstance(node, ast.Call) and not inside:
+            name = name_of(node)
+            mode = node.args[1] if name == "open" and len(node.args) > 1 else next(
+                (k.value for k in node.keywords if k.arg == "mode"), None) if name == "open" else None
+            writes_open = isinstance(mode, ast.Constant) and any(c in str(mode.value) for c in "wax+")
+            names_target = bool(node.args) or any(k.arg in {"filename", "fname", "path", "file"}
+                                                  for k in node.keywords)  # not screenshot(return_img=True)
+            is_method = isinstance(node.func, ast.Attribute) and name in WRITING_METHODS and names_target
+            receiver = node.func.value if isinstance(node.func, ast.Attribute) else None
+            to_handle = isinstance(receiver, ast.Name) and receiver.id in {"handle", "os", "sys", "pipe", "stream"}
+            if writes_open or (is_method and not to_handle and name != "write"):
+                where = path.relative_to(REPO) if path.is_relative_to(REPO) else path.name
+                found.append(f"{where}:{node.lineno}: {name}()")
+        for child in ast.iter_child_nodes(node):
+            visit(child, inside)
+
+    visit(tree, False)
+    return found
+
+
+def test_no_output_bypasses_the_atomic_helpers():
+    """Every file-writing call in the package sits inside an atomic block (or is mocaptk.atomic)."""
+    sources = [p for folder in ("mocaptk", "acquisition", "clustering", "retarget")
+               for p in sorted((REPO / folder).rglob("*.py")) if p.name != "atomic.py"]
+    stray = [hit for path in sources for hit in _stray_writes(path)]
+    assert not stray, stray
+
+
+def test_the_stray_write_check_catches_direct_writes(tmp_path):
+    sample = tmp_path / "module.py"
+    sample.write_text("from pathlib import Path\nimport numpy as np\n"
+                      "def f(p, fig, image):\n"
+                      "    Path(p).write_text('x')\n    fig.savefig(p)\n    np.savez(p, a=1)\n"
+                      "    with open(p, 'w') as h:\n        h.write('x')\n"
+                      "    with atomic_path(p) as tmp:\n        fig.savefig(tmp)\n"
+                      "    image = fig.screenshot(return_img=True)\n")
+    assert [hit.split(": ")[1] for hit in _stray_writes(sample)] == \
+        ["write_text()", "savefig()", "savez()", "open()"]
