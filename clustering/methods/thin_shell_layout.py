@@ -223,11 +223,16 @@ def compress_trajectories(trajectories: np.ndarray, *, max_rank: int = 96,
     x = np.asarray(trajectories, dtype=np.float64)
     if x.shape[1] <= max_rank:
         return x
-    vals, vecs = np.linalg.eigh(x.T @ x)
-    vals, vecs = vals[::-1], vecs[:, ::-1]
-    cumulative = np.cumsum(np.maximum(vals, 0.0))
+    # X = U·S·Vᵀ: the coordinates X·V = U·S, from the smaller of the two Gram matrices
+    small_side = x.shape[0] < x.shape[1]
+    vals, vecs = np.linalg.eigh(x @ x.T if small_side else x.T @ x)
+    vals, vecs = np.maximum(vals[::-1], 0.0), vecs[:, ::-1]
+    cumulative = np.cumsum(vals)
     rank = int(np.searchsorted(cumulative, energy * cumulative[-1]) + 1) if cumulative[-1] > 0 else 1
-    return x @ vecs[:, :min(rank, max_rank)]
+    rank = min(rank, max_rank, vals.size)
+    if small_side:
+        return vecs[:, :rank] * np.sqrt(vals[:rank])
+    return x @ vecs[:, :rank]
 
 
 def mesh_neighbours(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
