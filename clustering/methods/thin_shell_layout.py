@@ -318,7 +318,8 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                         moved, moves = True, moves + 1
                     continue
                 targets += _ring_units(ring, layout, int(u), allowed, mirror)
-                solver.green([v for unit in targets for v in unit])  # one multi-RHS solve
+                if targets:
+                    solver.green([v for unit in targets for v in unit])  # one multi-RHS solve
                 old = layout.units[u]
                 best_unit = old
                 for unit in dict.fromkeys(targets):
