@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -87,7 +88,7 @@ class Trajectories:
         labels = tuple(str(label) for label in self.labels)
         if len(labels) != pos.shape[1]:
             raise MocaptkError(f"{len(labels)} labels for {pos.shape[1]} markers")
-        duplicates = sorted({lab for lab in labels if labels.count(lab) > 1})
+        duplicates = sorted(lab for lab, n in Counter(labels).items() if n > 1)  # O(n): 65,535 labels
         if duplicates:
             raise MocaptkError(f"duplicate marker labels: {', '.join(duplicates[:5])}")
         rate = float(self.rate)
