@@ -120,17 +120,18 @@ def _parse_parameters(path: Path, data: bytes, processor: str) -> dict[str, dict
         name_end = pos + 2 + n_chars
         _check(path, name_end + 2 <= end, "bad parameter section (record runs past the end of file)")
         name = data[pos + 2:name_end].decode("latin-1").strip().upper()
+        shown = repr(name[:32])  # in messages: a corrupt name may be 127 NUL bytes
         offset = int(np.frombuffer(data, i16, 1, name_end)[0])
         next_pos = name_end + offset if offset > 0 else end
         _check(path, offset >= 0 and next_pos <= end,
-               f"bad parameter section (record {name!r} points to byte {name_end + offset})")
+               f"bad parameter section (record {shown} points to byte {name_end + offset})")
         body = name_end + 2
         if group_id > 0:
-            _check(path, body + 2 <= next_pos, f"bad parameter section (parameter {name!r} is cut)")
+            _check(path, body + 2 <= next_pos, f"bad parameter section (parameter {shown} is cut)")
             size = _signed_byte(data[body])
             n_dims = data[body + 1]
             _check(path, size in (-1, 1, 2, 4) and n_dims <= 7,
-                   f"bad parameter section (parameter {name!r} has type {size}, {n_dims} dimensions)")
+                   f"bad parameter section (parameter {shown} has type {size}, {n_dims} dimensions)")
             dims = list(data[body + 2:body + 2 + n_dims])
             value_start = body + 2 + n_dims
             count = int(np.prod(dims)) if dims else 1
