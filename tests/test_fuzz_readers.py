@@ -67,7 +67,8 @@ def test_cases_are_reproducible_one_by_one(fuzz, tmp_path):
 
 def test_past_findings_stay_fixed(fuzz, worker, tmp_path):
     """Campaign findings: a TRC declaring 10^9 markers hung (>20 s); NA cells of the blenderFace
-    CSVs were rejected; an inf NumMarkers raised OverflowError; frame numbers of 10^9 / 1e308."""
+    CSVs were rejected; an inf NumMarkers raised OverflowError; frame numbers of 10^9 / 1e308;
+    C3D with 65,535 markers hung; overlong C3D parameter names in messages."""
     trc = shared_path("csv_trc", "btkdata", "10002-20130731010438-Unnamed.trc")
     lines = fuzz.load_seed(trc).split(b"\n")
     values = lines[2].split(b"\t")
@@ -88,6 +89,17 @@ def test_past_findings_stay_fixed(fuzz, worker, tmp_path):
         check(out, name)
         if name.startswith("frame_"):
             assert out["outcome"] == "error" and "frame" in out["message"], out
+    # campaign 2: 65,535 header markers made Trajectories' duplicate check quadratic (115 s);
+    # a corrupt 127-byte parameter name made a 520-character message
+    phase = bytearray(shared_path("c3d", "btkdata", "c3d.org", "sample20", "phasespace_sample.c3d").read_bytes())
+    for at in (2, 8, 18):
+        phase[at:at + 2] = b"\xff\xff"
+    opto = bytearray(shared_path("c3d", "ezc3d-testFiles", "Optotrak.c3d").read_bytes())
+    for at, value in ((1159, 255), (1192, 41), (1346, 53), (2017, 232), (3060, 110), (3537, 227)):
+        opto[at] = value
+    for name, data in (("phase.c3d", phase), ("opto.c3d", opto)):
+        (tmp_path / name).write_bytes(bytes(data))
+        check(worker.read(str(tmp_path / name), 20.0), name)
     face = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
     small = tmp_path / "face.csv"
     small.write_bytes(fuzz.load_seed(face))
