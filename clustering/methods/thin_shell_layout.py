@@ -303,6 +303,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
             initial = _insertion_start(x, solver, count, fixed, allowed, mirror)
         layout = _start(count, fixed, allowed, mirror, rng, initial if restart == 0 else None)
         current = solver.error(layout.markers)
+        unsettled = [True] * len(layout.units)
         sweeps = 0
         for _ in range(iterations):
             sweeps += 1
@@ -317,7 +318,10 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                         layout.units[u] = targets[0]
                         moved, moves = True, moves + 1
                     continue
-                targets += _ring_units(ring, layout, int(u), allowed, mirror)
+                # 1-ring places are tried only while the marker has not settled (it moved in
+                # this start's previous sweep, or this is the first sweep)
+                if unsettled[u]:
+                    targets += _ring_units(ring, layout, int(u), allowed, mirror)
                 if targets:
                     solver.green([v for unit in targets for v in unit])  # one multi-RHS solve
                 old = layout.units[u]
@@ -328,12 +332,14 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                     if err < current * (1.0 - 1e-12):
                         current, best_unit = err, unit
                 layout.units[u] = best_unit
+                unsettled[u] = best_unit != old
                 if best_unit != old:
                     moved, moves = True, moves + 1
             if verify and not moved:
                 jumped = _jump(x, solver, layout, allowed, mirror, current)
                 if jumped is not None:
                     current, moved, moves = jumped, True, moves + 1
+                    unsettled = [True] * len(layout.units)
             solver.forget(layout.markers)
             if not moved:
                 break
