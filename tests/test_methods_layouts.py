@@ -110,7 +110,7 @@ def test_hybrid_reports_its_contenders():
     problem, _ = driven_problem()
     result = select_layout(problem, 8, method="hybrid")
     scores = result.details["cv_rmse_mm"]
-    assert set(scores) == {"clusters", "qr", "greedy"}
+    assert set(scores) == {"clusters", "thin-shell", "qr", "greedy"}
     assert scores[result.details["winner"]] == min(scores.values())
 
 

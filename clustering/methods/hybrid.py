@@ -7,9 +7,12 @@
    displacement, each cluster keeps the member that explains most of *all* markers' motion given
    the other clusters' representatives (coordinate descent over clusters, until no
    representative changes).
-3. **Choice by cross-validation.** The clustered layout competes with the column-pivoted QR and the
-   greedy layouts; the one with the lowest cross-validated error on the training takes
-   (leave one take out, the team's ridge model) wins. Only training frames are used.
+3. **Clusters initialize the thin-shell optimizer** (Le et al.; one start from the clustered
+   layout): its spatially smooth model generalizes where regression-chosen layouts overfit
+   the training takes.
+4. **Choice by cross-validation.** The clustered layout, the thin-shell layout, the column-pivoted
+   QR and the greedy layouts compete; the one with the lowest cross-validated error on the training
+   takes (leave one take out, the team's ridge model) wins. Only training frames are used.
 """
 
 from __future__ import annotations
@@ -58,7 +61,8 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
 
 
 def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
-                  contenders: tuple[str, ...] = ("clusters", "qr", "greedy")) -> tuple[np.ndarray, dict[str, Any]]:
+                  contenders: tuple[str, ...] = ("clusters", "thin-shell", "qr", "greedy")
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """The hybrid layout of ``count`` points and how each contender scored (CV RMSE, mm)."""
     scorer = cv_scorer(problem)
     scores: dict[str, float] = {}
@@ -77,6 +81,12 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
                     clusters[clusters == k] = -1
             layouts["clusters"] = cluster_representatives(problem, clusters, paper.layout)
             scores["clusters"] = scorer.rmse(layouts["clusters"])
+    if "thin-shell" in contenders and problem.n_points <= 2000:
+        from .thin_shell_layout import thin_shell_layout
+        start = layouts.get("clusters")
+        layouts["thin-shell"] = thin_shell_layout(problem, count, restarts=1, seed=seed,
+                                                  initial=None if start is None else list(start)).layout
+        scores["thin-shell"] = scorer.rmse(layouts["thin-shell"])
     if "qr" in contenders:
         layouts["qr"] = pivoted_qr_layout(problem, count)
         scores["qr"] = scorer.rmse(layouts["qr"])
