@@ -71,8 +71,11 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndar
         Layout markers, same order as the clusters; ``numbers`` their guide numbers.
     """
     import pyvista as pv
+    from vtkmodules.vtkCommonCore import vtkLogger
 
     pv.OFF_SCREEN = True
+    # VTK logs its X-display probe on headless machines; it then renders offscreen anyway
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
     direction, up = VIEWS[view]
     shades = cluster_shades(cluster_regions)
     colours = np.full((len(vertices), 3), 0.8)
