@@ -112,7 +112,6 @@ def test_convert_round_trip_and_overwrite_protection(run_cli, tmp_path):
 
 
 def test_convert_to_c3d_equals_source(run_cli, tmp_path):
-    pytest.importorskip("mocaptk.acquisition.c3d_write", reason="io-c3d writer not merged yet")
     source = shared_path("csv_trc", "btkdata", "Knee.trc")
     target = tmp_path / "knee.c3d"
     assert run_cli("convert", source, target).exit_code == 0
