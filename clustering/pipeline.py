@@ -240,3 +240,27 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
     digest = hashlib.sha256(file.read_bytes()).hexdigest()
     return traj, {"path": file.name, "sha256": digest}
+
+
+def load_session_and_test(session: str | Path, test: str | Path | None, *, stabilized: bool,
+                          rate: float | None = None, units: str | None = None,
+                          ) -> tuple[Trajectories, Trajectories | None, dict[str, Any]]:
+    """A session and an optional held-out test file, prepared alike (same markers, same stabilization).
+
+    Returns ``(session, test or None, source)``; a test file lacking session markers raises
+    :class:`InputFileError`.
+    """
+    traj, source = load_session(str(session), rate=rate, units=units)
+    if stabilized:
+        traj, _ = stabilize(traj)
+    if test is None:
+        return traj, None, source
+    perf, _ = load_session(str(test), rate=rate, units=units)
+    present = set(perf.labels)
+    missing = [label for label in traj.labels if label not in present]
+    if missing:
+        raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
+    perf = perf.select(traj.labels)
+    if stabilized:
+        perf, _ = stabilize(perf)
+    return traj, perf, source

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ..errors import InputFileError, OptionError
+from ..errors import OptionError
 from .app import app
 
 
@@ -52,7 +52,7 @@ def compare(
                                       rows_as_json, rows_as_markdown)
     from ..clustering.methods import method_names
     from ..clustering.neutral import max_displacement, neutral_pose
-    from ..clustering.pipeline import load_session, stabilize
+    from ..clustering.pipeline import load_session_and_test
     from ..jsonio import write_json
 
     count_list = parse_counts(counts)
@@ -67,17 +67,8 @@ def compare(
     for target in targets:
         check_writable(target, force=force)
     console = Console(stderr=True, quiet=quiet)
-    traj, source = load_session(session, rate=rate, units=units)
-    perf = None
-    if test is not None:
-        perf, _ = load_session(test, rate=rate, units=units)
-        missing = [label for label in traj.labels if label not in set(perf.labels)]
-        if missing:
-            raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
-        perf = perf.select(traj.labels)
-    if not no_stabilize:
-        traj, _ = stabilize(traj)
-        perf = stabilize(perf)[0] if perf is not None else None
+    traj, perf, source = load_session_and_test(session, test, stabilized=not no_stabilize,
+                                               rate=rate, units=units)
     with console.status("comparing") as status:
         rows = compare_methods(traj, test=perf, counts=count_list, methods=method_list, seed=seed,
                                options={"thin-shell": {"restarts": restarts}},

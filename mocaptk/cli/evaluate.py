@@ -28,22 +28,11 @@ def evaluation_table(result: dict) -> str:
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
                    units: str | None):
     """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
-    from ..clustering.pipeline import load_session, stabilize
+    from ..clustering.pipeline import load_session_and_test
 
-    traj, source = load_session(session, rate=rate, units=units)
-    if stabilized:
-        traj, _ = stabilize(traj)
-    test_positions = None
-    if test is not None:
-        perf, _ = load_session(test, rate=rate, units=units)
-        missing = [label for label in traj.labels if label not in set(perf.labels)]
-        if missing:
-            raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
-        perf = perf.select(traj.labels)
-        if stabilized:
-            perf, _ = stabilize(perf)
-        test_positions = perf.positions
-    return traj, test_positions, source
+    traj, perf, source = load_session_and_test(session, test, stabilized=stabilized, rate=rate,
+                                               units=units)
+    return traj, None if perf is None else perf.positions, source
 
 
 @app.command()
