@@ -15,6 +15,12 @@ from typing import IO
 from .errors import OutputError
 
 
+def _cannot_write(target: Path, exc: OSError) -> OutputError:
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return OutputError(f"{target}: cannot write (a part of the folder path is a file, not a folder)")
+    return OutputError(f"{target}: cannot write ({exc.strerror or exc})")
+
+
 def check_writable(path: str | os.PathLike[str], *, force: bool) -> Path:
     """Return ``path`` as a Path; refuse an existing file unless ``force``."""
     target = Path(path)
@@ -39,7 +45,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb", *, force: bool =
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=folder)
     except OSError as exc:
-        raise OutputError(f"{target}: cannot write ({exc.strerror or exc})") from None
+        raise _cannot_write(target, exc) from None
     text = "b" not in mode
     try:
         with os.fdopen(fd, mode, encoding=(encoding or "utf-8") if text else None,
@@ -70,7 +76,7 @@ def atomic_path(path: str | os.PathLike[str], *, force: bool = True) -> Iterator
                                         dir=folder)
         os.close(fd)
     except OSError as exc:
-        raise OutputError(f"{target}: cannot write ({exc.strerror or exc})") from None
+        raise _cannot_write(target, exc) from None
     try:
         yield Path(tmp_name)
         with open(tmp_name, "rb+") as handle:
