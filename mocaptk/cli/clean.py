@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from .app import app
+from .options import Rate, Units
 
 
 @app.command()
@@ -26,8 +27,8 @@ def clean(
     report: Path = typer.Option(None, "--report", help="Also write a JSON report (rigid set, pose residuals, "
                                                       "every gap and how it was filled)."),
     force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report) if they exist."),
-    units: str = typer.Option(None, "--units", help="Units of the numbers in a text input, overriding the file's."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate (Hz) for a column CSV input without a time column."),
+    units: Units = None,
+    rate: Rate = None,
 ) -> None:
     """Clean a session: stabilize the head, fill gaps, low-pass filter (in that order), write OUT."""
     import numpy as np

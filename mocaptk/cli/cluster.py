@@ -19,6 +19,7 @@ import typer
 
 from ..errors import OutputError
 from .app import app
+from .options import Rate, Units
 
 
 def default_out_dir(session: Path) -> Path:
@@ -125,8 +126,8 @@ def cluster(
                                 "the sagittal plane (default: when labels show one half + midline)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data, e.g. head-mounted cameras)."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
-    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
+    rate: Rate = None,
+    units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress or summary (warnings still shown)."),
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh for the rig (OBJ, PLY, glTF; "

@@ -8,6 +8,7 @@ import typer
 
 from ..errors import OptionError
 from .app import app
+from .options import Rate, Units
 
 
 def parse_counts(text: str) -> list[int]:
@@ -36,8 +37,8 @@ def compare(
     seed: int = typer.Option(0, "--seed", help="Seed of random layouts, k-means and restarts."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data)."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
-    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in, or mm per unit)."),
+    rate: Rate = None,
+    units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress and no table on screen."),
 ) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from .app import app
+from .options import Rate, Units
 
 
 @app.command()
@@ -14,9 +15,8 @@ def convert(
     source: Path = typer.Argument(..., help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
     target: Path = typer.Argument(..., help="Output file: .c3d, .csv (Nexus style) or .trc."),
     force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists."),
-    units: str = typer.Option(None, "--units", help="Units of the numbers in a text input (mm, cm, m, in, "
-                                                   "or mm per unit), overriding the file's own."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate (Hz) for a column CSV input without a time column."),
+    units: Units = None,
+    rate: Rate = None,
     strip_prefixes: bool = typer.Option(False, "--strip-prefixes",
                                         help="Drop 'Subject:' prefixes from marker labels."),
 ) -> None:

@@ -9,6 +9,7 @@ import typer
 
 from ..errors import InputFileError
 from .app import app
+from .options import Rate, Units
 
 
 def evaluation_table(result: dict) -> str:
@@ -50,8 +51,8 @@ def evaluate(
     seeds: int = typer.Option(10, "--seeds", help="Random layouts to average (mean ± sd)."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength, relative to the mean input variance."),
     out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout)."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
-    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
+    rate: Rate = None,
+    units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress and no table."),
 ) -> None:

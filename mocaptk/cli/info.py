@@ -8,6 +8,7 @@ from typing import Any
 import typer
 
 from .app import app
+from .options import Rate, Units
 
 
 def read_marker_file(path: Path, *, units: str | None, rate: float | None, strip_prefixes: bool = False):
@@ -65,9 +66,8 @@ def _human(info: dict[str, Any]) -> str:
 def info(
     files: list[Path] = typer.Argument(..., help="Marker files: C3D, Vicon CSV, TRC, column CSV, .npz."),
     as_json: bool = typer.Option(False, "--json", help="Print one deterministic JSON document instead of text."),
-    units: str = typer.Option(None, "--units", help="Units of the numbers in text files (mm, cm, m, in, "
-                                                   "or mm per unit), overriding the file's own."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate (Hz) for column CSV files without a time column."),
+    units: Units = None,
+    rate: Rate = None,
 ) -> None:
     """Describe marker files: format, markers, frames, rate, duration, units, missing data, takes.
 

@@ -8,6 +8,7 @@ import typer
 
 from ..errors import OptionError, OutputError
 from .app import app
+from .options import Rate, Units
 
 
 def parse_factors(text: str) -> list[float]:
@@ -41,8 +42,8 @@ def sweep(
                               "held-out blocks of the session's takes)."),
     folds: int = typer.Option(5, "--folds", help="Held-out blocks per take."),
     out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_sweep/)."),
-    rate: float = typer.Option(None, "--rate", help="Frame rate in Hz for column CSV files without time."),
-    units: str = typer.Option(None, "--units", help="Units of a text file (mm, cm, m, in)."),
+    rate: Rate = None,
+    units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress or table."),
 ) -> None:
