@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 
 from mocaptk.clustering.methods import LayoutProblem, select_layout
-from mocaptk.clustering.methods.set_cover import (cover_costs, layout_statistics, relative_displacement,
-                                                  set_cover_layout, solve_cover, visibility)
+from mocaptk.clustering.methods.set_cover import (cover_costs, facing_direction, layout_statistics,
+                                                  problem_visibility, relative_displacement,
+                                                  representative_shapes, set_cover_layout, solve_cover,
+                                                  visibility)
+from mocaptk.surface_mesh import vertex_normals
+
+from conftest import SAMPLES
 
 
 def bump_model(n: int = 9, shapes: int = 7, seed: int = 0):
@@ -85,3 +90,59 @@ def test_visibility_is_lower_inside_a_pit():
     flat = int(np.argmin(np.abs(radius - 30.0)))  # far from the pit
     assert vis[flat] > 0.8 and vis[flat] > vis[centre] + 0.2
     assert ((vis >= 0) & (vis <= 1)).all()
+
+
+def test_visibility_sees_a_pit_on_a_sparse_mesh_too():
+    # the same pit sampled ~1 cm apart (like markers): occlusion comes from the triangles between them
+    verts, faces, _ = bump_model(n=11)
+    radius = np.linalg.norm(verts[:, :2], axis=1)
+    verts = verts.copy()
+    verts[:, 2] = -30.0 * np.exp(-radius ** 2 / 200.0)
+    vis = visibility(verts, faces, np.zeros((1, len(verts), 3)), directions=16, resolution=2.0)
+    assert vis[int(np.argmin(radius))] < 0.5 < vis[int(np.argmax(radius))]
+
+
+@pytest.fixture(scope="module")
+def sample_problem():
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.clustering.methods import layout_problem
+
+    path = SAMPLES / "dense_halfface.c3d"
+    if not path.exists():
+        pytest.skip("sample_c3d/ has no session")
+    return layout_problem(read_trajectories(path))
+
+
+def test_marker_session_visibility_on_the_marker_surface_mesh(sample_problem):
+    problem = sample_problem
+    front = facing_direction(problem)
+    assert front[2] > 0.9  # the sample's face looks down +Z (sample_c3d/README.md), half face or not
+    shapes = representative_shapes(problem.displacements)
+    vis = problem_visibility(problem, shapes)
+    assert vis.shape == (problem.n_points,) and ((vis >= 0) & (vis <= 1)).all()
+    # markers whose skin turns away from the frontal view are seen from fewer directions
+    facing = vertex_normals(problem.neutral, problem.surface_faces()) @ front
+    assert vis[facing < 0.5].mean() < vis[facing > 0.9].mean() - 0.1
+    lateral = problem.neutral[:, 0]  # the half face is on +X; the far side of the cheek vs midline
+    assert vis[lateral > np.percentile(lateral, 85)].mean() < vis[lateral < np.percentile(lateral, 30)].mean()
+    # a deformed shape can only hide markers: worst case over neutral + shapes ≤ neutral alone
+    neutral_only = visibility(problem.neutral, problem.surface_faces(), shapes[:0], front=front,
+                              resolution=2.4)
+    assert (vis <= neutral_only + 1e-12).mean() > 0.95
+
+
+def test_set_cover_on_a_marker_session_uses_visibility_and_stays_optimal(sample_problem):
+    problem = sample_problem
+    shapes = representative_shapes(problem.displacements)
+    vis = problem_visibility(problem, shapes)
+    relative = relative_displacement(shapes)
+    candidate = relative >= 0.3
+    minimal = set_cover_layout(problem)  # the registry's path: visibility computed on the marker mesh
+    assert minimal.status == ["Optimal"]
+    assert candidate[minimal.layout].any(axis=0)[candidate.any(axis=0)].all()  # every cover constraint
+    blind = set_cover_layout(problem, visibility_weights=np.ones(problem.n_points))
+    costs = cover_costs(relative, candidate, vis)
+    assert costs[minimal.layout].sum() <= costs[blind.layout].sum() + 1e-9  # optimal for ω with l_n
+    assert not np.array_equal(minimal.layout, blind.layout)  # visibility changes the choice here
+    result = select_layout(problem, 20, method="set-cover")
+    assert result.layout.size == 20 and all(s == "Optimal" for s in result.details["status"])

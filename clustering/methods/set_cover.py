@@ -3,7 +3,8 @@
 Per shape k (a blendshape delta, or a representative frame of a dense session), the relative
 displacement ``r_nk = |d_nk| / max_n |d_nk|``; point n is a *candidate* for k when ``r_nk ≥ ε``.
 Quality ``ω_nk = c_nk (2 − (1−α) r_nk − α l_n)`` prefers points that move much and are visible
-(``l_n`` = worst-case visibility over all shapes, :func:`visibility`). The weighted set cover
+(``l_n`` = worst-case visibility over neutral + all shapes, :func:`visibility`, on the blendshape
+mesh or — for a dense session — on the marker surface mesh, seen from the front). The weighted set cover
 
     minimize Σ_n f_n Σ_k ω_nk   subject to   Σ_n c_nk f_n ≥ 1 for every shape k,  f ∈ {0, 1}
 
@@ -69,23 +70,37 @@ def representative_shapes(displacements: np.ndarray, *, max_shapes: int = 64) ->
 
 
 def visibility(vertices: np.ndarray, faces: np.ndarray, shapes: np.ndarray, *, directions: int = 24,
-               resolution: float = 1.5, view_axis: int = 2) -> np.ndarray:
+               resolution: float = 1.5, front: np.ndarray | None = None) -> np.ndarray:
     """(V,) worst-case fraction of view directions that see each vertex, over neutral + every shape.
 
-    Ambient-occlusion-style: ``directions`` view directions spread over the frontal hemisphere
-    (around +``view_axis``); per direction an orthographic depth buffer of the triangles'
-    vertices at ``resolution`` mm; a vertex counts as seen when it faces the direction and no
-    surface in its pixel neighbourhood is in front of it (1 mm tolerance plus what the local
-    slope explains).
+    Ambient-occlusion-style: ``directions`` view directions spread over the hemisphere around
+    ``front`` (3,) (default +Z); per direction an orthographic depth buffer at ``resolution`` mm
+    of points sampled on the triangles (at most 2 pixels apart, so a sparse marker mesh occludes
+    like a dense one); a vertex counts as seen when it faces the direction and no surface in its
+    pixel neighbourhood is in front of it (1 mm tolerance plus what the local slope explains).
+    A vertex in no triangle has no normal: only occlusion decides for it.
+    ``vertices`` (V, 3) mm, ``faces`` (T, 3), ``shapes`` (K, V, 3) mm deltas.
     """
     verts = np.asarray(vertices, dtype=np.float64)
     tris = np.asarray(faces, dtype=np.intp)
+    axis = np.array([0.0, 0.0, 1.0]) if front is None else np.asarray(front, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    side = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
     golden = np.pi * (3.0 - np.sqrt(5.0))
     k = np.arange(directions)
-    z = 1.0 - (k + 0.5) / directions  # upper hemisphere, z in (0, 1]
+    z = 1.0 - (k + 0.5) / directions  # hemisphere around the front, cos in (0, 1]
     ring = np.sqrt(1.0 - z * z)
-    dirs = np.stack([ring * np.cos(golden * k), ring * np.sin(golden * k), z], axis=1)
-    dirs = np.roll(dirs, view_axis - 2, axis=1)
+    dirs = (np.outer(ring * np.cos(golden * k), side) + np.outer(ring * np.sin(golden * k), np.cross(axis, side))
+            + np.outer(z, axis))
+    samples = _triangle_samples(verts, tris, spacing=2.0 * resolution)
+    has_normal = np.zeros(len(verts), dtype=bool)
+    has_normal[tris.ravel()] = True
+    # per direction: image axes u, v and the depth axis, as (3, 3·directions) columns
+    helper = np.where(np.abs(dirs[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(dirs, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    frames = np.concatenate([u, np.cross(dirs, u), dirs]).T
     worst = np.ones(len(verts))
     for delta in [np.zeros_like(verts)] + [s for s in np.asarray(shapes, dtype=np.float64)]:
         pos = verts + delta
@@ -94,34 +109,83 @@ def visibility(vertices: np.ndarray, faces: np.ndarray, shapes: np.ndarray, *, d
         for c in range(3):
             np.add.at(normals, tris[:, c], tri_n)
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        seen = np.zeros(len(verts))
-        for d in dirs:
-            seen += _seen_from(pos, normals, d, resolution)
+        facing = np.where(has_normal[:, None], normals @ dirs.T, 1.0).T  # (directions, V)
+        surface = np.einsum("sc,tcx->tsx", samples, pos[tris]).reshape(-1, 3)
+        coords = (np.concatenate([pos, surface]) @ frames).T  # (3·directions, V + S)
+        pixels = np.floor(coords[: 2 * directions] / resolution).astype(np.int64)
+        pixels -= pixels.min(axis=1, keepdims=True)
+        seen = _seen_counts(pixels[:directions], pixels[directions:], coords[2 * directions:], facing,
+                            resolution)
         worst = np.minimum(worst, seen / directions)
     return worst
 
 
-def _seen_from(pos: np.ndarray, normals: np.ndarray, direction: np.ndarray, resolution: float) -> np.ndarray:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(direction[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(direction, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(direction, u)
-    depth = pos @ direction
-    ij = np.floor(np.stack([pos @ u, pos @ v], axis=1) / resolution).astype(np.int64)
-    ij -= ij.min(axis=0)
-    shape = tuple(ij.max(axis=0) + 3)
+def _triangle_samples(verts: np.ndarray, tris: np.ndarray, *, spacing: float) -> np.ndarray:
+    """(S, 3) barycentric weights of a regular grid on a triangle (corners left out), fine enough
+    that points on a typical triangle of the mesh (median edge) lie at most ``spacing`` mm apart."""
+    if len(tris) == 0:
+        return np.zeros((0, 3))
+    edges = np.linalg.norm(verts[tris] - verts[np.roll(tris, 1, axis=1)], axis=2)
+    steps = int(np.clip(np.ceil(np.median(edges) / spacing), 1, 16))
+    grid = [(i, j, steps - i - j) for i in range(steps + 1) for j in range(steps + 1 - i)
+            if max(i, j, steps - i - j) < steps]  # the corners are the vertices themselves
+    return np.array(grid, dtype=np.float64).reshape(-1, 3) / steps
+
+
+def _seen_counts(i: np.ndarray, j: np.ndarray, depth: np.ndarray, facing: np.ndarray,
+                 resolution: float) -> np.ndarray:
+    """(V,) in how many directions each vertex is seen.
+
+    ``i``, ``j`` pixels and ``depth`` (directions, V + S) of the vertices followed by the surface
+    samples; ``facing`` (directions, V) cosine of each vertex normal with the direction.
+    """
+    n_dir, n = facing.shape
+    shape = (n_dir, int(i.max()) + 3, int(j.max()) + 3)
     buffer = np.full(shape, -np.inf)
-    np.maximum.at(buffer, (ij[:, 0] + 1, ij[:, 1] + 1), depth)
-    nearest = buffer[1:-1, 1:-1].copy()  # 3×3 neighbourhood maximum
+    flat = (np.arange(n_dir)[:, None] * shape[1] + i + 1) * shape[2] + j + 1
+    np.maximum.at(buffer.reshape(-1), flat.ravel(), depth.ravel())  # 1-D: far faster than 3-D
+    nearest = buffer[:, 1:-1, 1:-1].copy()  # 3×3 neighbourhood maximum
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
-            nearest = np.maximum(nearest, buffer[1 + di:shape[0] - 1 + di, 1 + dj:shape[1] - 1 + dj])
-    front = nearest[ij[:, 0], ij[:, 1]]
-    facing = normals @ direction
+            nearest = np.maximum(nearest, buffer[:, 1 + di:shape[1] - 1 + di, 1 + dj:shape[2] - 1 + dj])
+    front = nearest[np.arange(n_dir)[:, None], i[:, :n], j[:, :n]]
     # the pixel neighbourhood of a tilted surface holds its own nearer points: allow their depth
     slope = np.sqrt(np.maximum(1.0 - facing ** 2, 0.0)) / np.maximum(facing, 0.1)
     tolerance = 1.0 + 3.0 * resolution * slope
-    return ((facing > 0.1) & (depth >= front - tolerance)).astype(np.float64)
+    return ((facing > 0.1) & (depth[:, :n] >= front - tolerance)).sum(axis=0).astype(np.float64)
+
+
+def facing_direction(problem: LayoutProblem) -> np.ndarray:
+    """(3,) unit direction the face of ``problem`` looks towards (the frontal camera view).
+
+    The face frame's forward axis (:func:`~mocaptk.clustering.regions.face_frame`) turned into
+    the sagittal plane, so a half-face capture is still seen from the front, not from its side.
+    """
+    from ..neutral import max_displacement
+    from ..regions import face_frame
+    from ..symmetry import estimate_sagittal_plane, is_half_capture, plane_frame
+
+    moved = max_displacement(problem.positions, problem.neutral)
+    labels = problem.labels or tuple(f"p{i}" for i in range(problem.n_points))
+    plane = estimate_sagittal_plane(labels, problem.neutral, moved, half=is_half_capture(labels))
+    return plane_frame(plane, face_frame(problem.neutral, moved))[2]
+
+
+def problem_visibility(problem: LayoutProblem, shapes: np.ndarray) -> np.ndarray:
+    """(N,) :func:`visibility` of ``problem``'s points on its surface mesh (the marker surface mesh
+    of a dense session), over neutral + ``shapes`` (K, N, 3) mm, seen from
+    :func:`facing_direction`; cached in ``problem.cache`` (the shapes are a function of the problem).
+
+    Depth-buffer pixels: 1.5 mm, or a quarter of the point spacing on a sparser mesh (markers
+    ~1 cm apart cannot resolve finer occluders; 4× fewer pixels per buffer).
+    """
+    if "set_cover_visibility" not in problem.cache:
+        from ...surface_mesh import marker_spacing
+        resolution = max(1.5, marker_spacing(problem.neutral) / 4.0)
+        problem.cache["set_cover_visibility"] = visibility(
+            problem.neutral, problem.surface_faces(), shapes, front=facing_direction(problem),
+            resolution=resolution)
+    return problem.cache["set_cover_visibility"]
 
 
 def cover_costs(relative: np.ndarray, candidate: np.ndarray, vis: np.ndarray | None, *,
@@ -211,27 +275,32 @@ def set_cover_layout(problem: LayoutProblem, count: int | None = None, *, epsilo
 
     ``problem.displacements`` are the shapes (blendshape deltas); for a dense session with more
     than 64 frames, :func:`representative_shapes` picks them. ``visibility_weights`` (N,) ``l_n``
-    (default: all visible). ``exclusion_mm``: neighbourhood excluded around chosen points in later
+    (default: :func:`problem_visibility`, on the problem's surface mesh — the blendshape mesh, or
+    the marker surface mesh of a dense session — over neutral + the shapes). ``exclusion_mm``: neighbourhood excluded around chosen points in later
     rounds (default: the median nearest-neighbour spacing × 1.5).
     """
     if not 0 < epsilon <= 1:
         raise OptionError(f"epsilon must be in (0, 1], got {epsilon}")
-    shapes = representative_shapes(problem.displacements)
+    if "set_cover_shapes" not in problem.cache:
+        problem.cache["set_cover_shapes"] = representative_shapes(problem.displacements)
+    shapes = problem.cache["set_cover_shapes"]
     relative = relative_displacement(shapes)
     n = problem.n_points
     sizes = np.ones(n)
     allowed = np.zeros(n, dtype=bool)
     allowed[problem.candidate_points()] = True
+    if symmetric and problem.mirror is None:
+        raise OptionError("symmetric set cover needs the mirror partner of every point")
+    vis = problem_visibility(problem, shapes) if visibility_weights is None else visibility_weights
     if symmetric:
-        if problem.mirror is None:
-            raise OptionError("symmetric set cover needs the mirror partner of every point")
         mirror = problem.mirror
         relative = np.maximum(relative, relative[mirror])  # fold: a point covers what its mirror does
+        vis = np.minimum(vis, vis[mirror])  # and must be seen on both sides
         side = problem.neutral[:, 0] >= problem.neutral[mirror, 0]  # one side + midline
         allowed &= side
         sizes = np.where(mirror == np.arange(n), 1.0, 2.0)
     candidate = relative >= epsilon
-    costs = cover_costs(relative, candidate, visibility_weights, alpha=alpha)
+    costs = cover_costs(relative, candidate, vis, alpha=alpha)
     if exclusion_mm is None:
         from scipy.spatial import cKDTree
         dist, _ = cKDTree(problem.neutral).query(problem.neutral, k=2)
