@@ -12,16 +12,28 @@ Where markers may go (the *marker zone*), on the face region of the neutral mesh
   plus ``INNER_LIP_MARGIN_MM``.
 
 Markers are picked among zone vertices by farthest-point sampling (Euclidean, mm) until every
-zone vertex is closer than ``spacing`` to a marker, so neighbours are ≥ ``spacing`` apart. The
-midline (x = 0) is sampled first; the character's left side (+X) follows; ``full`` mirrors the
-left side onto the right (the ICT mesh is left/right symmetric), so full layouts are symmetric.
+zone vertex is closer than ``spacing`` to a marker, so neighbours are ≥ ``spacing`` apart (the
+default 8 mm gives a median nearest neighbour ≈ 9.3 mm, ≈ 1 cm nominal, and ≈ 140 markers on half
+a face). The midline (x = 0) is sampled first; the character's left side (+X) follows; ``full``
+mirrors the left side onto the right (the ICT mesh is left/right symmetric), so full layouts are
+symmetric — a left marker closer than ``spacing / 2`` to the midline is closer than ``spacing`` to
+its own mirror twin (one pair, ≈ 4 mm, at the default spacing).
 
 Regions (:func:`face_regions`) are rules on the frontal projection (x, y) measured from the
-landmarks of the +X side, applied to ``|x|``; first match wins: **mouth** (ellipse around the
-outer-lip landmarks widened by 10 mm), **eye** (ellipse around the eye landmarks widened by
-9 mm × 14 mm half-height), **nose** (between the glabella and 4 mm under the nose base, half-width
-growing from 10 mm to the alar width + 8 mm), **forehead_brow** (above the brow landmarks − 8 mm, and the glabella above the nose),
-**chin** (below the mouth centre line, inside the jaw landmarks 4–12), else **cheek**.
+landmarks of the +X side, applied to ``|x|``; first match wins:
+
+- **mouth**: ellipse around the outer-lip landmarks widened by 10 mm;
+- **eye** (the orbit: lids' surroundings that move with blinks, squints and the brow): below the
+  eye centre, an ellipse around the eye corners widened by ``ORBIT_WIDENING_MM`` (≈ the orbital
+  rim), ``LOWER_ORBIT_MM`` half-height; above it, from the nose bridge (``BRIDGE_MM``) to the same
+  lateral rim and up to the forehead_brow line (brow landmarks − ``BROW_MARGIN_MM``): the upper
+  lid fold and the skin under the brow are eye;
+- **nose**: between the glabella and 4 mm under the nose base, half-width growing from
+  ``BRIDGE_MM`` to the alar width + 8 mm;
+- **forehead_brow**: above the brow landmarks − ``BROW_MARGIN_MM``, the glabella above the nose,
+  and the temple — beside the orbit (lateral of its rim) above the eye centre line;
+- **chin**: below the mouth centre line, inside the jaw landmarks 4–12;
+- else **cheek**: below and beside the orbit (under the eye centre line), down to mouth and chin.
 
 Labels: ``REGION_NN_S`` — the region in capitals first (``FOREHEAD_BROW_03_L``, ``NOSE_01_C``),
 a number within the region, side ``L`` (+X, character's left), ``C`` (midline) or ``R``; a right
@@ -45,6 +57,14 @@ REGIONS = ("forehead_brow", "eye", "nose", "cheek", "mouth", "chin")
 FOREHEAD_HEIGHT_MM = 25.0
 MIN_FORWARD_NORMAL = 0.3
 EYELID_MARGIN_MM = 7.0
+#: forehead_brow reaches this far below the brow landmarks; the orbit (eye) lies under that line.
+BROW_MARGIN_MM = 8.0
+#: Half-width of the nose bridge and the glabella, mm.
+BRIDGE_MM = 10.0
+#: The orbit reaches this far beyond the eye corners (≈ the orbital rim), medially and laterally.
+ORBIT_WIDENING_MM = 9.0
+#: Half-height of the orbit below the eye centre (lower lid and the top of the infraorbital skin).
+LOWER_ORBIT_MM = 14.0
 INNER_LIP_MARGIN_MM = 1.0
 #: Vertices closer than this to x = 0 are on the midline (ICT midline vertices have x = 0 exactly).
 MIDLINE_TOLERANCE_MM = 0.5
@@ -181,20 +201,29 @@ def face_regions(model: FaceModel) -> np.ndarray:
     mouth_b = (lips[:, 1].max() - lips[:, 1].min()) / 2 + 10.0
     mouth = ((x - abs(mouth_c[0])) / mouth_a) ** 2 + ((y - mouth_c[1]) / mouth_b) ** 2 <= 1.0
 
+    brow = marks[22:27]  # +X brow, landmarks ordered from the midline outwards
+    brow_y = np.interp(x, brow[:, 0], brow[:, 1])
+    forehead_y = brow_y - BROW_MARGIN_MM
+
     eye_marks = marks[42:48]  # the +X (character's left) eye
     eye_c = eye_marks.mean(axis=0)
-    eye_a = (eye_marks[:, 0].max() - eye_marks[:, 0].min()) / 2 + 9.0
-    eye = ((x - eye_c[0]) / eye_a) ** 2 + ((y - eye_c[1]) / 14.0) ** 2 <= 1.0
+    eye_a = (eye_marks[:, 0].max() - eye_marks[:, 0].min()) / 2 + ORBIT_WIDENING_MM
+    lower_orbit = (y < eye_c[1]) & (((x - eye_c[0]) / eye_a) ** 2
+                                    + ((y - eye_c[1]) / LOWER_ORBIT_MM) ** 2 <= 1.0)
+    # medially the orbit reaches the nose bridge / glabella
+    upper_orbit = (y >= eye_c[1]) & (y < forehead_y) & (x > BRIDGE_MM) & (x <= eye_c[0] + eye_a)
+    eye = lower_orbit | upper_orbit
 
     base_y = marks[33, 1] - 4.0
     top_y = marks[27, 1] + 5.0
     alar = marks[35, 0] + 8.0
-    half_width = 10.0 + (alar - 10.0) * np.clip((top_y - y) / (top_y - base_y), 0.0, 1.0)
+    widening = np.clip((top_y - y) / (top_y - base_y), 0.0, 1.0)
+    half_width = BRIDGE_MM + (alar - BRIDGE_MM) * widening
     nose = (y >= base_y) & (y <= top_y) & (x <= half_width)
 
-    brow = marks[22:27]  # +X brow, landmarks ordered from the midline outwards
-    brow_y = np.interp(x, brow[:, 0], brow[:, 1])
-    forehead = (y >= brow_y - 8.0) | ((y > top_y) & (x <= 10.0))  # the glabella is brow
+    # the glabella is brow; the temple beside the orbit is brow above the eye centre line
+    forehead = ((y >= forehead_y) | ((y > top_y) & (x <= BRIDGE_MM))
+                | ((y >= eye_c[1]) & (x > eye_c[0] + eye_a)))
 
     jaw = marks[8:13]  # chin bottom to the +X jaw angle (x increasing)
     chin = (y < mouth_c[1]) & (x <= np.interp(y, jaw[::-1, 1], jaw[::-1, 0], left=jaw[0, 0],
@@ -225,7 +254,7 @@ def _farthest_points(points: np.ndarray, candidates: np.ndarray, chosen: list[in
                                                        axis=1))
 
 
-def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.5,
+def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.0,
                  seed: int = 0) -> MarkerLayout:
     """A dense marker layout on the face (see the module docstring for the rules).
 
@@ -235,7 +264,8 @@ def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.
     mode : {"half", "full"}
         ``half``: midline + character's left side (+X); ``full``: both sides, mirrored.
     spacing_mm : float
-        Minimum distance between markers, mm (all zone vertices are within it of a marker).
+        Minimum distance between markers, mm (all zone vertices are within it of a marker); the
+        default 8 mm gives ≈ 140 half-face markers with a median nearest neighbour ≈ 9.3 mm.
     seed : int
         Chooses the starting vertices of the sampling (same seed ⇒ same layout).
     """

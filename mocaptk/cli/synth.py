@@ -64,8 +64,9 @@ def synth(
                                    help="Peak head rotation per axis with --head-motion."),
     translation: float = typer.Option(5.0, "--translation", metavar="MM",
                                       help="Peak head translation per axis with --head-motion."),
-    spacing: float = typer.Option(8.5, "--spacing", metavar="MM",
-                                  help="Minimum marker spacing (median neighbour ≈ 10 mm)."),
+    spacing: float = typer.Option(8.0, "--spacing", metavar="MM",
+                                  help="Minimum marker spacing (8 mm: ≈ 140 half-face markers, "
+                                       "median neighbour ≈ 9.3 mm)."),
     expressions: int = typer.Option(8, "--expressions",
                                     help="Target expressions per region take."),
     rest: float = typer.Option(2.0, "--rest", metavar="S",
