@@ -10,6 +10,12 @@ error over all dense markers, mm. The reconstruction is fitted on the gap-free t
 minutes per layout on long sessions and changes the fit by little) and evenly subsampled to at
 most 3,000 frames; test frames keep their gaps and are all scored.
 Random layouts are averaged over several seeds.
+
+Every layout (the one chosen on the whole session) also gets Zell & McDonnell's layout statistics
+(:func:`~mocaptk.clustering.methods.set_cover.layout_statistics`) over the shapes set cover
+covers — the session's extreme frames: per ε (0.3, 0.7) the % of layout markers where no shape
+moves ≥ ε (relative to the shape's largest displacement) and the number of shapes no layout
+marker sees move ≥ ε.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from .evaluation import error_summary, heldout_errors, holdout_splits
 from .figures import _pyplot, _save
 from .regions import face_frame
 from .methods import LayoutProblem, method_names, select_layout
+from .methods.set_cover import layout_statistics, problem_shapes
 from .neutral import neutral_pose
 
 #: Seeds averaged for the random baseline.
@@ -48,6 +55,8 @@ class CompareRow:
     layout: np.ndarray  # chosen on the whole session (for the gallery / JSON)
     details: dict[str, Any] = field(default_factory=dict)
     error: str | None = None  # the method could not produce this count
+    #: Zell & McDonnell's statistics of ``layout``: {"0.3": {"idle_markers_percent", "unseen_shapes"}, "0.7": ...}
+    statistics: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _problem(positions: np.ndarray, session: Trajectories, frames: np.ndarray | None,
@@ -110,6 +119,7 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
     else:
         folds = holdout_splits(session.n_frames, split="blocks", folds=5)
     full = _problem(positions, session, None, region_idx)
+    shapes = problem_shapes(full)
     fold_problems = [_problem(positions, session, train, region_idx) for train, _ in folds]
     options = options or {}
     rows: list[CompareRow] = []
@@ -143,7 +153,8 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                 continue
             rows.append(CompareRow(method, count, float(np.mean([s["rmse_mm"] for s in summaries])),
                                    float(np.mean([s["p95_mm"] for s in summaries])),
-                                   float(np.mean(seconds)), layout, details))
+                                   float(np.mean(seconds)), layout, details,
+                                   statistics=layout_statistics(shapes, layout)))
     return rows
 
 
@@ -153,33 +164,45 @@ def rows_as_json(rows: Sequence[CompareRow], labels: Sequence[str], *,
     return {
         "format": "mocaptk-compare", "version": 1, "protocol": protocol, "source": dict(source or {}),
         "rows": [{"method": r.method, "count": r.count, "rmse_mm": r.rmse_mm, "p95_mm": r.p95_mm,
-                  "seconds": r.seconds, "error": r.error,
+                  "seconds": r.seconds, "error": r.error, "layout_statistics": r.statistics,
                   "layout": [labels[i] for i in r.layout]} for r in rows],
     }
 
 
 def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
-    """A table: one line per method, per count RMSE / p95 (mm) and run time; best RMSE in bold."""
+    """Two tables, one line per method. First, per count: RMSE / p95 (mm) and run time (best RMSE
+    in bold). Second, per count: the layout statistics (% idle markers and unseen shapes per ε)."""
     counts = sorted({r.count for r in rows})
     methods = list(dict.fromkeys(r.method for r in rows))
     cell = {(r.method, r.count): r for r in rows}
     best = {c: min((r.rmse_mm for r in rows if r.count == c and r.error is None), default=np.nan)
             for c in counts}
-    head = "| method | " + " | ".join(f"{c} markers: RMSE / p95 mm (s)" for c in counts) + " |"
-    lines = [head, "|---|" + "---|" * len(counts)]
-    for m in methods:
-        out = []
-        for c in counts:
-            r = cell.get((m, c))
-            if r is None or r.error is not None:
-                out.append("—")
-                continue
-            rmse = f"{r.rmse_mm:.3f}"
-            if r.rmse_mm == best[c]:
-                rmse = f"**{rmse}**"
-            out.append(f"{rmse} / {r.p95_mm:.3f} ({r.seconds:.2f})")
-        lines.append(f"| {m} | " + " | ".join(out) + " |")
-    return "\n".join(lines) + "\n"
+
+    def table(head: str, text: Callable[[CompareRow], str]) -> list[str]:
+        lines = ["| method | " + " | ".join(head.format(c) for c in counts) + " |", "|---|" + "---|" * len(counts)]
+        for m in methods:
+            found = [cell.get((m, c)) for c in counts]
+            lines.append(f"| {m} | " + " | ".join("—" if r is None or r.error is not None else text(r)
+                                                   for r in found) + " |")
+        return lines
+
+    def scores(r: CompareRow) -> str:
+        rmse = f"**{r.rmse_mm:.3f}**" if r.rmse_mm == best[r.count] else f"{r.rmse_mm:.3f}"
+        return f"{rmse} / {r.p95_mm:.3f} ({r.seconds:.2f})"
+
+    def statistics(r: CompareRow) -> str:
+        eps = list(r.statistics)
+        idle = " / ".join(f"{r.statistics[e]['idle_markers_percent']:.0f}" for e in eps)
+        unseen = " / ".join(f"{r.statistics[e]['unseen_shapes']:d}" for e in eps)
+        return f"{idle} %; {unseen}"
+
+    epsilons = " / ".join(next((list(r.statistics) for r in rows if r.statistics), ["0.3", "0.7"]))
+    return "\n".join(
+        table("{} markers: RMSE / p95 mm (s)", scores)
+        + ["", f"Layout statistics (Zell & McDonnell) at ε = {epsilons}: idle % = markers where no "
+           "shape moves ≥ ε (relative to its largest displacement); unseen = shapes no marker sees "
+           "move ≥ ε. Shapes: the session's extreme frames, as set cover uses.", ""]
+        + table("{} markers: idle %; unseen (ε = " + epsilons + ")", statistics)) + "\n"
 
 
 def compare_plot(rows: Sequence[CompareRow], path: str | os.PathLike[str], *, title: str = "") -> Path:

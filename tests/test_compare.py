@@ -11,6 +11,7 @@ from mocaptk import Take, Trajectories
 from mocaptk.clustering.compare import compare_methods, rows_as_markdown
 from mocaptk.clustering.evaluation import error_summary, heldout_errors
 from mocaptk.clustering.methods import select_layout
+from mocaptk.clustering.methods.set_cover import representative_shapes, set_cover_layout
 from mocaptk.clustering.compare import _gap_free, _problem
 
 
@@ -46,6 +47,27 @@ def test_protocol_scores_layouts_chosen_without_the_test_take():
     assert "**" in rows_as_markdown(rows)
 
 
+def test_every_row_carries_zell_layout_statistics_over_the_set_cover_shapes():
+    session = small_session()
+    rows = compare_methods(session, counts=[3, 8], methods=["kmeans", "set-cover"])
+    shapes = representative_shapes(_problem(session.positions, session, None, {}).displacements)
+    magnitude = np.linalg.norm(shapes, axis=2)  # (K, N)
+    relative = magnitude / magnitude.max(axis=1, keepdims=True)
+    for row in rows:
+        assert set(row.statistics) == {"0.3", "0.7"}
+        for eps, stats in row.statistics.items():
+            moves = relative[:, row.layout] >= float(eps)  # (K, count)
+            assert stats["idle_markers_percent"] == pytest.approx(100 * np.mean(~moves.any(axis=0)))
+            assert stats["unseen_shapes"] == int(np.sum(~moves.any(axis=1)))
+    # set cover (ε = 0.3) sees every shape at 0.3 once the count reaches its minimal cover
+    minimal = set_cover_layout(_problem(session.positions, session, None, {})).layout.size
+    assert minimal <= 8
+    assert all(r.statistics["0.3"]["unseen_shapes"] == 0 for r in rows
+               if r.method == "set-cover" and r.count >= minimal)
+    table = rows_as_markdown(rows)
+    assert "Layout statistics" in table and table.count("| set-cover |") == 2
+
+
 def test_compare_cli_writes_table_json_plot_and_gallery(tmp_path, run_cli):
     from mocaptk.acquisition.formats import write_trajectories
 
@@ -60,7 +82,11 @@ def test_compare_cli_writes_table_json_plot_and_gallery(tmp_path, run_cli):
     assert {(r["method"], r["count"]) for r in data["rows"]} == {
         (m, c) for m in ("kmeans", "qr", "hybrid") for c in (4, 6)}
     assert all(len(r["layout"]) == r["count"] for r in data["rows"] if r["error"] is None)
-    assert "| hybrid |" in (out / "compare.md").read_text()
+    for r in data["rows"]:
+        assert set(r["layout_statistics"]) == {"0.3", "0.7"}
+        assert 0 <= r["layout_statistics"]["0.7"]["idle_markers_percent"] <= 100
+    markdown = (out / "compare.md").read_text()
+    assert markdown.count("| hybrid |") == 2 and "idle %" in markdown
     for png in ("rmse_vs_markers.png", "layouts.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # same input, same options: byte-identical JSON except the run times

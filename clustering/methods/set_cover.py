@@ -69,6 +69,14 @@ def representative_shapes(displacements: np.ndarray, *, max_shapes: int = 64) ->
     return disp[np.sort(chosen)]
 
 
+def problem_shapes(problem: LayoutProblem) -> np.ndarray:
+    """(K, N, 3) mm: the shapes set cover covers — :func:`representative_shapes` of the problem's
+    displacements (a blendshape model's deltas as they are, up to 64); cached in ``problem.cache``."""
+    if "set_cover_shapes" not in problem.cache:
+        problem.cache["set_cover_shapes"] = representative_shapes(problem.displacements)
+    return problem.cache["set_cover_shapes"]
+
+
 def visibility(vertices: np.ndarray, faces: np.ndarray, shapes: np.ndarray, *, directions: int = 24,
                resolution: float = 1.5, front: np.ndarray | None = None) -> np.ndarray:
     """(V,) worst-case fraction of view directions that see each vertex, over neutral + every shape.
@@ -281,9 +289,7 @@ def set_cover_layout(problem: LayoutProblem, count: int | None = None, *, epsilo
     """
     if not 0 < epsilon <= 1:
         raise OptionError(f"epsilon must be in (0, 1], got {epsilon}")
-    if "set_cover_shapes" not in problem.cache:
-        problem.cache["set_cover_shapes"] = representative_shapes(problem.displacements)
-    shapes = problem.cache["set_cover_shapes"]
+    shapes = problem_shapes(problem)
     relative = relative_displacement(shapes)
     n = problem.n_points
     sizes = np.ones(n)
