@@ -20,14 +20,26 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import cholespy
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-from ...errors import OptionError
+from ...errors import MocaptkError, OptionError
 from ...thin_shell import thin_shell_operator
 from .problem import LayoutProblem
+
+
+def _cholesky(matrix: sp.spmatrix) -> cholespy.CholeskySolverD:
+    """Sparse Cholesky factor (CHOLMOD via cholespy) of a symmetric positive definite matrix."""
+    coo = sp.coo_matrix(matrix)
+    try:
+        return cholespy.CholeskySolverD(coo.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
+                                        coo.data.astype(np.float64), cholespy.MatrixType.COO)
+    except ValueError as exc:  # not positive definite
+        raise MocaptkError("the thin-shell operator is singular beyond translations "
+                           "(degenerate triangles or duplicate vertices in the mesh?)") from exc
 
 
 @dataclass(eq=False)
@@ -37,11 +49,16 @@ class ThinShellWeights:
     ``W`` minimizes ``xᵀAx`` per column subject to ``x[markers] = I``. With ``A = K − ρ·U·Uᵀ``:
     ``x = K⁻¹Pᵀλ + ρ·K⁻¹U·s``; the (M + c) unknowns ``λ, s`` solve ``P·x = I`` and ``Uᵀx = s``.
     Components of the mesh without a marker keep weight 0 (they stay at rest).
+
+    Everything :meth:`error` needs is an entry of ``K⁻¹`` or ``K⁻²`` between markers, a row of
+    ``K⁻¹X`` or of ``K⁻¹U``, ``K⁻²U``: layout markers keep their columns ``g = K⁻¹e_v`` and
+    ``h = K⁻¹g`` ("resident"), so a trial vertex v needs only row v of them plus its own
+    entries ``K⁻¹[v, v]``, ``K⁻²[v, v]`` (cached per vertex once solved: a vertex tried again
+    costs no solve). ``solves`` counts triangular solve pairs (one per right-hand side).
     """
 
     operator: sp.spmatrix
     solves: int = 0
-    _green: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         op = sp.csr_matrix(self.operator)
@@ -53,95 +70,211 @@ class ThinShellWeights:
         basis = sp.csr_matrix((np.ones(n_comp), (anchors, np.arange(n_comp))), shape=(n, n_comp))
         self.component = comp
         self.anchors = anchors
-        self._lu = spla.splu((op + self.rho * (basis @ basis.T)).tocsc(), permc_spec="COLAMD")
+        self._factor = _cholesky(op + self.rho * (basis @ basis.T))
         self._anchor_green = self._solve(basis.toarray())  # K⁻¹U (V, c)
+        self._slot_of = np.full(n, -1, dtype=np.intp)  # resident vertex -> its column in _g / _h
+        self._members: list[int] = []  # resident vertices by column
+        self._g = np.empty((n, 0))  # K⁻¹e_v of the resident vertices
+        self._h = np.empty((n, 0))  # K⁻²e_v (solved when first needed, batched with candidates)
+        self._has_h = np.zeros(0, dtype=bool)
+        self._entries: dict[tuple[int, int], tuple[float, float]] = {}  # (K⁻¹, K⁻²) of vertex pairs
+        self._last_batch: dict[int, np.ndarray] = {}  # columns of the latest prepare()
 
     def _solve(self, rhs: np.ndarray) -> np.ndarray:
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        out = np.empty_like(rhs)
+        self._factor.solve(rhs, out)
         self.solves += rhs.shape[1]
-        return self._lu.solve(np.asarray(rhs, dtype=np.float64))
+        return out
 
-    def green(self, vertices: Sequence[int]) -> np.ndarray:
-        """(V, len) columns ``K⁻¹e_v`` (cached; missing ones solved together)."""
-        missing = [int(v) for v in dict.fromkeys(int(v) for v in vertices) if int(v) not in self._green]
+    def _resident(self, vertices: Sequence[int]) -> np.ndarray:
+        """Column slots of ``vertices``, solving ``K⁻¹e_v`` for the new ones together."""
+        vertices = np.asarray(vertices, dtype=np.intp)
+        missing = [v for v in dict.fromkeys(vertices.tolist()) if self._slot_of[v] < 0]
         if missing:
-            rhs = np.zeros((self._lu.shape[0], len(missing)))
-            rhs[missing, np.arange(len(missing))] = 1.0
-            for v, col in zip(missing, self._solve(rhs).T):
-                self._green[v] = col
-        return np.stack([self._green[int(v)] for v in vertices], axis=1)
+            count, n = len(self._members), self._g.shape[0]
+            if count + len(missing) > self._g.shape[1]:
+                capacity = max(2 * self._g.shape[1], count + len(missing), 64)
+                for name in ("_g", "_h"):
+                    grown = np.empty((n, capacity))
+                    grown[:, :count] = getattr(self, name)[:, :count]
+                    setattr(self, name, grown)
+                self._has_h = np.concatenate([self._has_h[:count], np.zeros(capacity - count, dtype=bool)])
+            unsolved = [v for v in missing if v not in self._last_batch]
+            rhs = np.zeros((n, len(unsolved)))
+            rhs[unsolved, np.arange(len(unsolved))] = 1.0
+            solved = dict(zip(unsolved, self._solve(rhs).T)) if unsolved else {}
+            for k, v in enumerate(missing, start=count):
+                self._g[:, k] = solved[v] if v in solved else self._last_batch[v]
+                self._has_h[k] = False
+                self._slot_of[v] = k
+                self._members.append(v)
+        return self._slot_of[vertices]
+
+    def _complete_h(self, extra: np.ndarray | None = None) -> np.ndarray | None:
+        """Solve the missing ``K⁻²e_v`` of resident vertices, together with the right-hand sides
+        ``extra`` (returns their solutions)."""
+        lacking = np.flatnonzero(~self._has_h[:len(self._members)])
+        width = 0 if extra is None else extra.shape[1]
+        if not lacking.size and not width:
+            return None
+        rhs = np.empty((self._g.shape[0], width + lacking.size))
+        if width:
+            rhs[:, :width] = extra
+        rhs[:, width:] = self._g[:, lacking]
+        out = self._solve(rhs)
+        self._h[:, lacking] = out[:, width:]
+        self._has_h[lacking] = True
+        return out[:, :width]
 
     def forget(self, keep: Sequence[int]) -> None:
-        """Drop cached columns except ``keep`` (bounds memory over long optimizations)."""
-        keep_set = {int(v) for v in keep}
-        self._green = {v: c for v, c in self._green.items() if v in keep_set}
+        """Drop resident columns except those of ``keep`` (bounds memory over long optimizations)."""
+        kept = [v for v in dict.fromkeys(int(v) for v in keep) if self._slot_of[v] >= 0]
+        old = self._slot_of[kept]
+        self._g[:, :old.size] = self._g[:, old]
+        self._h[:, :old.size] = self._h[:, old]
+        self._has_h[:old.size] = self._has_h[old]
+        self._slot_of[self._members] = -1
+        self._slot_of[kept] = np.arange(len(kept))
+        self._members = kept
+        self._last_batch = {}
 
-    def _coefficients(self, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _cached(self, vertices: Sequence[int]) -> bool:
+        return all((min(v, w), max(v, w)) in self._entries for v in vertices for w in vertices)
+
+    def prepare(self, groups: Sequence[Sequence[int]]) -> None:
+        """Make trial layouts that differ from resident markers by one group each (a moved unit)
+        cheap: the ``K⁻¹`` and ``K⁻²`` entries among each group's non-resident vertices, solved
+        for all groups in one multi-right-hand-side solve (with any missing ``K⁻²e_v`` of
+        resident vertices)."""
+        todo = [new for new in ([int(v) for v in dict.fromkeys(group) if self._slot_of[int(v)] < 0]
+                                for group in groups) if not self._cached(new)]
+        if not todo:
+            return
+        vertices = list(dict.fromkeys(v for new in todo for v in new))
+        rhs = np.zeros((self._g.shape[0], len(vertices)))
+        rhs[vertices, np.arange(len(vertices))] = 1.0
+        cols = self._complete_h(rhs)
+        inverse, squared = cols[vertices], cols.T @ cols  # K⁻¹, K⁻² among the batch
+        index = {v: k for k, v in enumerate(vertices)}
+        for new in todo:
+            for v in new:
+                for w in new:
+                    if v <= w:
+                        i, j = index[v], index[w]
+                        self._entries[v, w] = (float(inverse[i, j]), float(squared[i, j]))
+        self._last_batch = dict(zip(vertices, cols.T))
+
+    def _lookup(self, columns: np.ndarray, markers: np.ndarray, slots: np.ndarray, known: np.ndarray,
+                which: int) -> np.ndarray:
+        """(m, m) block of ``K⁻¹`` (``which`` 0) or ``K⁻²`` (1) among ``markers``: rows of the
+        ``known`` markers' columns, the remaining entries from the cache."""
+        rest = np.flatnonzero(~known)
+        known = np.flatnonzero(known)
+        block = np.empty((markers.size, markers.size))
+        block[:, known] = columns[markers[:, None], slots[known]]
+        if rest.size:
+            block[known[:, None], rest] = block[rest[:, None], known].T
+            for i in rest:
+                for j in rest:
+                    v, w = sorted((int(markers[i]), int(markers[j])))
+                    block[i, j] = self._entries[v, w][which]
+        return block
+
+    def _inverse_entries(self, markers: np.ndarray, *, squared: bool,
+                         trial: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """(m, m) ``K⁻¹`` (and ``K⁻²`` if ``squared``) among ``markers``, from row lookups.
+
+        With ``trial``, up to two non-resident markers (a moved unit) use cached entries;
+        otherwise every marker becomes resident.
+        """
+        slots = self._slot_of[markers]
+        resident = slots >= 0
+        if resident.sum() < markers.size - (2 if trial else 0):
+            slots = self._resident(markers)
+            resident[:] = True
+        if not resident.all():
+            self.prepare([markers[~resident]])
+        kinv = self._lookup(self._g, markers, slots, resident, 0)
+        if not squared:
+            return kinv, None
+        with_h = resident.copy()
+        with_h[resident] = self._has_h[slots[resident]]
+        if not self._cached(markers[~with_h].tolist()):
+            self._complete_h()
+            with_h = resident
+        return kinv, self._lookup(self._h, markers, slots, with_h, 1)
+
+    def _coefficients(self, markers: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(used components, coef (m + c, m)) with ``W = [G, ρ·Ga] @ coef``."""
-        green = self.green(markers)
         used = np.unique(self.component[markers])
-        anchor_green = self._anchor_green[:, used]
-        anchors = self.anchors[used]
+        at_markers = self._anchor_green[markers][:, used]  # K⁻¹[v, anchor] (m, c)
         m, c = markers.size, used.size
         system = np.zeros((m + c, m + c))
-        system[:m, :m] = green[markers]
-        system[:m, m:] = self.rho * anchor_green[markers]
-        system[m:, :m] = green[anchors]
-        system[m:, m:] = self.rho * anchor_green[anchors] - np.eye(c)
+        system[:m, :m] = kinv
+        system[:m, m:] = self.rho * at_markers
+        system[m:, :m] = at_markers.T
+        system[m:, m:] = self.rho * self._anchor_green[self.anchors[used]][:, used] - np.eye(c)
         rhs = np.zeros((m + c, m))
         rhs[:m] = np.eye(m)
         return used, np.linalg.solve(system, rhs)
 
+    def _basis(self, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(slots, used components, coef) of ``W = [G, ρ·Ga] @ coef`` with resident markers."""
+        slots = self._resident(markers)
+        kinv, _ = self._inverse_entries(markers, squared=False, trial=False)
+        used, coef = self._coefficients(markers, kinv)
+        return slots, used, coef
+
     def weights(self, markers: Sequence[int]) -> np.ndarray:
         """(V, M) interpolation weights for the marker vertices ``markers``."""
         markers = np.asarray(markers, dtype=np.intp)
-        used, coef = self._coefficients(markers)
+        slots, used, coef = self._basis(markers)
         m = markers.size
-        out = self.green(markers) @ coef[:m] + self.rho * (self._anchor_green[:, used] @ coef[m:])
+        out = self._g[:, slots] @ coef[:m] + self.rho * (self._anchor_green[:, used] @ coef[m:])
         out[markers] = np.eye(m)  # exact at the markers
         return out
 
     # -- reduced evaluation: everything through (m + c)-sized products, never V×M --------
     def bind(self, data: np.ndarray) -> None:
-        """Fix the trajectories ``data`` (V, r) that :meth:`error` and :meth:`column` refer to."""
+        """Fix the trajectories ``data`` (V, r) that :meth:`error`, :meth:`fitted` and
+        :meth:`expected_trajectories` refer to (r + c triangular solve pairs)."""
         self._data = np.asarray(data, dtype=np.float64)
-        self._proj: dict[int, np.ndarray] = {}
-        self._dots: dict[tuple[int, int], float] = {}
+        self._green_data = self._solve(self._data)  # K⁻¹X (V, r): row v = g_vᵀX
         self._anchor_proj = self._anchor_green.T @ self._data  # (c_all, r)
         self._anchor_dots = self._anchor_green.T @ self._anchor_green  # (c_all, c_all)
-        self._anchor_cross: dict[int, np.ndarray] = {}
+        self._anchor_green2 = self._solve(self._anchor_green)  # K⁻²U (V, c): row v = g_vᵀ·Ga
         self._data_norm = float(np.sum(self._data ** 2))
 
-    def _basis_products(self, markers: np.ndarray, used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(BᵀX, BᵀB) for ``B = [G, ρ·Ga]`` from cached per-vertex products."""
-        green = None
-        for v in markers:
-            v = int(v)
-            if v not in self._proj:
-                green = self.green([v])[:, 0]
-                self._proj[v] = green @ self._data
-                self._anchor_cross[v] = green @ self._anchor_green
+    def fitted(self, markers: Sequence[int]) -> np.ndarray:
+        """(V, r) reconstruction ``W·X[markers]`` of the bound data."""
+        markers = np.asarray(markers, dtype=np.intp)
+        slots, used, coef = self._basis(markers)
+        m = markers.size
+        fit = coef @ self._data[markers]  # (m + c, r)
+        out = self._g[:, slots] @ fit[:m] + self.rho * (self._anchor_green[:, used] @ fit[m:])
+        out[markers] = self._data[markers]
+        return out
+
+    def _reduced(self, markers: np.ndarray, *, trial: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(coef, BᵀX, BᵀB) for ``B = [G, ρ·Ga]``: row lookups and (m + c)-sized algebra only."""
+        kinv, kinv2 = self._inverse_entries(markers, squared=True, trial=trial)
+        used, coef = self._coefficients(markers, kinv)
         m, c = markers.size, used.size
         gram = np.empty((m + c, m + c))
-        for i, u in enumerate(markers):
-            u = int(u)
-            for j in range(i, m):
-                w = int(markers[j])
-                key = (u, w) if u <= w else (w, u)
-                if key not in self._dots:
-                    self._dots[key] = float(self._green[u] @ self._green[w])
-                gram[i, j] = gram[j, i] = self._dots[key]
-        cross = np.array([self._anchor_cross[int(v)][used] for v in markers]) * self.rho  # (m, c)
+        gram[:m, :m] = kinv2
+        cross = self.rho * self._anchor_green2[markers][:, used]  # (m, c)
         gram[:m, m:], gram[m:, :m] = cross, cross.T
         gram[m:, m:] = self.rho ** 2 * self._anchor_dots[np.ix_(used, used)]
-        proj = np.concatenate([np.array([self._proj[int(v)] for v in markers]),
-                               self.rho * self._anchor_proj[used]])
-        return proj, gram
+        proj = np.concatenate([self._green_data[markers], self.rho * self._anchor_proj[used]])
+        return coef, proj, gram
 
     def error(self, markers: Sequence[int]) -> float:
-        """‖X − W·X_H‖² of the bound data for ``markers``, in O((m + c)²·r)."""
+        """‖X − W·X_H‖² of the bound data for ``markers``, in O((m + c)²·r).
+
+        Up to two markers may be non-resident (a trial move, see :meth:`prepare`)."""
         markers = np.asarray(markers, dtype=np.intp)
-        used, coef = self._coefficients(markers)
-        proj, gram = self._basis_products(markers, used)
+        coef, proj, gram = self._reduced(markers, trial=True)
         fitted = coef @ self._data[markers]  # (m + c, r)
         return max(self._data_norm - 2.0 * np.sum(proj * fitted) + np.sum((gram @ fitted) * fitted), 0.0)
 
@@ -149,8 +282,7 @@ class ThinShellWeights:
         """(len(cols), r) Le et al.'s expected trajectories ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` of the
         markers at positions ``cols``, where ``Rj`` leaves out the contribution of all ``cols``."""
         markers = np.asarray(markers, dtype=np.intp)
-        used, coef = self._coefficients(markers)
-        proj, gram = self._basis_products(markers, used)
+        coef, proj, gram = self._reduced(markers, trial=False)
         w_x = coef.T @ proj  # (m, r) = WᵀX
         w_w = coef.T @ gram @ coef  # (m, m) = WᵀW
         others = np.setdiff1d(np.arange(markers.size), cols)
@@ -225,11 +357,14 @@ def compress_trajectories(trajectories: np.ndarray, *, max_rank: int = 96,
         return x
     # X = U·S·Vᵀ: the coordinates X·V = U·S, from the smaller of the two Gram matrices
     small_side = x.shape[0] < x.shape[1]
-    vals, vecs = np.linalg.eigh(x @ x.T if small_side else x.T @ x)
+    gram = x @ x.T if small_side else x.T @ x
+    total = float(np.trace(gram))  # all of the energy, without all of the eigenvalues
+    top = min(max_rank, gram.shape[0])
+    vals, vecs = sla.eigh(gram, subset_by_index=[gram.shape[0] - top, gram.shape[0] - 1])
     vals, vecs = np.maximum(vals[::-1], 0.0), vecs[:, ::-1]
     cumulative = np.cumsum(vals)
-    rank = int(np.searchsorted(cumulative, energy * cumulative[-1]) + 1) if cumulative[-1] > 0 else 1
-    rank = min(rank, max_rank, vals.size)
+    rank = int(np.searchsorted(cumulative, energy * total) + 1) if total > 0 else 1
+    rank = min(rank, top)
     if small_side:
         return vecs[:, :rank] * np.sqrt(vals[:rank])
     return x @ vecs[:, :rank]
@@ -322,8 +457,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                 # this start's previous sweep, or this is the first sweep)
                 if unsettled[u]:
                     targets += _ring_units(ring, layout, int(u), allowed, mirror)
-                if targets:
-                    solver.green([v for unit in targets for v in unit])  # one multi-RHS solve
+                solver.prepare(targets)  # one multi-RHS solve for the new places
                 old = layout.units[u]
                 best_unit = old
                 for unit in dict.fromkeys(targets):
@@ -345,7 +479,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                 break
         iteration_counts.append(sweeps)
         markers = layout.markers
-        err = float(np.sum((x - solver.weights(markers) @ x[markers]) ** 2))  # exact, once per start
+        err = float(np.sum((x - solver.fitted(markers)) ** 2))  # exact, once per start
         if best is None or err < best[0]:
             best = (err, sorted(markers))
     assert best is not None
@@ -380,7 +514,7 @@ def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.
     """Relocate one unit to one of the ``targets`` worst-fitted free vertices if that lowers the
     error; returns the new error (None: no improving jump)."""
     markers = layout.markers
-    residual = x - solver.weights(markers) @ x[markers]
+    residual = x - solver.fitted(markers)
     per_vertex = np.einsum("ij,ij->i", residual, residual)
     free = allowed.copy()
     free[markers] = False
@@ -415,7 +549,7 @@ def _insertion_start(x: np.ndarray, solver: ThinShellWeights, count: int, fixed:
     free = allowed.copy()
     free[chosen] = False
     while len(chosen) < count and free.any():
-        residual = x - solver.weights(chosen) @ x[chosen] if chosen else x
+        residual = x - solver.fitted(chosen) if chosen else x
         per_vertex = np.einsum("ij,ij->i", residual, residual)
         v = int(np.flatnonzero(free)[np.argmax(per_vertex[free])])
         new = [v] if mirror is None or count - len(chosen) < 2 else list(dict.fromkeys([v, int(mirror[v])]))
