@@ -83,7 +83,8 @@ def read_trajectories(path: str | os.PathLike[str], *, fmt: str | None = None, u
     if fmt not in FORMATS:
         raise OptionError(f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")
     if units is not None and fmt in ("c3d", "npz"):
-        raise OptionError(f"--units applies to text files only; {os.fspath(path)} is {fmt}")
+        declared = "C3D, which declares its units (POINT:UNITS)" if fmt == "c3d" else "npz, which holds mm"
+        raise OptionError(f"--units applies to text files only; {os.fspath(path)} is {declared}")
     if rate is not None and not (np.isfinite(rate) and rate > 0):
         raise OptionError(f"the frame rate must be a positive number of Hz, got {rate}")
     if rate is not None and fmt != "generic_csv":

@@ -34,12 +34,13 @@ def test_info_human_output(run_cli):
 def test_info_json_is_deterministic_and_complete(run_cli):
     csv_path = shared_path("csv_trc", "pyomeca", "markers.csv")
     face = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
-    first = run_cli("info", "--json", "--rate", "50", csv_path, face)
-    second = run_cli("info", "--json", "--rate", "50", csv_path, face)
+    first = run_cli("info", "--json", csv_path)
+    second = run_cli("info", "--json", csv_path)
     assert first.exit_code == 0 and first.stdout == second.stdout
     doc = json.loads(first.stdout)
     assert doc["format"] == "mocaptk-info" and doc["version"] == 1
-    nexus, blender = doc["files"]
+    nexus, = doc["files"]
+    blender, = json.loads(run_cli("info", "--json", "--rate", "50", face).stdout)["files"]
     traj = read_trajectories(csv_path)
     stats = traj.gap_stats()
     assert nexus["missing_percent"] == pytest.approx(100 * stats.total_missing_fraction, abs=1e-6)
@@ -119,3 +120,31 @@ def test_convert_to_c3d_equals_source(run_cli, tmp_path):
     assert a.labels == b.labels and a.rate == b.rate and b.metadata["format"] == "c3d"
     np.testing.assert_array_equal(np.isnan(a.positions), np.isnan(b.positions))
     np.testing.assert_allclose(a.positions, b.positions, rtol=1e-6, atol=1e-4)  # float32 storage
+
+
+def test_units_and_rate_are_refused_for_files_that_declare_their_own(run_cli, tmp_path):
+    """Every command reads marker files the same way: an explicit --units on a C3D (which declares
+    POINT:UNITS) or --rate on a file that stores its rate is a one-line error, never ignored."""
+    from mocaptk import Trajectories
+    from mocaptk.acquisition.formats import write_trajectories
+
+    traj = Trajectories(np.arange(60.0).reshape(5, 4, 3), ["A", "B", "C", "D"], 100.0)
+    c3d = write_trajectories(traj, tmp_path / "s.c3d")
+    trc = write_trajectories(traj, tmp_path / "s.trc")
+    out = tmp_path / "out"
+    out.mkdir()
+    for argv in (["info", c3d, "--units", "cm"], ["info", "--json", c3d, "--units", "cm"],
+                 ["convert", c3d, out / "x.trc", "--units", "cm"],
+                 ["cluster", c3d, "--units", "cm", "--out", out / "L", "--no-stabilize"]):
+        result = run_cli(*argv)
+        if "--json" in argv:
+            assert result.exit_code == 2 and "declares its units" in json.loads(result.stdout)["files"][0]["error"]
+            continue
+        _one_line_error(result, "--units applies to text files only", str(c3d), "declares its units (POINT:UNITS)")
+    for argv in (["info", trc, "--rate", "50"], ["convert", c3d, out / "x.trc", "--rate", "50"]):
+        _one_line_error(run_cli(*argv), "--rate applies to column CSV files only")
+    assert list(out.iterdir()) == []
+    # where the option applies it is used: a TRC's numbers read as cm are 10x the mm
+    scaled = run_cli("convert", trc, out / "cm.c3d", "--units", "cm")
+    assert scaled.exit_code == 0, scaled.stderr
+    np.testing.assert_allclose(read_trajectories(out / "cm.c3d").positions, 10 * traj.positions, rtol=1e-6)

@@ -150,6 +150,10 @@ CATALOGUE = [
     # -- reading options
     ("E-OPT-UNITS", lambda f: ["info", "--units", "furlong", f["good.trc"]], "unknown length units 'furlong'"),
     ("E-OPT-RATE", lambda f: ["info", "--rate", "-5", f["csv_norate.csv"]], "frame rate must be a positive number"),
+    ("E-OPT-UNITS-DECLARED", lambda f: ["convert", f["good.c3d"], f["dir"] / "u.trc", "--units", "cm"],
+     "--units applies to text files only; {file} is C3D, which declares its units (POINT:UNITS)"),
+    ("E-OPT-RATE-DECLARED", lambda f: ["info", f["good.c3d"], "--rate", "50"],
+     "--rate applies to column CSV files only; {file} is c3d (which stores its rate)"),
     # -- outputs
     ("E-OUT-EXISTS", lambda f: ["convert", f["good.trc"], f["existing.trc"]], "already exists (use --force"),
     ("E-OUT-EXT", lambda f: ["convert", f["good.trc"], f["dir"] / "out.xyz"], "unknown output extension '.xyz'"),
@@ -209,6 +213,8 @@ CATALOGUE = [
                                 "--out", f["dir"] / "e4.json"], "unknown split 'coin'"),
     ("E-EVAL-RIDGE", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--ridge", "-1",
                                 "--out", f["dir"] / "e5.json"], "ridge must be >= 0"),
+    ("E-EVAL-SEEDS", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--seeds", "0",
+                                "--out", f["dir"] / "e6.json"], "--seeds must be >= 1, got 0"),
     # -- rig
     ("E-RIG-INFLUENCES", lambda f: ["rig", f["layout.json"], "--session", S(f), "--max-influences", "0"],
      "--max-influences must be 1..8"),
@@ -288,3 +294,18 @@ def test_catalogue_document_lists_every_tested_error():
     documented = set(re.findall(r"`(E-[A-Z0-9-]+)`", doc))
     tested = {e[0] for e in CATALOGUE}
     assert tested == documented, (sorted(tested - documented), sorted(documented - tested))
+
+
+def test_out_of_memory_is_one_line(run_cli, tmp_path, monkeypatch):
+    """A real MemoryError (numpy cannot allocate petabytes for 10^13 Hz of synthetic takes) ends as
+    one line and exit code 2 from ``main``, not a traceback."""
+    from conftest import shared_path
+
+    monkeypatch.setenv("MOCAPTK_ICT_FACEKIT", str(shared_path("face_mesh", "ict_facekit",
+                                                              "ict_facekit_FaceXModel_subset.tar.xz")))
+    result = run_cli("synth", tmp_path / "s.c3d", "--rate", "1e13", "--performance", "0", "--rig", "none")
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr
+    assert lines[0].startswith("mocaptk: error: out of memory while running 'mocaptk synth' (Unable to allocate")
+    assert list(tmp_path.iterdir()) == []

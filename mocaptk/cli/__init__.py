@@ -27,9 +27,17 @@ from . import rig  # noqa: E402,F401
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Entry point: run the CLI; a user mistake is one line on stderr and exit code 2."""
+    """Entry point: run the CLI; a user mistake or running out of memory is one line on stderr and
+    exit code 2."""
+    args = list(argv) if argv is not None else sys.argv[1:]
     try:
-        app(args=list(argv) if argv is not None else None, prog_name="mocaptk")
+        app(args=args, prog_name="mocaptk")
     except MocaptkError as exc:
         print(f"mocaptk: error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
+    except MemoryError as exc:  # input or options too large for this machine: no traceback
+        command = next((a for a in args if not a.startswith("-")), "")
+        detail = f" ({exc})" if str(exc) else ""
+        print(f"mocaptk: error: out of memory while running 'mocaptk {command}'{detail}; "
+              "use a smaller input or smaller option values, or a machine with more memory", file=sys.stderr)
+        sys.exit(2)

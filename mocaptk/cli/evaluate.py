@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from ..errors import InputFileError
+from ..errors import InputFileError, OptionError
 from .app import app
 from .options import Rate, Units
 
@@ -65,6 +65,8 @@ def evaluate(
     from ..clustering.takes import read_takes
     from ..jsonio import write_json
 
+    if seeds < 1:
+        raise OptionError(f"--seeds must be >= 1, got {seeds}")
     out_path = out or layout.with_name("evaluation.json")
     check_writable(out_path, force=force)
     lay = read_layout(layout)
@@ -76,10 +78,6 @@ def evaluate(
     if unknown:
         raise InputFileError(layout, f"{len(unknown)} layout markers are not in {session.name}: "
                              + ", ".join(unknown[:5]))
-    mirrored = len(lay.clusters) - len(measured)
-    if mirrored:
-        print(f"mocaptk: note: {mirrored} mirrored layout markers are not in the session; "
-              f"evaluating the {len(measured)} measured ones", file=sys.stderr)
     regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
     name = str(lay.parameters.get("method", "layout"))
     take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
@@ -90,6 +88,10 @@ def evaluate(
     result.update({"format": "mocaptk.evaluation", "version": 1, "units": "mm", "source": source,
                    "layout": layout.name, "test": test.name if test else None})
     write_json(out_path, result, force=True)
+    mirrored = len(lay.clusters) - len(measured)
+    if mirrored:  # after everything that can fail: a note never precedes an error
+        print(f"mocaptk: note: {mirrored} mirrored layout markers are not in the session; "
+              f"evaluated the {len(measured)} measured ones", file=sys.stderr)
     if not quiet:
         typer.echo(evaluation_table(result), nl=False)
         typer.echo(f"wrote {out_path}")

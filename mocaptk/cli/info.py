@@ -12,13 +12,12 @@ from .options import Rate, Units
 
 
 def read_marker_file(path: Path, *, units: str | None, rate: float | None, strip_prefixes: bool = False):
-    """Read ``path``; ``units``/``rate`` are applied only where the format needs them (text files)."""
-    from ..acquisition.formats import detect_format, read_trajectories
+    """Read ``path`` as every command does: ``--units`` for text files only and ``--rate`` for column
+    CSV only; given for a file that declares its own (a C3D's POINT:UNITS, a TRC's rate), they are
+    refused (OptionError), never silently ignored."""
+    from ..acquisition.formats import read_trajectories
 
-    fmt = detect_format(path)
-    text = fmt in ("vicon_csv", "trc", "generic_csv")
-    return read_trajectories(path, fmt=fmt, units=units if text else None,
-                             rate=rate if fmt == "generic_csv" else None, strip_prefixes=strip_prefixes)
+    return read_trajectories(path, units=units, rate=rate, strip_prefixes=strip_prefixes)
 
 
 def summary(traj, path: Path) -> dict[str, Any]:

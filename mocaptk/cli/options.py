@@ -8,6 +8,6 @@ import typer
 
 Units = Annotated[str | None, typer.Option(
     "--units", help="Units of the numbers in a text input (mm, cm, m, in, or mm per file unit), "
-                    "overriding the file's; C3D files carry their own.")]
+                    "overriding the file's; refused for C3D and .npz, which carry their own.")]
 Rate = Annotated[float | None, typer.Option(
     "--rate", help="Frame rate (Hz) for a column CSV input without a time column.")]

@@ -1,0 +1,61 @@
+"""``mocaptk evaluate`` on a mirrored half-face layout: option errors come before any note."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from clustering_synthetic import planted_session
+
+
+@pytest.fixture(scope="module")
+def mirrored(tmp_path_factory):
+    """A planted half-face session (.npz), its takes and the mirrored layout clustering makes of it."""
+    from mocaptk.clustering.layout import write_layout
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session, load_session
+
+    folder = tmp_path_factory.mktemp("evaluate")
+    traj, _ = planted_session(seed=5, per_group=3, frames=240)
+    path = folder / "session.npz"
+    np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
+    takes = folder / "takes.json"
+    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    session, source = load_session(str(path))
+    result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
+    layout = folder / "layout.json"
+    write_layout(result.layout, layout)
+    assert any(c.mirrored_from is not None for c in result.layout.clusters)  # the note's condition
+    return path, takes, layout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "0"], "--seeds must be >= 1, got 0"),
+    (["--folds", "1"], "need at least 2 folds, got 1"),
+    (["--split", "coin"], "unknown split 'coin'"),
+    (["--ridge", "-1"], "ridge must be >= 0"),
+    (["--split", "takes", "--takes", "{empty_takes}"], "--split takes needs a session with at least 2 takes"),
+])
+def test_option_errors_are_the_only_output(run_cli, mirrored, tmp_path, args, message):
+    session, _, layout = mirrored
+    empty = tmp_path / "one_take.json"
+    empty.write_text(json.dumps({"takes": [{"name": "all", "start": 0, "end": 10}]}))
+    args = [str(empty) if a == "{empty_takes}" else a for a in args]
+    result = run_cli("evaluate", session, "--layout", layout, "--out", tmp_path / "e.json", *args)
+    assert result.exit_code == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()]  # one line: no note before it
+    assert result.stderr.startswith("mocaptk: error: ") and message in result.stderr
+    assert result.stdout == "" and not (tmp_path / "e.json").exists()
+
+
+def test_mirrored_note_follows_a_successful_evaluation(run_cli, mirrored, tmp_path):
+    session, takes, layout = mirrored
+    result = run_cli("evaluate", session, "--layout", layout, "--takes", takes, "--seeds", "2", "--folds", "3",
+                     "--out", tmp_path / "e.json", "--quiet")
+    assert result.exit_code == 0, result.stderr
+    clusters = json.loads(layout.read_text())["clusters"]
+    mirrored_count = sum(c["mirrored_from"] is not None for c in clusters)
+    assert result.stderr.strip().splitlines() == [
+        f"mocaptk: note: {mirrored_count} mirrored layout markers are not in the session; evaluated the "
+        f"{len(clusters) - mirrored_count} measured ones"]
+    assert json.loads((tmp_path / "e.json").read_text())["count"] == len(clusters) - mirrored_count
