@@ -53,6 +53,41 @@ def test_factorized_weights_equal_direct_solves_without_refactoring(grid):
     assert solver.solves <= 3 * 9 + 1
 
 
+
+def test_trial_errors_equal_direct_reconstruction_and_tried_vertices_cost_no_solve():
+    """error() of trial layouts (one or two non-resident markers) from cached entries and row
+    lookups equals ‖X − W·X_H‖² with W from direct solves; on a mesh of two components."""
+    verts, faces = wavy_grid(12)
+    verts2 = np.concatenate([verts, verts + [150.0, 0.0, 0.0]])
+    faces2 = np.concatenate([faces, faces + len(verts)])
+    op = thin_shell_operator(verts2, faces2)
+    rng = np.random.default_rng(3)
+    data = rng.normal(size=(len(verts2), 7))
+    solver = ThinShellWeights(op)
+    solver.bind(data)
+    layout = [int(v) for v in rng.choice(len(verts2), 8, replace=False)]
+
+    def direct(markers):
+        return float(np.sum((data - interpolation_weights(op, markers) @ data[markers]) ** 2))
+
+    assert solver.error(layout) == pytest.approx(direct(layout), rel=1e-9)
+    solver.expected_trajectories(layout, [0])  # layout markers become resident
+    free = [v for v in range(len(verts2)) if v not in layout]
+    singles = [(v,) for v in free[:5]]
+    pair = (free[7], free[9])
+    solver.prepare(singles + [pair])
+    solved = solver.solves
+    for unit in singles + [pair]:
+        trial = layout[:-len(unit)] + list(unit)
+        assert solver.error(trial) == pytest.approx(direct(trial), rel=1e-9)
+    solver.forget(layout)
+    for unit in singles + [pair]:  # tried again later: cached entries, no solve
+        solver.error(layout[:-len(unit)] + list(unit))
+    assert solver.solves == solved
+    np.testing.assert_allclose(solver.fitted(layout), interpolation_weights(op, layout) @ data[layout],
+                               atol=1e-9)
+
+
 def test_le_et_al_validation_recovers_planted_markers(grid):
     """Plant markers, generate motion with the thin-shell model, recover the layout."""
     verts, faces, op = grid

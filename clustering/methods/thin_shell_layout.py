@@ -6,11 +6,13 @@ the expected trajectory of marker j is ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` (``Rj`
 markers' contribution); the marker moves to the vertex whose trajectory is closest to ``H̄j``;
 ``W`` is updated; sweeps repeat until no marker moves. Random restarts keep the best layout.
 
-**Factorization reuse.** ``A`` is factored once (sparse LU of ``K = A + ρ·U·Uᵀ``, ``U`` one anchor
-vertex per connected component, which removes the null space of translations). For any marker
-set, ``W`` follows exactly from the cached columns ``K⁻¹e_h`` of the markers plus an
-(M + c)-sized dense system (a Schur-complement / capacitance solve, see
-:meth:`ThinShellWeights.weights`). Moving a marker costs one pair of triangular solves — never a
+**Factorization reuse.** ``A`` is factored once (sparse Cholesky, CHOLMOD via cholespy, of
+``K = A + ρ·U·Uᵀ``, ``U`` one anchor vertex per connected component, which removes the null
+space of translations). For any marker set, ``W`` follows exactly from the columns ``K⁻¹e_h`` of
+the markers plus an (M + c)-sized dense system (a Schur-complement / capacitance solve, see
+:meth:`ThinShellWeights.weights`), and the reconstruction error from entries of ``K⁻¹`` and
+``K⁻²`` and rows of ``K⁻¹X`` (:meth:`ThinShellWeights.error`, no V-length work). Trying a
+vertex costs one pair of triangular solves the first time and none after — never a
 refactorization.
 """
 
@@ -59,6 +61,7 @@ class ThinShellWeights:
 
     operator: sp.spmatrix
     solves: int = 0
+    evaluations: int = 0
 
     def __post_init__(self) -> None:
         op = sp.csr_matrix(self.operator)
@@ -274,6 +277,7 @@ class ThinShellWeights:
 
         Up to two markers may be non-resident (a trial move, see :meth:`prepare`)."""
         markers = np.asarray(markers, dtype=np.intp)
+        self.evaluations += 1
         coef, proj, gram = self._reduced(markers, trial=True)
         fitted = coef @ self._data[markers]  # (m + c, r)
         return max(self._data_norm - 2.0 * np.sum(proj * fitted) + np.sum((gram @ fitted) * fitted), 0.0)
@@ -292,7 +296,8 @@ class ThinShellWeights:
 
 @dataclass(frozen=True)
 class ThinShellResult:
-    """Best layout (sorted vertex indices), its training RMSE (mm) and optimizer statistics."""
+    """Best layout (sorted vertex indices), its training RMSE (mm) and optimizer statistics
+    (``solves``: triangular solve pairs; ``evaluations``: layouts whose error was computed)."""
 
     layout: np.ndarray
     rmse_mm: float
@@ -301,6 +306,7 @@ class ThinShellResult:
     solves: int
     factor_seconds: float
     seconds: float
+    evaluations: int = 0
 
 
 def trajectory_matrix(displacements: np.ndarray) -> np.ndarray:
@@ -485,7 +491,7 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
     assert best is not None
     rmse = float(np.sqrt(best[0] / (n * np.asarray(trajectories).shape[1] / 3)))
     return ThinShellResult(np.array(best[1], dtype=np.intp), rmse, iteration_counts, moves,
-                           solver.solves, 0.0, time.perf_counter() - started)
+                           solver.solves, 0.0, time.perf_counter() - started, solver.evaluations)
 
 
 def _ring_units(ring: sp.csr_matrix | None, layout: _Layout, unit: int, allowed: np.ndarray,
@@ -522,6 +528,7 @@ def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.
         free[mirror[markers]] = False
     best_err, best_move = current * (1.0 - 1e-12), None
     on_midline = None if mirror is None else mirror == np.arange(len(mirror))
+    moves: list[tuple[int, tuple[int, ...]]] = []
     for u, unit in enumerate(layout.units):
         if not layout.movable[u]:
             continue
@@ -530,12 +537,13 @@ def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.
             mask &= on_midline if len(unit) == 1 else ~on_midline
         places = np.flatnonzero(mask)
         for v in places[np.argsort(-per_vertex[places], kind="stable")[:targets]]:
-            new_unit = (int(v),) if len(unit) == 1 else (int(v), int(mirror[v]))
-            trial = layout.units[:u] + [new_unit] + layout.units[u + 1:]
-            trial_markers = [w for t in trial for w in t]
-            err = solver.error(trial_markers)
-            if err < best_err:
-                best_err, best_move = err, (u, new_unit)
+            moves.append((u, (int(v),) if len(unit) == 1 else (int(v), int(mirror[v]))))
+    solver.prepare([new_unit for _, new_unit in moves])  # one multi-RHS solve
+    for u, new_unit in moves:
+        trial = layout.units[:u] + [new_unit] + layout.units[u + 1:]
+        err = solver.error([w for t in trial for w in t])
+        if err < best_err:
+            best_err, best_move = err, (u, new_unit)
     if best_move is None:
         return None
     layout.units[best_move[0]] = best_move[1]
@@ -646,4 +654,5 @@ def thin_shell_layout(problem: LayoutProblem, count: int, *, ks: float = 1.0, kb
                                  neighbours=mesh_neighbours(faces, problem.n_points), iterations=iterations,
                                  restarts=restarts, initial=initial, verify=verify, seed=seed)
     return ThinShellResult(result.layout, result.rmse_mm, result.iterations, result.moves,
-                           result.solves, factor_seconds, result.seconds + factor_seconds)
+                           result.solves, factor_seconds, result.seconds + factor_seconds,
+                           result.evaluations)
