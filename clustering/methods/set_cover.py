@@ -61,11 +61,14 @@ def representative_shapes(displacements: np.ndarray, *, max_shapes: int = 64) ->
     norms = np.linalg.norm(flat, axis=1)
     if disp.shape[0] <= max_shapes:
         return disp[norms > 0]
+    squared = norms ** 2
     chosen = [int(np.argmax(norms))]
-    dist = np.linalg.norm(flat - flat[chosen[0]], axis=1)
+    # squared distances as |a|² + |b|² − 2a·b: one matrix-vector product per pick, no (F, 3N) temporary
+    dist = np.maximum(squared + squared[chosen[0]] - 2.0 * (flat @ flat[chosen[0]]), 0.0)
     while len(chosen) < max_shapes and dist.max() > 0:
         chosen.append(int(np.argmax(dist)))
-        dist = np.minimum(dist, np.linalg.norm(flat - flat[chosen[-1]], axis=1))
+        dist = np.minimum(dist, np.maximum(squared + squared[chosen[-1]] - 2.0 * (flat @ flat[chosen[-1]]), 0.0))
+        dist[chosen[-1]] = 0.0  # exactly: rounding must not let a chosen frame be picked again
     return disp[np.sort(chosen)]
 
 
