@@ -118,7 +118,7 @@ def test_marker_session_visibility_on_the_marker_surface_mesh(sample_problem):
     front = facing_direction(problem)
     assert front[2] > 0.9  # the sample's face looks down +Z (sample_c3d/README.md), half face or not
     shapes = representative_shapes(problem.displacements)
-    vis = problem_visibility(problem, shapes)
+    vis = problem_visibility(problem)
     assert vis.shape == (problem.n_points,) and ((vis >= 0) & (vis <= 1)).all()
     # markers whose skin turns away from the frontal view are seen from fewer directions
     facing = vertex_normals(problem.neutral, problem.surface_faces()) @ front
@@ -134,7 +134,7 @@ def test_marker_session_visibility_on_the_marker_surface_mesh(sample_problem):
 def test_set_cover_on_a_marker_session_uses_visibility_and_stays_optimal(sample_problem):
     problem = sample_problem
     shapes = representative_shapes(problem.displacements)
-    vis = problem_visibility(problem, shapes)
+    vis = problem_visibility(problem)
     relative = relative_displacement(shapes)
     candidate = relative >= 0.3
     minimal = set_cover_layout(problem)  # the registry's path: visibility computed on the marker mesh

@@ -4,7 +4,8 @@ Per shape k (a blendshape delta, or a representative frame of a dense session), 
 displacement ``r_nk = |d_nk| / max_n |d_nk|``; point n is a *candidate* for k when ``r_nk ≥ ε``.
 Quality ``ω_nk = c_nk (2 − (1−α) r_nk − α l_n)`` prefers points that move much and are visible
 (``l_n`` = worst-case visibility over neutral + all shapes, :func:`visibility`, on the blendshape
-mesh or — for a dense session — on the marker surface mesh, seen from the front). The weighted set cover
+mesh or — for a dense session — on the marker surface mesh, seen from the front). The weighted
+set cover
 
     minimize Σ_n f_n Σ_k ω_nk   subject to   Σ_n c_nk f_n ≥ 1 for every shape k,  f ∈ {0, 1}
 
@@ -182,10 +183,10 @@ def facing_direction(problem: LayoutProblem) -> np.ndarray:
     return plane_frame(plane, face_frame(problem.neutral, moved))[2]
 
 
-def problem_visibility(problem: LayoutProblem, shapes: np.ndarray) -> np.ndarray:
+def problem_visibility(problem: LayoutProblem) -> np.ndarray:
     """(N,) :func:`visibility` of ``problem``'s points on its surface mesh (the marker surface mesh
-    of a dense session), over neutral + ``shapes`` (K, N, 3) mm, seen from
-    :func:`facing_direction`; cached in ``problem.cache`` (the shapes are a function of the problem).
+    of a dense session), over neutral + :func:`problem_shapes`, seen from
+    :func:`facing_direction`; cached in ``problem.cache``.
 
     Depth-buffer pixels: 1.5 mm, or a quarter of the point spacing on a sparser mesh (markers
     ~1 cm apart cannot resolve finer occluders; 4× fewer pixels per buffer).
@@ -194,7 +195,7 @@ def problem_visibility(problem: LayoutProblem, shapes: np.ndarray) -> np.ndarray
         from ...surface_mesh import marker_spacing
         resolution = max(1.5, marker_spacing(problem.neutral) / 4.0)
         problem.cache["set_cover_visibility"] = visibility(
-            problem.neutral, problem.surface_faces(), shapes, front=facing_direction(problem),
+            problem.neutral, problem.surface_faces(), problem_shapes(problem), front=facing_direction(problem),
             resolution=resolution)
     return problem.cache["set_cover_visibility"]
 
@@ -287,8 +288,9 @@ def set_cover_layout(problem: LayoutProblem, count: int | None = None, *, epsilo
     ``problem.displacements`` are the shapes (blendshape deltas); for a dense session with more
     than 64 frames, :func:`representative_shapes` picks them. ``visibility_weights`` (N,) ``l_n``
     (default: :func:`problem_visibility`, on the problem's surface mesh — the blendshape mesh, or
-    the marker surface mesh of a dense session — over neutral + the shapes). ``exclusion_mm``: neighbourhood excluded around chosen points in later
-    rounds (default: the median nearest-neighbour spacing × 1.5).
+    the marker surface mesh of a dense session — over neutral + the shapes). ``exclusion_mm``:
+    neighbourhood excluded around chosen points in later rounds (default: the median
+    nearest-neighbour spacing × 1.5).
     """
     if not 0 < epsilon <= 1:
         raise OptionError(f"epsilon must be in (0, 1], got {epsilon}")
@@ -300,7 +302,7 @@ def set_cover_layout(problem: LayoutProblem, count: int | None = None, *, epsilo
     allowed[problem.candidate_points()] = True
     if symmetric and problem.mirror is None:
         raise OptionError("symmetric set cover needs the mirror partner of every point")
-    vis = problem_visibility(problem, shapes) if visibility_weights is None else visibility_weights
+    vis = problem_visibility(problem) if visibility_weights is None else visibility_weights
     if symmetric:
         mirror = problem.mirror
         relative = np.maximum(relative, relative[mirror])  # fold: a point covers what its mirror does
