@@ -1,28 +1,31 @@
-"""Robust, vectorized multi-view triangulation of labelled 2-D detections.
+"""Robust multi-view triangulation of labelled 2-D detections, one compiled pass over all points.
 
-All points are solved together: every camera's detections are undistorted at once, the DLT
-normal equations of all points come from one matrix product and are solved in closed form
-(batched 3x3). Outlier views are rejected by consensus: every camera pair proposes a
-two-view point for all doubtful points at once, the proposal with most views within
-``outlier_threshold_px`` wins per point, and the point is refit on those inlier views.
-Reweighting steps (rows scaled by focal / depth, so the algebraic error becomes the
-reprojection error in px: a Gauss-Newton-like refinement) finish each fit.
+One numba kernel (compiled on first use, cached on disk, threads over points) does per point:
+undistort every view (OpenCV's fixed-point iteration), solve the DLT normal equations in
+closed form (3x3), reweight the rows by focal / depth so the algebraic error becomes the
+reprojection error in px (a Gauss-Newton-like refinement), and check every view's
+reprojection error. Points whose views disagree get a consensus search: every camera pair
+that sees the point proposes a two-view point, the proposal with most views within
+``outlier_threshold_px`` wins (ties: smallest summed error), the point is refit on those
+views and views that agree with the refit join in (not aniposelib's exhaustive subset loop).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from itertools import combinations
 
-import cv2
+import numba
 import numpy as np
 
 from mocaptk.trajectories import Trajectories
 
 from .cameras import CameraRig
 
-# 6 fixed-point iterations: < 1e-4 px error over a whole Cara image; an eps test is 3x slower
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 6, 0.0)
+# Fixed-point undistortion iterations, as cv2.undistortPoints with (COUNT, 6, 0):
+# < 1e-4 px error over a whole Cara image.
+_UNDISTORT_ITERATIONS = 6
+# Points per task of the threaded loop (each task allocates its scratch arrays once).
+_CHUNK = 512
 
 
 def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[str] | None = None,
@@ -54,18 +57,12 @@ def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[st
     if observations.shape[0] != len(rig):
         raise ValueError(f"observations have {observations.shape[0]} cameras, "
                          f"the rig has {len(rig)}")
-    if min_views < 2:
-        raise ValueError(f"min_views must be >= 2, got {min_views}")
-    if outlier_threshold_px <= 0:
-        raise ValueError(f"outlier_threshold_px must be > 0, got {outlier_threshold_px}")
     _, n_frames, n_markers, _ = observations.shape
     if labels is None:
         labels = [f"M{m + 1:03d}" for m in range(n_markers)]
-    flat = observations.reshape(len(rig), -1, 2)
-    points, inliers = triangulate_points(rig, flat, min_views=min_views,
-                                         outlier_threshold_px=outlier_threshold_px,
-                                         refine_iterations=refine_iterations)
-    residuals = reprojection_rms(rig, points, flat, inliers)
+    points, inliers, residuals = _triangulate(
+        rig, observations.reshape(len(rig), -1, 2), min_views=min_views,
+        outlier_threshold_px=outlier_threshold_px, refine_iterations=refine_iterations)
     rate = rate if rate is not None else (rig.rate or 60.0)
     return Trajectories(
         positions=points.reshape(n_frames, n_markers, 3), labels=labels, rate=rate,
@@ -82,175 +79,282 @@ def triangulate_points(rig: CameraRig, observations: np.ndarray, *, min_views: i
     Returns ``points (P, 3)`` mm (NaN with fewer than ``min_views`` agreeing views) and the
     inlier views ``(C, P)`` bool.
     """
-    system = _System.build(rig, observations)
-    valid = system.valid
-    # 1) all views; points whose views all agree are done
-    points = system.solve(valid, refine_iterations)
-    inliers = valid & (system.errors_px(points) <= outlier_threshold_px)
-    n_valid = valid.sum(axis=0)
-    suspect = np.nonzero((inliers.sum(axis=0) < n_valid) & (n_valid >= 2))[0]
-
-    # 2) consensus over all two-view hypotheses for the points with disagreeing views
-    if suspect.size:
-        sub = system.subset(suspect)
-        best_count = np.zeros(suspect.size, dtype=np.int64)
-        best_cost = np.full(suspect.size, np.inf)
-        best_inliers = np.zeros_like(sub.valid)
-        for i, j in combinations(range(len(rig)), 2):
-            index = np.nonzero(sub.valid[i] & sub.valid[j])[0]
-            if not index.size:
-                continue
-            pair = sub.subset(index)
-            err = pair.errors_px(pair.solve_pair(i, j))
-            agree = err <= outlier_threshold_px
-            count = agree.sum(axis=0)
-            cost = np.where(agree, err, 0.0).sum(axis=0)
-            better = (count > best_count[index]) | ((count == best_count[index])
-                                                    & (cost < best_cost[index]))
-            chosen = index[better]
-            best_count[chosen] = count[better]
-            best_cost[chosen] = cost[better]
-            best_inliers[:, chosen] = agree[:, better]
-        refit = sub.solve(best_inliers, refine_iterations)
-        # views that agree with the refit consensus point join it (one more pass)
-        final = sub.errors_px(refit) <= outlier_threshold_px
-        grow = final.sum(axis=0) > best_inliers.sum(axis=0)
-        if grow.any():
-            best_inliers[:, grow] = final[:, grow]
-            refit[grow] = sub.subset(np.nonzero(grow)[0]).solve(best_inliers[:, grow],
-                                                                 refine_iterations)
-        points[suspect] = refit
-        inliers[:, suspect] = best_inliers
-
-    points[inliers.sum(axis=0) < min_views] = np.nan
-    inliers[:, ~np.all(np.isfinite(points), axis=1)] = False
+    points, inliers, _ = _triangulate(rig, np.asarray(observations, dtype=np.float64),
+                                      min_views=min_views,
+                                      outlier_threshold_px=outlier_threshold_px,
+                                      refine_iterations=refine_iterations)
     return points, inliers
 
 
-def reprojection_rms(rig: CameraRig, points: np.ndarray, observations: np.ndarray,
-                     views: np.ndarray) -> np.ndarray:
-    """RMS distance in px between ``observations (C, P, 2)`` and ``points (P, 3)`` reprojected
-    with full distortion, over the ``views (C, P)``; NaN where no view is used."""
-    squared = np.zeros(points.shape[0])
-    for c, camera in enumerate(rig):
-        used = np.nonzero(views[c])[0]
-        cam = camera.rotation @ points[used].T + camera.tvec[:, None]  # (3, used)
-        u, v = camera.pixels_from_normalized(cam[0] / cam[2], cam[1] / cam[2])
-        squared[used] += (u - observations[c, used, 0]) ** 2 + (v - observations[c, used, 1]) ** 2
-    count = views.sum(axis=0)
-    rms = np.full(points.shape[0], np.nan)
-    rms[count > 0] = np.sqrt(squared[count > 0] / count[count > 0])
-    return rms
+def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
+                 outlier_threshold_px: float, refine_iterations: int,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Check the options, run the kernel: ``points (P, 3)`` mm, ``inliers (C, P)`` bool and
+    the RMS reprojection error ``(P,)`` px over the inliers (NaN where none)."""
+    if min_views < 2:
+        raise ValueError(f"min_views must be >= 2, got {min_views}")
+    if not outlier_threshold_px > 0:
+        raise ValueError(f"outlier_threshold_px must be > 0, got {outlier_threshold_px}")
+    if refine_iterations < 0:
+        raise ValueError(f"refine_iterations must be >= 0, got {refine_iterations}")
+    if observations.ndim != 3 or observations.shape[-1] != 2 or observations.shape[0] != len(rig):
+        raise ValueError(f"observations must have shape ({len(rig)}, points, 2), "
+                         f"got {observations.shape}")
+    cameras = _camera_table(rig)
+    poses = np.stack([np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig])
+    focal = np.array([cam.focal_px for cam in rig])
+    n_points = observations.shape[1]
+    points = np.empty((n_points, 3))
+    inliers = np.empty((len(rig), n_points), dtype=np.bool_)
+    rms = np.empty(n_points)
+    _triangulate_kernel(np.ascontiguousarray(observations), cameras, poses, focal,
+                        min_views, float(outlier_threshold_px), refine_iterations,
+                        points, inliers, rms)
+    return points, inliers, rms
 
 
-class _System:
-    """The DLT normal equations of all points, for batched weighted solves.
+def _camera_table(rig: CameraRig) -> np.ndarray:
+    """``(C, 10)`` per camera: fx fy cx cy, k1 k2 p1 p2 k3, skew ``K[0, 1]`` (px)."""
+    return np.array([[*cam.matrix[[0, 1, 0, 1], [0, 1, 2, 2]], *cam.distortion,
+                      cam.matrix[0, 1]] for cam in rig])
 
-    Camera c contributes the rows ``u * P3 - P1`` and ``v * P3 - P2`` (normalized image
-    coordinates ``u, v``; ``P1..P3`` the rows of ``[R | t]``). Their weighted outer products
-    expand to ``w² ((u² + v²) P3P3ᵀ - u (P3P1ᵀ + P1P3ᵀ) - v (P3P2ᵀ + P2P3ᵀ) + P1P1ᵀ + P2P2ᵀ)``,
-    so the normal equations of every point are one matrix product of per-point coefficients
-    ``(4C, P)`` with constant per-camera terms ``(9, 4C)`` (the 9 entries we need).
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshold,
+                        refine_iterations, points, inliers, rms):  # pragma: no cover (compiled)
+    """Fill ``points (P, 3)``, ``inliers (C, P)`` and ``rms (P,)`` from ``observations
+    (C, P, 2)``; see :func:`_triangulate`. Threads over chunks of points."""
+    n_cams, n_points = observations.shape[0], observations.shape[1]
+    n_chunks = (n_points + _CHUNK - 1) // _CHUNK
+    for chunk in numba.prange(n_chunks):
+        start = chunk * _CHUNK
+        size = min(n_points, start + _CHUNK) - start
+        rays_u = np.empty((n_cams, _CHUNK))
+        rays_v = np.empty((n_cams, _CHUNK))
+        seen = np.empty((n_cams, _CHUNK), dtype=np.bool_)
+        x0 = np.empty(_CHUNK)
+        y0 = np.empty(_CHUNK)
+        for c in range(n_cams):
+            _undistort(observations[c], start, size, cameras[c], rays_u[c], rays_v[c], seen[c],
+                       x0, y0)
+        # one point's views, compacted: camera index, ray, inlier flag; scratch
+        cam = np.empty(n_cams, dtype=np.int64)
+        u = np.empty(n_cams)
+        v = np.empty(n_cams)
+        use = np.empty(n_cams, dtype=np.bool_)
+        best = np.empty(n_cams, dtype=np.bool_)
+        error = np.empty(n_cams)
+        weight = np.empty(n_cams)
+        x = np.empty(3)
+        for k in range(size):
+            p = start + k
+            n = 0
+            for c in range(n_cams):
+                inliers[c, p] = False
+                if seen[c, k]:
+                    cam[n], u[n], v[n] = c, rays_u[c, k], rays_v[c, k]
+                    n += 1
+            _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
+                               n, cam, u, v, use, best, error, weight, x)
+            points[p] = x
+            count = 0
+            squared = 0.0
+            for j in range(n):
+                if use[j]:
+                    inliers[cam[j], p] = True
+                    count += 1
+                    squared += _squared_pixel_error(observations, cam[j], p, cameras, poses, x)
+            rms[p] = np.sqrt(squared / count) if count else np.nan
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _undistort(observations, start, size, camera, u, v, valid, x0, y0):
+    """Normalized image coordinates ``u, v`` of the pixels ``observations[start:start +
+    size]`` of one camera (``valid``: finite; else ``u = v = 0``). cv2.undistortPoints'
+    fixed-point iteration for ``(k1, k2, p1, p2, k3)`` with a fixed iteration count (skew
+    ignored, as OpenCV does). ``x0, y0``: scratch. Each iteration is a loop over the points
+    (independent, SIMD-friendly) rather than a dependent chain per point.
     """
-
-    _ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3))
-
-    def __init__(self, poses: np.ndarray, focal: np.ndarray, u: np.ndarray, v: np.ndarray,
-                 valid: np.ndarray) -> None:
-        self.poses, self.focal, self.u, self.v, self.valid = poses, focal, u, v, valid
-        self.radius2 = u * u + v * v
-        p1, p2, p3 = poses[:, 0], poses[:, 1], poses[:, 2]
-
-        def sym(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-            return np.einsum("ci,cj->cij", a, b) + np.einsum("ci,cj->cij", b, a)
-
-        terms = np.stack([np.einsum("ci,cj->cij", p3, p3), -sym(p3, p1), -sym(p3, p2),
-                          np.einsum("ci,cj->cij", p1, p1) + np.einsum("ci,cj->cij", p2, p2)])
-        rows, cols = zip(*self._ENTRIES)
-        self.terms = terms[:, :, rows, cols].reshape(-1, len(rows)).T  # (9, 4C)
-
-    @classmethod
-    def build(cls, rig: CameraRig, observations: np.ndarray) -> _System:
-        rays = _normalized_rays(rig, observations)
-        valid = np.isfinite(rays[..., 0])
-        rays[~valid] = 0.0
-        poses = np.stack([np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig])
-        return cls(poses, np.array([cam.focal_px for cam in rig]),
-                   np.ascontiguousarray(rays[..., 0]), np.ascontiguousarray(rays[..., 1]), valid)
-
-    def subset(self, index: np.ndarray) -> _System:
-        return _System(self.poses, self.focal, self.u[:, index], self.v[:, index],
-                       self.valid[:, index])
-
-    def solve(self, use: np.ndarray, refine_iterations: int) -> np.ndarray:
-        """Weighted inhomogeneous DLT of all points at once over the views ``use (C, P)``;
-        NaN where fewer than 2 views are used or the system is degenerate.
-
-        Rows are weighted by ``focal / depth`` (depth from the previous solution), so after
-        the first step the algebraic residual is the reprojection error in px.
-        """
-        usable = use.sum(axis=0) >= 2
-        weights = np.where(use, self.focal[:, None], 0.0)
-        for step in range(refine_iterations + 1):
-            w2 = weights * weights
-            coefficients = np.concatenate([w2 * self.radius2, w2 * self.u, w2 * self.v, w2])
-            m = self.terms @ coefficients  # (9, P)
-            points = _solve_symmetric3(*m[:6], -m[6], -m[7], -m[8])
-            points[~usable] = np.nan
-            if step < refine_iterations:
-                depth = self.poses[:, 2, :3] @ points.T + self.poses[:, 2, 3:]  # (C, P)
-                ok = use & (depth > 0)  # NaN depth compares False
-                weights = np.where(ok, self.focal[:, None] / np.where(ok, depth, 1.0), 0.0)
-        return points
-
-    def solve_pair(self, i: int, j: int) -> np.ndarray:
-        """Two-view DLT from cameras ``i`` and ``j`` (both must see every point), ``(P, 3)``."""
-        n_cams = len(self.focal)
-        columns = [k * n_cams + c for k in range(4) for c in (i, j)]
-        w2 = (self.focal[[i, j]] ** 2)[:, None]
-        coefficients = np.concatenate([w2 * self.radius2[[i, j]], w2 * self.u[[i, j]],
-                                       w2 * self.v[[i, j]], np.broadcast_to(w2, (2, len(self.u[0])))])
-        m = self.terms[:, columns] @ coefficients
-        return _solve_symmetric3(*m[:6], -m[6], -m[7], -m[8])
-
-    def errors_px(self, points: np.ndarray) -> np.ndarray:
-        """Reprojection errors ``(C, P)`` in px (normalized coordinates times focal length);
-        ``inf`` where unseen, behind the camera or the point is NaN."""
-        finite = np.all(np.isfinite(points), axis=1)
-        n_cams = len(self.focal)
-        # one (3C, 3) @ (3, P) product: numpy's stacked small matmul is far slower
-        cam = (self.poses[:, :, :3].reshape(-1, 3) @ np.where(finite[:, None], points, 0.0).T
-               ).reshape(n_cams, 3, -1) + self.poses[:, :, 3:]  # (C, 3, P)
-        ok = self.valid & finite & (cam[:, 2] > 0)
-        depth = np.where(ok, cam[:, 2], 1.0)
-        du = cam[:, 0] / depth - self.u
-        dv = cam[:, 1] / depth - self.v
-        return np.where(ok, self.focal[:, None] * np.sqrt(du * du + dv * dv), np.inf)
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = camera[0], camera[1], camera[2], camera[3], \
+        camera[4], camera[5], camera[6], camera[7], camera[8]
+    ifx, ify = 1.0 / fx, 1.0 / fy
+    for k in range(size):
+        x0[k] = u[k] = (observations[start + k, 0] - cx) * ifx
+        y0[k] = v[k] = (observations[start + k, 1] - cy) * ify
+        valid[k] = False  # here: "folded" (the model's fold was crossed)
+    for _ in range(_UNDISTORT_ITERATIONS):
+        for k in range(size):
+            x, y = u[k], v[k]
+            r2 = x * x + y * y
+            icdist = 1.0 / (1.0 + ((k3 * r2 + k2) * r2 + k1) * r2)
+            valid[k] |= icdist < 0
+            u[k] = (x0[k] - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) * icdist
+            v[k] = (y0[k] - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) * icdist
+    for k in range(size):
+        x, y = (x0[k], y0[k]) if valid[k] else (u[k], v[k])  # folded: OpenCV keeps x0, y0
+        ok = np.isfinite(x) and np.isfinite(y)  # NaN detections stay NaN
+        valid[k] = ok
+        u[k] = x if ok else 0.0
+        v[k] = y if ok else 0.0
 
 
-def _solve_symmetric3(a, b, c, d, e, f, r0, r1, r2) -> np.ndarray:
-    """Solve ``[[a b c] [b d e] [c e f]] x = r`` for many systems at once (adjugate);
-    NaN where the matrix is (nearly) singular. Returns ``(P, 3)``."""
-    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
-    A11, A12, A22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A00 + b * A01 + c * A02
-    scale = (a + d + f) ** 3
-    good = np.abs(det) > 1e-12 * scale
-    det = np.where(good, det, 1.0)
-    x = np.stack([A00 * r0 + A01 * r1 + A02 * r2, A01 * r0 + A11 * r1 + A12 * r2,
-                  A02 * r0 + A12 * r1 + A22 * r2], axis=1) / det[:, None]
-    x[~good] = np.nan
-    return x
+@numba.njit(cache=True, error_model="numpy")
+def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
+                       n, cam, u, v, use, best, error, weight, x):
+    """Robust solve of one point seen by the ``n`` cameras ``cam[:n]`` (ascending) with rays
+    ``u, v`` into ``x (3,)``; ``use[:n]`` ends as its inlier views.
+    ``best, error, weight``: scratch. (Arrays of length >= n; only the first n are used.)"""
+    # 1) all views; a point whose views all agree is done
+    for j in range(n):
+        use[j] = True
+    _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+    _errors_px(poses, focal, n, cam, u, v, x, error)
+    n_inliers = 0
+    for j in range(n):
+        use[j] = error[j] <= threshold
+        n_inliers += use[j]
+    if n >= 2 and n_inliers < n:
+        # 2) consensus over the two-view hypotheses of every camera pair seeing the point
+        best_count, best_cost = 0, np.inf
+        for i in range(n):
+            for j in range(i + 1, n):
+                for m in range(n):
+                    weight[m] = 0.0
+                weight[i], weight[j] = focal[cam[i]], focal[cam[j]]
+                _solve_weighted(poses, n, cam, u, v, weight, x)
+                _errors_px(poses, focal, n, cam, u, v, x, error)
+                count, cost = 0, 0.0
+                for m in range(n):
+                    if error[m] <= threshold:
+                        count += 1
+                        cost += error[m]
+                if count > best_count or (count == best_count and cost < best_cost):
+                    best_count, best_cost = count, cost
+                    for m in range(n):
+                        best[m] = error[m] <= threshold
+        for j in range(n):
+            use[j] = best[j]
+        _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+        # views that agree with the refit consensus point join it (one more pass)
+        _errors_px(poses, focal, n, cam, u, v, x, error)
+        grown = 0
+        for j in range(n):
+            grown += error[j] <= threshold
+        if grown > best_count:
+            for j in range(n):
+                use[j] = error[j] <= threshold
+            _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+    n_inliers = 0
+    for j in range(n):
+        n_inliers += use[j]
+    if n_inliers < min_views:
+        x[:] = np.nan
+    if not (np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])):
+        for j in range(n):
+            use[j] = False
 
 
-def _normalized_rays(rig: CameraRig, observations: np.ndarray) -> np.ndarray:
-    """Undistorted normalized image coordinates ``(C, P, 2)`` of pixel observations."""
-    rays = np.full(observations.shape, np.nan)
-    for c, camera in enumerate(rig):
-        seen = np.all(np.isfinite(observations[c]), axis=1)
-        if seen.any():
-            undistorted = cv2.undistortPoints(
-                observations[c, seen].reshape(-1, 1, 2), camera.matrix, camera.distortion,
-                criteria=_UNDISTORT_CRITERIA)
-            rays[c, seen] = undistorted.reshape(-1, 2)
-    return rays
+@numba.njit(cache=True, error_model="numpy")
+def _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x):
+    """Weighted inhomogeneous DLT over the views ``use[:n]`` into ``x (3,)`` mm; NaN with
+    fewer than 2 views or a degenerate system.
+
+    Rows are weighted by ``focal / depth`` (depth from the previous solution), so after the
+    first step the algebraic residual is the reprojection error in px.
+    """
+    count = 0
+    for j in range(n):
+        weight[j] = focal[cam[j]] if use[j] else 0.0
+        count += use[j]
+    for step in range(refine_iterations + 1):
+        _solve_weighted(poses, n, cam, u, v, weight, x)
+        if count < 2:
+            x[:] = np.nan
+        if step < refine_iterations:
+            for j in range(n):
+                c = cam[j]
+                depth = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] \
+                    + poses[c, 2, 3]
+                weight[j] = focal[c] / depth if use[j] and depth > 0 else 0.0  # NaN: False
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _solve_weighted(poses, n, cam, u, v, weight, x):
+    """Solve the DLT normal equations of the views ``cam[:n]`` with row weights ``weight`` (0: view unused) in
+    closed form (adjugate) into ``x (3,)``; NaN where the matrix is (nearly) singular.
+
+    Camera c contributes the rows ``a = u P3 - P1`` and ``b = v P3 - P2`` (``P1..P3`` the
+    rows of ``[R | t]``); the normal matrix is ``sum w² (a aᵀ + b bᵀ)`` over the first 3
+    columns, the right-hand side ``-sum w² (a a₄ + b b₄)``.
+    """
+    m00 = m01 = m02 = m11 = m12 = m22 = r0 = r1 = r2 = 0.0
+    for j in range(n):
+        c = cam[j]
+        w2 = weight[j] * weight[j]
+        a0 = u[j] * poses[c, 2, 0] - poses[c, 0, 0]
+        a1 = u[j] * poses[c, 2, 1] - poses[c, 0, 1]
+        a2 = u[j] * poses[c, 2, 2] - poses[c, 0, 2]
+        a3 = u[j] * poses[c, 2, 3] - poses[c, 0, 3]
+        b0 = v[j] * poses[c, 2, 0] - poses[c, 1, 0]
+        b1 = v[j] * poses[c, 2, 1] - poses[c, 1, 1]
+        b2 = v[j] * poses[c, 2, 2] - poses[c, 1, 2]
+        b3 = v[j] * poses[c, 2, 3] - poses[c, 1, 3]
+        m00 += w2 * (a0 * a0 + b0 * b0)
+        m01 += w2 * (a0 * a1 + b0 * b1)
+        m02 += w2 * (a0 * a2 + b0 * b2)
+        m11 += w2 * (a1 * a1 + b1 * b1)
+        m12 += w2 * (a1 * a2 + b1 * b2)
+        m22 += w2 * (a2 * a2 + b2 * b2)
+        r0 -= w2 * (a0 * a3 + b0 * b3)
+        r1 -= w2 * (a1 * a3 + b1 * b3)
+        r2 -= w2 * (a2 * a3 + b2 * b3)
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    scale = m00 + m11 + m22
+    if not abs(det) > 1e-12 * scale * scale * scale:
+        x[:] = np.nan
+        return
+    x[0] = (c00 * r0 + c01 * r1 + c02 * r2) / det
+    x[1] = (c01 * r0 + c11 * r1 + c12 * r2) / det
+    x[2] = (c02 * r0 + c12 * r1 + c22 * r2) / det
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _errors_px(poses, focal, n, cam, u, v, x, error):
+    """Reprojection errors ``error[:n]`` in px (normalized coordinates times focal length)
+    of the views ``cam[:n]``; ``inf`` behind the camera or where ``x`` is NaN."""
+    finite = np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])
+    for j in range(n):
+        c = cam[j]
+        z = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] + poses[c, 2, 3]
+        du = (poses[c, 0, 0] * x[0] + poses[c, 0, 1] * x[1] + poses[c, 0, 2] * x[2]
+              + poses[c, 0, 3]) / z - u[j]
+        dv = (poses[c, 1, 0] * x[0] + poses[c, 1, 1] * x[1] + poses[c, 1, 2] * x[2]
+              + poses[c, 1, 3]) / z - v[j]
+        error[j] = focal[c] * np.sqrt(du * du + dv * dv) if finite and z > 0 else np.inf
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _squared_pixel_error(observations, c, p, cameras, poses, x):
+    """Squared distance in px between the detection ``observations[c, p]`` and ``x (3,)``
+    projected with full distortion (same model as ``Camera.pixels_from_normalized``)."""
+    z = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] + poses[c, 2, 3]
+    xn = (poses[c, 0, 0] * x[0] + poses[c, 0, 1] * x[1] + poses[c, 0, 2] * x[2]
+          + poses[c, 0, 3]) / z
+    yn = (poses[c, 1, 0] * x[0] + poses[c, 1, 1] * x[1] + poses[c, 1, 2] * x[2]
+          + poses[c, 1, 3]) / z
+    fx, fy, cx, cy, k1, k2, p1, p2, k3, skew = cameras[c, 0], cameras[c, 1], cameras[c, 2], \
+        cameras[c, 3], cameras[c, 4], cameras[c, 5], cameras[c, 6], cameras[c, 7], \
+        cameras[c, 8], cameras[c, 9]
+    r2 = xn * xn + yn * yn
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    du = fx * xd + skew * yd + cx - observations[c, p, 0]
+    dv = fy * yd + cy - observations[c, p, 1]
+    return du * du + dv * dv

@@ -73,6 +73,32 @@ def test_five_percent_outlier_views_stay_at_noise_floor(markers, rig_factory, me
     assert np.nanpercentile(errors_mm(plain, points), 95) > 3 * np.nanpercentile(err, 95)
 
 
+def test_undistortion_matches_opencv():
+    """The kernel's fixed-point undistortion is cv2.undistortPoints with the same 6 iterations
+    (strong radial + tangential distortion, the whole image, unseen detections)."""
+    import cv2
+
+    from mocaptk.acquisition.triangulate import _UNDISTORT_ITERATIONS, _camera_table, _undistort
+
+    rig = cara_rig(distortion=(-0.25, 0.12, 0.004, -0.003, -0.02))
+    camera = rig[0]
+    width, height = camera.image_size
+    grid = np.stack(np.meshgrid(np.linspace(0, width - 1, 41), np.linspace(0, height - 1, 23)),
+                    axis=-1).reshape(-1, 2)
+    grid[::7] = np.nan
+    n = len(grid)
+    u, v, valid, scratch_x, scratch_y = np.empty(n), np.empty(n), np.empty(n, bool), \
+        np.empty(n), np.empty(n)
+    _undistort(grid, 0, n, _camera_table(rig)[0], u, v, valid, scratch_x, scratch_y)
+    seen = np.isfinite(grid[:, 0])
+    np.testing.assert_array_equal(valid, seen)
+    reference = cv2.undistortPoints(grid[seen].reshape(-1, 1, 2), camera.matrix,
+                                    camera.distortion,
+                                    criteria=(cv2.TERM_CRITERIA_COUNT, _UNDISTORT_ITERATIONS, 0))
+    difference_px = np.abs(np.stack([u[seen], v[seen]], 1) - reference.reshape(-1, 2))
+    assert difference_px.max() * camera.focal_px < 1e-6
+
+
 def test_camera_order_does_not_matter(markers):
     points, normals = markers
     rig = cara_rig()
