@@ -15,15 +15,9 @@ Needs the ICT-FaceKit model (``load_face_model()``; ../shared/data or MOCAPTK_IC
 from __future__ import annotations
 
 import os
+import time
 
-# Single-threaded BLAS unless asked otherwise: on a shared 2-core machine OpenBLAS threads
-# oversubscribe the cores and the small dense products of the optimizer slow down several-fold.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 
 def subdivided_face(model, *, target: int = 24_000):
@@ -152,8 +146,7 @@ def main() -> None:
     from mocaptk.acquisition.face_model import load_face_model
 
     model = load_face_model()
-    print(f"(wall times on a shared machine; CPU times show the work; BLAS threads "
-          f"{os.environ['OPENBLAS_NUM_THREADS']}, set OPENBLAS_NUM_THREADS to change)", flush=True)
+    print("(wall times on a shared machine; CPU times show the work)", flush=True)
     bench_set_cover(model)
     bench_thin_shell(model)
 
