@@ -93,6 +93,9 @@ def test_evaluate_and_sweep(run_cli, session_files, tmp_path):
     assert (tmp_path / "S" / "sweep.png").stat().st_size > 1000
     bad = run_cli("sweep", path, "--factors", "1.3:0.8:0.1", "--no-stabilize")
     assert bad.exit_code == 2 and "factors" in bad.stderr
+    for typo in ("0.1:1e6:1e-7", "0.1:inf:0.1", "1,nan"):  # 10^13 factors, endless, NaN
+        bad = run_cli("sweep", path, "--factors", typo, "--no-stabilize")
+        assert bad.exit_code == 2 and "--factors" in bad.stderr and "\n" not in bad.stderr.strip()
 
 
 def test_cluster_on_real_blenderface_data(run_cli, tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -11,21 +12,30 @@ from .app import app
 from .options import Rate, Units
 
 
+#: Each factor is one clustering + evaluation run; more than this is a typo, not a sweep.
+MAX_FACTORS = 500
+
+
 def parse_factors(text: str) -> list[float]:
     """``"0.8:1.3:0.05"`` (start:stop:step, stop included) or ``"0.9,1.0,1.1"`` → sorted factors."""
     try:
         if ":" in text:
             start, stop, step = (float(x) for x in text.split(":"))
-            if step <= 0 or stop < start:
+            if not (step > 0 and start <= stop and math.isfinite(stop)):
                 raise ValueError
             count = int(round((stop - start) / step)) + 1
+            if count > MAX_FACTORS:
+                raise OptionError(f"--factors: {text!r} makes {count:,} factors; at most "
+                                  f"{MAX_FACTORS} per sweep (use a larger step)")
             values = [round(start + i * step, 6) for i in range(count)]
         else:
             values = [float(x) for x in text.split(",") if x.strip()]
+            if len(values) > MAX_FACTORS:
+                raise OptionError(f"--factors: {len(values):,} factors; at most {MAX_FACTORS} per sweep")
     except ValueError:
         raise OptionError(f"--factors: expected START:STOP:STEP or a comma list, got {text!r}") from None
-    if not values or min(values) <= 0:
-        raise OptionError(f"--factors: factors must be > 0, got {text!r}")
+    if not values or min(values) <= 0 or not all(map(math.isfinite, values)):
+        raise OptionError(f"--factors: factors must be finite and > 0, got {text!r}")
     return sorted(set(values))
 
 
