@@ -26,6 +26,9 @@ from .cameras import CameraRig
 _UNDISTORT_ITERATIONS = 6
 # Points per task of the threaded loop (each task allocates its scratch arrays once).
 _CHUNK = 512
+# Helpers of the kernel: compiled into it (as separate functions their array arguments cost
+# 1.5x the time of the whole kernel).
+_inlined = numba.njit(cache=True, error_model="numpy", inline="always")
 
 
 def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[str] | None = None,
@@ -167,7 +170,7 @@ def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshol
             rms[p] = np.sqrt(squared / count) if count else np.nan
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _undistort(observations, start, size, camera, u, v, valid, x0, y0):
     """Normalized image coordinates ``u, v`` of the pixels ``observations[start:start +
     size]`` of one camera (``valid``: finite; else ``u = v = 0``). cv2.undistortPoints'
@@ -198,7 +201,7 @@ def _undistort(observations, start, size, camera, u, v, valid, x0, y0):
         v[k] = y if ok else 0.0
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
                        n, cam, u, v, use, best, error, weight, x):
     """Robust solve of one point seen by the ``n`` cameras ``cam[:n]`` (ascending) with rays
@@ -254,7 +257,7 @@ def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
             use[j] = False
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x):
     """Weighted inhomogeneous DLT over the views ``use[:n]`` into ``x (3,)`` mm; NaN with
     fewer than 2 views or a degenerate system.
@@ -278,7 +281,7 @@ def _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x):
                 weight[j] = focal[c] / depth if use[j] and depth > 0 else 0.0  # NaN: False
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _solve_weighted(poses, n, cam, u, v, weight, x):
     """Solve the DLT normal equations of the views ``cam[:n]`` with row weights ``weight`` (0: view unused) in
     closed form (adjugate) into ``x (3,)``; NaN where the matrix is (nearly) singular.
@@ -324,7 +327,7 @@ def _solve_weighted(poses, n, cam, u, v, weight, x):
     x[2] = (c02 * r0 + c12 * r1 + c22 * r2) / det
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _errors_px(poses, focal, n, cam, u, v, x, error):
     """Reprojection errors ``error[:n]`` in px (normalized coordinates times focal length)
     of the views ``cam[:n]``; ``inf`` behind the camera or where ``x`` is NaN."""
@@ -339,7 +342,7 @@ def _errors_px(poses, focal, n, cam, u, v, x, error):
         error[j] = focal[c] * np.sqrt(du * du + dv * dv) if finite and z > 0 else np.inf
 
 
-@numba.njit(cache=True, error_model="numpy")
+@_inlined
 def _squared_pixel_error(observations, c, p, cameras, poses, x):
     """Squared distance in px between the detection ``observations[c, p]`` and ``x (3,)``
     projected with full distortion (same model as ``Camera.pixels_from_normalized``)."""
