@@ -26,9 +26,23 @@ from .cameras import CameraRig
 _UNDISTORT_ITERATIONS = 6
 # Points per task of the threaded loop (each task allocates its scratch arrays once).
 _CHUNK = 512
+
+
+def _compiled(**options):
+    """``numba.njit`` with an on-disk cache (compiled once per install, ~30-90 s) when numba
+    finds a writable cache folder (next to this file, else the user's cache folder), else
+    without one (compiled once per process)."""
+    def decorate(function):
+        try:
+            return numba.njit(cache=True, **options)(function)
+        except RuntimeError:  # "cannot cache function ...: no locator available"
+            return numba.njit(**options)(function)
+    return decorate
+
+
 # Helpers of the kernel: compiled into it (as separate functions their array arguments cost
 # 1.5x the time of the whole kernel).
-_inlined = numba.njit(cache=True, error_model="numpy", inline="always")
+_inlined = _compiled(error_model="numpy", inline="always")
 
 
 def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[str] | None = None,
@@ -122,7 +136,7 @@ def _camera_table(rig: CameraRig) -> np.ndarray:
                       cam.matrix[0, 1]] for cam in rig])
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
+@_compiled(error_model="numpy", parallel=True)
 def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshold,
                         refine_iterations, points, inliers, rms):  # pragma: no cover (compiled)
     """Fill ``points (P, 3)``, ``inliers (C, P)`` and ``rms (P,)`` from ``observations
