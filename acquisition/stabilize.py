@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from mocaptk.errors import OptionError
 from mocaptk.trajectories import Trajectories
 
+from .filtering import lowpass
 from .runs import take_segments, true_runs
 
 #: Automatic rigid set: at most this many markers ...
@@ -28,6 +29,10 @@ AUTO_RIGID_SPREAD = 0.25
 AUTO_RIGID_MIN_TOLERANCE_MM = 1.0
 #: The third marker must lie at least this far (mm) from the line through the first two.
 AUTO_RIGID_MIN_SPREAD_MM = 10.0
+#: Default low-pass cut-off (Hz) of the rigid markers before the pose fit: head motion is slow,
+#: marker noise is white, so the fitted pose keeps the motion and sheds most of the noise (noise in
+#: the pose would move every stabilized marker together and read as correlated facial motion).
+POSE_CUTOFF_HZ = 12.0
 _DETECT_FRAMES = 300  # frames sampled to score distance variation
 _MIN_SHARED = 0.5     # a pair counts only if seen together in half the sampled frames that have data
 _REFINE_ROUNDS = 2    # stabilize-and-reselect rounds after the pairwise-distance pick
@@ -149,7 +154,8 @@ def _least_moving_spread_set(sample: Trajectories, chosen: list[int], *, spread_
     (95th percentile distance from their median head-relative position), first pairwise
     ``spread_mm`` apart, then any of the remaining ones that move as little (up to 6 in all)."""
     try:
-        rel = stabilize_head(sample, rigid_labels=[sample.labels[k] for k in chosen]).trajectories.positions
+        rel = stabilize_head(sample, rigid_labels=[sample.labels[k] for k in chosen],
+                             pose_cutoff_hz=None).trajectories.positions  # frames subsampled: no filter
     except OptionError:
         return chosen
     seen = ~np.isnan(rel).any(axis=2)
@@ -246,7 +252,8 @@ def _reference_frame(traj: Trajectories, rigid: np.ndarray, visible: np.ndarray,
 
 
 def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = None,
-                   outlier_mm: float = 2.0, max_pose_gap: int = 10) -> StabilizeResult:
+                   outlier_mm: float = 2.0, max_pose_gap: int = 10,
+                   pose_cutoff_hz: float | None = POSE_CUTOFF_HZ) -> StabilizeResult:
     """Remove rigid head motion: fit the rigid marker set in every frame, express all markers in head coordinates.
 
     Parameters
@@ -262,6 +269,10 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         this many frames, inside one take and with posed frames on both sides, get a pose
         interpolated from those neighbours (rotation slerp, linear translation); their
         ``rms_residual_mm`` stays NaN. Longer runs stay without a pose (NaN output).
+    pose_cutoff_hz : the poses are fitted to the rigid markers low-passed at this cut-off
+        (zero-phase Butterworth, :func:`~mocaptk.acquisition.filtering.lowpass`); ``None``, or a
+        frame rate not above twice the cut-off: fitted to the raw markers. The stabilized output is
+        never filtered, only the pose.
 
     Each frame uses only its visible rigid markers (≥ 3). The reference shape is the rigid set in the
     reference frame (the first clean frame with the most rigid markers, in a "neutral" take if
@@ -274,7 +285,9 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     if len(set(labels)) < 3:
         raise OptionError(f"stabilization needs at least 3 distinct rigid markers, got {len(set(labels))}")
     idx = traj.index(labels)
-    rigid = traj.positions[:, idx]
+    raw = rigid = traj.positions[:, idx]
+    if pose_cutoff_hz is not None and pose_cutoff_hz < traj.rate / 2:
+        rigid = lowpass(traj.select(list(labels)), cutoff_hz=pose_cutoff_hz).positions
     visible = ~np.isnan(rigid).any(axis=2)
     if not visible.any():
         raise OptionError("the rigid markers are never visible")
@@ -297,7 +310,7 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         inlier = weights & ~np.isnan(rel).any(axis=2)
         for m in np.flatnonzero(inlier.any(axis=0)):
             reference[m] = rel[inlier[:, m], m].mean(axis=0)
-    residual = _residuals(np.nan_to_num(reference), rigid, rot, trans)
+    residual = _residuals(np.nan_to_num(reference), raw, rot, trans)  # of the markers as captured
     counts = weights.sum(axis=1)
     sq = np.where(weights, residual, 0.0) ** 2
     rms = np.full(len(rigid), np.nan)

@@ -101,7 +101,8 @@ def test_stabilization_recovers_known_head_motion(face):
     truth = np.einsum("ij,fmj->fmi", rot[ref], local) + trans[ref]
     err = np.linalg.norm(result.trajectories.positions - truth, axis=2)
     assert np.nanmedian(err) < 0.35 and np.nanpercentile(err, 99) < 1.5
-    assert np.nanmedian(result.rms_residual_mm) < 0.15  # ~ the 0.1 mm noise
+    # ≈ √3 × the 0.1 mm per-axis noise: the pose, fitted to low-passed markers, no longer absorbs it
+    assert np.nanmedian(result.rms_residual_mm) < 0.18
     np.testing.assert_allclose(result.rotations[ref], np.eye(3), atol=1e-12)
     assert result.trajectories.metadata["stabilized"]["rigid_labels"] == list(result.rigid_labels)
 
@@ -143,18 +144,19 @@ def test_stabilization_of_real_data_cancels_an_added_rigid_motion():
     box = [label for label in real.labels if label.startswith("boite:")]
     rot, trans = _head_motion(real.n_frames, seed=3)
     moved = real.replace(positions=np.einsum("fij,fmj->fmi", rot, real.positions) + trans[:, None])
-    a = stabilize_head(real, rigid_labels=box)
-    b = stabilize_head(moved, rigid_labels=box)
-    assert a.reference_frame == b.reference_frame
-    ref = a.reference_frame
-    expected = np.einsum("ij,fmj->fmi", rot[ref], a.trajectories.positions) + trans[ref]
-    np.testing.assert_allclose(b.trajectories.positions, expected, atol=1e-6)
-    assert np.nanmedian(a.rms_residual_mm) < 0.5  # the box really is rigid
+    for cutoff, atol in ((None, 1e-6), (12.0, 0.1)):  # raw fit: exact; low-passed rigid markers:
+        a = stabilize_head(real, rigid_labels=box, pose_cutoff_hz=cutoff)  # filtering does not
+        b = stabilize_head(moved, rigid_labels=box, pose_cutoff_hz=cutoff)  # commute with rotation
+        assert a.reference_frame == b.reference_frame
+        ref = a.reference_frame
+        expected = np.einsum("ij,fmj->fmi", rot[ref], a.trajectories.positions) + trans[ref]
+        np.testing.assert_allclose(b.trajectories.positions, expected, atol=atol)
+        assert np.nanmedian(a.rms_residual_mm) < 0.5  # the box really is rigid
 
 
 @pytest.fixture(scope="module")
 def sample_face():
-    """The bundled synthetic dense half-face performance (ICT-FaceKit, 127 markers, 0.27 mm noise)
+    """The bundled synthetic dense half-face performance (ICT-FaceKit, 139 markers, 0.27 mm noise)
     and its noise-free ground truth."""
     from mocaptk.acquisition.synth_session import load_ground_truth
 

@@ -18,6 +18,10 @@ def clean(
                                    help="Remove rigid head motion (positions become head-relative)."),
     rigid: str = typer.Option(None, "--rigid", help="Comma-separated labels of the rigid head markers "
                                                    "(default: detected as the markers whose distances vary least)."),
+    pose_cutoff: float = typer.Option(12.0, "--pose-cutoff", metavar="HZ",
+                                      help="Fit the head pose to the rigid markers low-passed at this "
+                                           "cut-off (their noise stays out of the pose; the output is not "
+                                           "filtered); 0: fit the raw markers."),
     fill_max_gap: int = typer.Option(10, "--fill-max-gap", min=0,
                                      help="Longest gap (frames) filled by spline interpolation, and longest "
                                           "leading/trailing gap filled at all; longer interior gaps are filled "
@@ -51,11 +55,13 @@ def clean(
     traj = read_marker_file(source, units=units, rate=rate)
     if lowpass_hz is not None:
         check_cutoff(lowpass_hz, rate=traj.rate)  # fail before the slower steps
+    if not pose_cutoff >= 0:  # NaN too
+        raise OptionError(f"--pose-cutoff must be >= 0 Hz, got {pose_cutoff:g}")
     doc: dict = {"format": "mocaptk-clean-report", "version": 1, "source": str(source)}
     before = 100 * traj.gap_stats().total_missing_fraction
     if stabilize:
         labels = [s.strip() for s in rigid.split(",") if s.strip()] if rigid else None
-        result = stabilize_head(traj, rigid_labels=labels)
+        result = stabilize_head(traj, rigid_labels=labels, pose_cutoff_hz=pose_cutoff or None)
         traj = result.trajectories
         fitted = np.isfinite(result.rms_residual_mm)
         no_pose = int(np.isnan(result.rotations[:, 0, 0]).sum())
@@ -65,6 +71,7 @@ def clean(
                    f"median rigid-fit RMS {median_rms:.3f} mm, {bridged} frames with an interpolated head pose, "
                    f"{no_pose} frames without one")
         doc["stabilization"] = {"rigid_labels": list(result.rigid_labels), "reference_frame": result.reference_frame,
+                                "pose_cutoff_hz": pose_cutoff or None,
                                 "median_rms_residual_mm": median_rms, "frames_interpolated_pose": bridged,
                                 "frames_without_pose": no_pose}
     if fill_max_gap > 0:
