@@ -146,14 +146,24 @@ def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshol
     for chunk in numba.prange(n_chunks):
         start = chunk * _CHUNK
         size = min(n_points, start + _CHUNK) - start
-        rays_u = np.empty((n_cams, _CHUNK))
-        rays_v = np.empty((n_cams, _CHUNK))
-        seen = np.empty((n_cams, _CHUNK), dtype=np.bool_)
-        x0 = np.empty(_CHUNK)
-        y0 = np.empty(_CHUNK)
+        rays_u = np.zeros((n_cams, _CHUNK))
+        rays_v = np.zeros((n_cams, _CHUNK))
+        seen = np.zeros((n_cams, _CHUNK), dtype=np.bool_)
+        # one camera's detections, gathered (index in the chunk, px), undistorted, scratch
+        index = np.empty(_CHUNK, dtype=np.int64)
+        pixels = np.empty((_CHUNK, 2))
+        ray_u, ray_v, ray_ok = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK, np.bool_)
+        x0, y0 = np.empty(_CHUNK), np.empty(_CHUNK)
         for c in range(n_cams):
-            _undistort(observations[c], start, size, cameras[c], rays_u[c], rays_v[c], seen[c],
-                       x0, y0)
+            m = 0
+            for k in range(size):  # branch-free gather of the detections (seen at random)
+                px, py = observations[c, start + k, 0], observations[c, start + k, 1]
+                index[m], pixels[m, 0], pixels[m, 1] = k, px, py
+                m += np.isfinite(px) and np.isfinite(py)
+            _undistort(pixels, 0, m, cameras[c], ray_u, ray_v, ray_ok, x0, y0)
+            for i in range(m):
+                k = index[i]
+                rays_u[c, k], rays_v[c, k], seen[c, k] = ray_u[i], ray_v[i], ray_ok[i]
         # one point's views, compacted: camera index, ray, inlier flag; scratch
         cam = np.empty(n_cams, dtype=np.int64)
         u = np.empty(n_cams)
@@ -166,11 +176,10 @@ def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshol
         for k in range(size):
             p = start + k
             n = 0
-            for c in range(n_cams):
+            for c in range(n_cams):  # branch-free
                 inliers[c, p] = False
-                if seen[c, k]:
-                    cam[n], u[n], v[n] = c, rays_u[c, k], rays_v[c, k]
-                    n += 1
+                cam[n], u[n], v[n] = c, rays_u[c, k], rays_v[c, k]
+                n += seen[c, k]
             _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
                                n, cam, u, v, use, best, error, weight, x)
             points[p] = x
