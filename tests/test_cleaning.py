@@ -193,7 +193,7 @@ def test_stabilization_bad_options(face):
     session, *_ = face
     with pytest.raises(OptionError, match="at least 3"):
         stabilize_head(session, rigid_labels=["HEAD_00", "HEAD_01"])
-    with pytest.raises(MocaptkError, match="unknown marker labels"):
+    with pytest.raises(MocaptkError, match="rigid markers not in the session: NOSE"):
         stabilize_head(session, rigid_labels=["HEAD_00", "HEAD_01", "NOSE"])
 
 
