@@ -284,6 +284,10 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     labels = tuple(rigid_labels) if rigid_labels is not None else detect_rigid_markers(traj)
     if len(set(labels)) < 3:
         raise OptionError(f"stabilization needs at least 3 distinct rigid markers, got {len(set(labels))}")
+    unknown = [label for label in labels if label not in set(traj.labels)]
+    if unknown:
+        raise OptionError(f"rigid markers not in the session: {', '.join(unknown[:5])}"
+                          + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""))
     idx = traj.index(labels)
     raw = rigid = traj.positions[:, idx]
     if pose_cutoff_hz is not None and pose_cutoff_hz < traj.rate / 2:

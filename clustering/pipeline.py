@@ -10,7 +10,7 @@ Nothing here prints or writes files; problems the user should know about are ret
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,6 +45,7 @@ class ClusterOptions:
     mirror: bool | None = None
     regions: dict[str, list[str]] | None = None
     takes: list[Take] | None = None
+    rigid: tuple[str, ...] | None = None  # rigid head markers for stabilization (None: detected)
 
 
 @dataclass
@@ -72,20 +73,22 @@ class ClusterResult:
 #: reference positions is head-relative (a head-mounted rig, or cleaned data): fitting a head pose
 #: to it would only turn the rigid set's own skin motion into a spurious head motion.
 HEAD_RELATIVE_RMS_MM = 1.0
+RIGID_WITHOUT_STABILIZING = "--rigid names the markers to stabilize on; it cannot go with --no-stabilize"
 
 
-def stabilize(traj: Trajectories) -> tuple[Trajectories, dict[str, Any]]:
+def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tuple[Trajectories, dict[str, Any]]:
     """Remove rigid head motion (acquisition stage); returns the session and a report.
 
-    A session that is already head-relative (its automatically detected rigid set moves less
-    than :data:`HEAD_RELATIVE_RMS_MM`) is returned unchanged; the report says so.
+    ``rigid``: labels of the rigid head markers (default: detected automatically). A session that
+    is already head-relative (its rigid set moves less than :data:`HEAD_RELATIVE_RMS_MM`) is
+    returned unchanged; the report says so.
     """
     try:
         from ..acquisition.stabilize import stabilize_head
     except ImportError:
         raise OptionError("head stabilization is not available in this installation; "
                           "use --no-stabilize for already head-relative data") from None
-    result = stabilize_head(traj)
+    result = stabilize_head(traj, rigid_labels=rigid)
     residual = np.asarray(result.rms_residual_mm, dtype=np.float64)
     residual = residual[np.isfinite(residual)]
     rigid = traj.positions[:, traj.index(result.rigid_labels)]
@@ -104,6 +107,8 @@ def check_options(options: ClusterOptions, n_frames: int) -> None:
         raise OptionError(f"--factor must be > 0, got {options.factor}")
     if options.step < 1:
         raise OptionError(f"--step must be >= 1, got {options.step}")
+    if options.rigid is not None and not options.stabilize:
+        raise OptionError(RIGID_WITHOUT_STABILIZING)
     if options.step >= n_frames:
         raise OptionError(f"--step {options.step} is not smaller than the session's {n_frames} frames")
 
@@ -138,7 +143,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     if options.stabilize:
         if progress:
             progress("stabilizing")
-        traj, stabilization = stabilize(traj)
+        traj, stabilization = stabilize(traj, rigid=options.rigid)
         if not stabilization["applied"]:
             notes.append("the session is already head-relative (the rigid set "
                          f"{', '.join(stabilization['rigid_labels'])} moves "
@@ -244,15 +249,20 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
 
 def load_session_and_test(session: str | Path, test: str | Path | None, *, stabilized: bool,
                           rate: float | None = None, units: str | None = None,
+                          rigid: Sequence[str] | None = None,
                           ) -> tuple[Trajectories, Trajectories | None, dict[str, Any]]:
-    """A session and an optional held-out test file, prepared alike (same markers, same stabilization).
+    """A session and an optional held-out test file, prepared alike (same markers, same stabilization
+    on the same rigid set: ``rigid``, or the one detected on the session).
 
     Returns ``(session, test or None, source)``; a test file lacking session markers raises
     :class:`InputFileError`.
     """
+    if rigid is not None and not stabilized:
+        raise OptionError(RIGID_WITHOUT_STABILIZING)
     traj, source = load_session(str(session), rate=rate, units=units)
     if stabilized:
-        traj, _ = stabilize(traj)
+        traj, report = stabilize(traj, rigid=rigid)
+        rigid = report["rigid_labels"]
     if test is None:
         return traj, None, source
     perf, _ = load_session(str(test), rate=rate, units=units)
@@ -262,5 +272,5 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
         raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
     perf = perf.select(traj.labels)
     if stabilized:
-        perf, _ = stabilize(perf)
+        perf, _ = stabilize(perf, rigid=rigid)
     return traj, perf, source

@@ -368,7 +368,7 @@ def test_cli_clean_real_file(run_cli, tmp_path):
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--rigid", "boite:gauche_ext,NOPE,X"], "unknown marker labels: NOPE"),
+    (["--rigid", "boite:gauche_ext,NOPE,X"], "rigid markers not in the session: NOPE"),
     (["--no-stabilize", "--rigid", "a,b,c"], "--rigid needs --stabilize"),
     (["--lowpass", "80"], "between 0 and 50"),
 ])

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import pytest
 
 from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
@@ -44,3 +47,25 @@ def test_stabilized_counts_match_motion_free_capture(still_and_moving, factor):
         ref_means = [r.mean_correlation for r in reference.layout.regions]
         assert min(raw_means) > 2.0 and min(ref_means) < 1.0  # of at most 3 (x + y + z)
     assert abs(n_stab - n_ref) <= 0.15 * n_ref, (n_ref, n_stab)
+
+
+def test_cli_stabilizes_on_the_given_rigid_markers(still_and_moving, run_cli, tmp_path):
+    still, moving = still_and_moving[0]
+    steady = np.nanpercentile(np.linalg.norm(still.positions - np.nanmedian(still.positions, axis=0), axis=2),
+                              95, axis=0)
+    rigid = sorted(still.labels[k] for k in np.argsort(steady)[:5])
+    session = tmp_path / "moving.npz"
+    np.savez(session, positions=moving.positions, labels=np.array(moving.labels), rate=moving.rate)
+    result = run_cli("cluster", session, "--rigid", ",".join(rigid), "--out", tmp_path / "L", "--formats", "none")
+    assert result.exit_code == 0, result.stderr
+    layout = json.loads((tmp_path / "L" / "layout.json").read_text())
+    assert layout["stabilization"]["rigid_labels"] == rigid
+    assert layout["stabilization"]["applied"] is True
+    evaluated = run_cli("evaluate", session, "--layout", tmp_path / "L" / "layout.json", "--seeds", "2", "--quiet")
+    assert evaluated.exit_code == 0, evaluated.stderr
+    for args, needle in [(("--rigid", "NOPE," + ",".join(rigid[:2])), "not in the session: NOPE"),
+                         (("--rigid", ",".join(rigid[:2])), "at least 3"),
+                         (("--rigid", ",".join(rigid), "--no-stabilize"), "--no-stabilize")]:
+        bad = run_cli("cluster", session, *args, "--out", tmp_path / "bad", "--formats", "none")
+        assert bad.exit_code == 2 and needle in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "bad").exists()

@@ -168,7 +168,9 @@ CATALOGUE = [
     ("E-STAB-FEW", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B"],
      "stabilization needs at least 3 distinct rigid markers"),
     ("E-LABELS-UNKNOWN", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B,Z"],
-     "unknown marker labels: Z"),
+     "rigid markers not in the session: Z"),
+    ("E-RIGID-NO-STABILIZE", lambda f: ["cluster", f["good.trc"], "--rigid", "A,B,Z", "--no-stabilize",
+                                        "--out", f["dir"] / "rn"], "it cannot go with --no-stabilize"),
     # -- cluster / sweep / evaluate inputs and options
     ("E-CLU-FACTOR", lambda f: ["cluster", S(f), "--factor", "0", "--out", f["dir"] / "o1"], "--factor must be > 0"),
     ("E-CLU-STEP", lambda f: ["cluster", S(f), "--step", "0", "--out", f["dir"] / "o2"], "--step must be >= 1"),

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from .app import app
-from .options import Rate, Units
+from .options import Rate, Rigid, Units, rigid_labels
 
 
 @app.command()
@@ -16,8 +16,7 @@ def clean(
     target: Path = typer.Argument(..., help="Output file: .c3d, .csv (Nexus style) or .trc."),
     stabilize: bool = typer.Option(True, "--stabilize/--no-stabilize",
                                    help="Remove rigid head motion (positions become head-relative)."),
-    rigid: str = typer.Option(None, "--rigid", help="Comma-separated labels of the rigid head markers "
-                                                   "(default: detected as the markers whose distances vary least)."),
+    rigid: Rigid = None,
     pose_cutoff: float = typer.Option(12.0, "--pose-cutoff", metavar="HZ",
                                       help="Fit the head pose to the rigid markers low-passed at this "
                                            "cut-off (their noise stays out of the pose; the output is not "
@@ -60,8 +59,7 @@ def clean(
     doc: dict = {"format": "mocaptk-clean-report", "version": 1, "source": str(source)}
     before = 100 * traj.gap_stats().total_missing_fraction
     if stabilize:
-        labels = [s.strip() for s in rigid.split(",") if s.strip()] if rigid else None
-        result = stabilize_head(traj, rigid_labels=labels, pose_cutoff_hz=pose_cutoff or None)
+        result = stabilize_head(traj, rigid_labels=rigid_labels(rigid), pose_cutoff_hz=pose_cutoff or None)
         traj = result.trajectories
         fitted = np.isfinite(result.rms_residual_mm)
         no_pose = int(np.isnan(result.rotations[:, 0, 0]).sum())

@@ -19,7 +19,7 @@ import typer
 
 from ..errors import OutputError
 from .app import app
-from .options import Rate, Units
+from .options import Rate, Rigid, Units, rigid_labels
 
 
 def default_out_dir(session: Path) -> Path:
@@ -126,6 +126,7 @@ def cluster(
                                 "the sagittal plane (default: when labels show one half + midline)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data, e.g. head-mounted cameras)."),
+    rigid: Rigid = None,
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
@@ -156,7 +157,7 @@ def cluster(
         raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
     traj, source = load_session(session, rate=rate, units=units)
     options = ClusterOptions(
-        factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror,
+        factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror, rigid=rigid_labels(rigid),
         regions=read_regions(regions, traj.labels) if regions else None,
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:

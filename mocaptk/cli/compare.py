@@ -8,7 +8,7 @@ import typer
 
 from ..errors import OptionError
 from .app import app
-from .options import Rate, Units
+from .options import Rate, Rigid, Units, rigid_labels
 
 
 def parse_counts(text: str) -> list[int]:
@@ -37,6 +37,7 @@ def compare(
     seed: int = typer.Option(0, "--seed", help="Seed of random layouts, k-means and restarts."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data)."),
+    rigid: Rigid = None,
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
@@ -71,7 +72,7 @@ def compare(
         check_writable(target, force=force)
     console = Console(stderr=True, quiet=quiet)
     traj, perf, source = load_session_and_test(session, test, stabilized=not no_stabilize,
-                                               rate=rate, units=units)
+                                               rate=rate, units=units, rigid=rigid_labels(rigid))
     with console.status("comparing") as status:
         rows = compare_methods(traj, test=perf, counts=count_list, methods=method_list, seed=seed,
                                options={"thin-shell": {"restarts": restarts}},

@@ -26,13 +26,19 @@ def evaluation_table(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def layout_rigid_set(layout) -> tuple[str, ...] | None:
+    """The rigid head markers the layout's session was stabilized on (None: not recorded)."""
+    labels = layout.extra.get("stabilization", {}).get("rigid_labels")
+    return tuple(labels) if labels else None
+
+
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
-                   units: str | None):
+                   units: str | None, rigid: tuple[str, ...] | None = None):
     """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
     from ..clustering.pipeline import load_session_and_test
 
     traj, perf, source = load_session_and_test(session, test, stabilized=stabilized, rate=rate,
-                                               units=units)
+                                               units=units, rigid=rigid)
     return traj, None if perf is None else perf.positions, source
 
 
@@ -71,7 +77,8 @@ def evaluate(
     check_writable(out_path, force=force)
     lay = read_layout(layout)
     traj, test_positions, source = session_arrays(
-        session, test=test, stabilized=bool(lay.parameters.get("stabilized")), rate=rate, units=units)
+        session, test=test, stabilized=bool(lay.parameters.get("stabilized")), rate=rate, units=units,
+        rigid=layout_rigid_set(lay))
     index = {label: i for i, label in enumerate(traj.labels)}
     measured = [c.representative for c in lay.clusters if c.mirrored_from is None]
     unknown = [label for label in measured if label not in index]

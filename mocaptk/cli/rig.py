@@ -76,6 +76,7 @@ def rig(
     from ..clustering.layout import read_layout
     from ..clustering.pipeline import load_session, stabilize
     from ..retarget.build import write_rig_outputs
+    from .evaluate import layout_rigid_set
 
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
     chosen = parse_formats(formats)
@@ -86,7 +87,7 @@ def rig(
         print(f"mocaptk: warning: {session} is not the file the layout was computed from "
               "(sha256 differs)", file=sys.stderr)
     if lay.parameters.get("stabilized") and not no_stabilize:
-        traj, _ = stabilize(traj)
+        traj, _ = stabilize(traj, rigid=layout_rigid_set(lay))
     pairs = read_landmarks(landmarks) if landmarks else None
     console = Console(stderr=True, quiet=quiet)
     with console.status("building the rig") as status:

@@ -9,7 +9,7 @@ import typer
 
 from ..errors import OptionError, OutputError
 from .app import app
-from .options import Rate, Units
+from .options import Rate, Rigid, Units, rigid_labels
 
 
 #: Each factor is one clustering + evaluation run; more than this is a typo, not a sweep.
@@ -48,6 +48,7 @@ def sweep(
     takes: Path = typer.Option(None, "--takes", help="Takes file (default: takes in the session)."),
     step: int = typer.Option(5, "--step", help="Use every STEP-th frame for the correlation matrices."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion."),
+    rigid: Rigid = None,
     test: Path = typer.Option(None, "--test", help="Separate performance file to test on (default: "
                               "held-out blocks of the session's takes)."),
     folds: int = typer.Option(5, "--folds", help="Held-out blocks per take."),
@@ -75,7 +76,7 @@ def sweep(
     if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
         raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
     traj, test_positions, source = session_arrays(session, test=test, stabilized=not no_stabilize,
-                                                  rate=rate, units=units)
+                                                  rate=rate, units=units, rigid=rigid_labels(rigid))
     region_map = read_regions(regions, traj.labels) if regions else None
     take_list = read_takes(takes, traj.n_frames) if takes else None
     splits = [] if test_positions is not None else holdout_splits(
