@@ -59,7 +59,8 @@ class RigOptions:
     ``max_influences`` per vertex (4 or 8 usual); ``falloff_mm``: how far (geodesic mm) a joint's
     influence extends past its region's border (``None``: :data:`FALLOFF_SPACINGS` x the dense
     marker spacing; 0: hard borders; see :mod:`~mocaptk.retarget.weights`);
-    ``pure_thin_shell``: skip the region shaping (measured on the sample: lower RMSE);
+    ``pure_thin_shell``: skip the region shaping (on the sample: equal RMSE at the dense markers,
+    lower over a whole face mesh — see docs/rig-weights.md);
     ``subdivisions``: midpoint subdivisions of the default marker surface mesh;
     ``ks``/``kb``: thin-shell stretching/bending stiffness.
     """
