@@ -295,7 +295,9 @@ def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarra
 
     Bad = an edge longer than the largest ``max_edge`` (V,) mm of its three vertices, or a
     flat rim sliver: the angle facing one of its border edges is wider than ``max_rim_angle``
-    (degrees) - the long thin triangles the convex hull adds between rim markers.
+    (degrees) - the long thin triangles the convex hull adds between rim markers. A marker is
+    never peeled off the surface: of the bad triangles that would leave a vertex without any, the
+    one with the shortest longest edge stays.
     """
     n = len(vertices)
     keys = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1),
@@ -307,12 +309,21 @@ def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarra
     too_long = longest > max_edge[faces].max(axis=1)
     wide = triangle_angles(vertices, faces) > max_rim_angle  # (T, 3) angle facing edge k
     keep = np.ones(len(faces), bool)
+    kept_for_marker = np.zeros(len(faces), bool)
     while True:
         live_keys, counts = np.unique(keys[keep], return_counts=True)
         on_border = np.isin(keys, live_keys[counts == 1])  # (T, 3)
-        drop = keep & ((on_border.any(axis=1) & too_long) | (on_border & wide).any(axis=1))
+        drop = keep & ~kept_for_marker & ((on_border.any(axis=1) & too_long) | (on_border & wide).any(axis=1))
         if not drop.any():
             return faces[keep]
+        referenced = np.zeros(n, bool)
+        referenced[faces[keep & ~drop].ravel()] = True
+        for v in np.unique(faces[drop].ravel()):
+            if not referenced[v]:
+                candidates = np.flatnonzero(drop & (faces == v).any(axis=1))
+                best = candidates[np.argmin(longest[candidates])]
+                drop[best], kept_for_marker[best] = False, True
+                referenced[faces[best]] = True
         keep &= ~drop
 
 

@@ -86,3 +86,17 @@ def test_surface_mesh_on_real_face_landmarks(shared_data):
 def test_surface_mesh_rejects_degenerate_clouds(bad):
     with pytest.raises(ValueError):
         marker_surface_mesh(bad)
+
+
+@pytest.mark.parametrize("name", ["dense_halfface.c3d", "dense_halfface_performance.c3d"])
+def test_surface_mesh_keeps_every_marker_of_the_bundled_sample(name):
+    """The peeled border once dropped the marker under the nose (NOSE_12_L) off the surface."""
+    from conftest import SAMPLES
+
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.clustering.neutral import neutral_pose
+
+    points = neutral_pose(read_trajectories(SAMPLES / name).positions)
+    q = mesh_quality(*marker_surface_mesh(points))
+    assert q.unreferenced_vertices == 0
+    assert q.non_manifold_edges == 0 and q.non_manifold_vertices == 0 and q.boundary_loops == 1
