@@ -13,7 +13,8 @@ the outlier consensus, the residual (RMS reprojection error in the distorted ima
 counts. Its kernel is compiled by numba (cached on disk; the first call is reported
 separately, then it is timed warm) and runs on all CPUs; the 1-thread row shows the serial
 speed. The per-point loop undistorts the seen detections with ``cv2.undistortPoints`` and
-solves one SVD per point.
+solves one SVD per point. Our two rows and aniposelib's take turns in each of ``--repeat``
+rounds (the fastest round counts), so load changes on a shared machine hit them alike.
 
 aniposelib (``pip install aniposelib``) is a benchmark-only dependency. Since 0.8 its
 ``CameraGroup.triangulate`` undistorts every entry with ``cv2.undistortPoints`` and solves a
@@ -102,18 +103,25 @@ def load_aniposelib(folder: str | None):
     return module
 
 
-def timed(function, repeat: int = 1):
-    """Result, fastest wall time and fastest CPU time (all threads of this process), s.
-
-    On a busy shared machine the CPU time is the steadier measure of the work done.
+def timed_together(functions: dict, repeat: int = 1) -> dict:
+    """For each named function: its result, fastest wall time and fastest CPU time (all
+    threads of this process), s. The functions take turns in every round, so a change of
+    load on a shared machine hits all of them alike; the CPU time is the steadier measure.
     """
-    best_wall, best_cpu, result = np.inf, np.inf, None
+    best = {name: [None, np.inf, np.inf] for name in functions}
     for _ in range(repeat):
-        wall, cpu = time.perf_counter(), time.process_time()
-        result = function()
-        best_wall = min(best_wall, time.perf_counter() - wall)
-        best_cpu = min(best_cpu, time.process_time() - cpu)
-    return result, (best_wall, best_cpu)
+        for name, function in functions.items():
+            wall, cpu = time.perf_counter(), time.process_time()
+            entry = best[name]
+            entry[0] = function()
+            entry[1] = min(entry[1], time.perf_counter() - wall)
+            entry[2] = min(entry[2], time.process_time() - cpu)
+    return {name: (result, (wall, cpu)) for name, (result, wall, cpu) in best.items()}
+
+
+def timed(function, repeat: int = 1):
+    """Result, fastest wall time and fastest CPU time of one function, s."""
+    return timed_together({"": function}, repeat)[""]
 
 
 def accuracy(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float, float, float]:
@@ -132,7 +140,8 @@ def main() -> None:
     parser.add_argument("--slow-points", type=int, default=1000,
                         help="points given to the slow per-point baselines (rate extrapolated)")
     parser.add_argument("--repeat", type=int, default=5,
-                        help="runs of the fast methods; the fastest counts (shared machines)")
+                        help="rounds of the fast methods (ours, aniposelib), taking turns; "
+                             "the fastest counts (shared machines)")
     parser.add_argument("--legacy-aniposelib", metavar="DIR",
                         help="folder holding an older aniposelib package to time as well")
     args = parser.parse_args()
@@ -171,22 +180,24 @@ def main() -> None:
                               ghost_rate=ghost_rate, rng=1)
         flat = obs.reshape(len(rig), -1, 2)
         data = "clean" if ghost_rate == 0 else "5 % ghosts"
-        rows = []
-        ours, t_ours = timed(lambda: triangulate(rig, obs).positions.reshape(-1, 3),
-                             repeat=args.repeat)
-        rows.append((f"mocaptk triangulate (robust, {threads} threads)", ours, t_ours,
-                     n_points))
-        numba.set_num_threads(1)
-        serial, t_serial = timed(lambda: triangulate(rig, obs).positions.reshape(-1, 3),
-                                 repeat=args.repeat)
-        numba.set_num_threads(threads)
-        rows.append(("mocaptk triangulate (robust, 1 thread)", serial, t_serial, n_points))
-        loop, t_loop = timed(lambda: per_point_loop(rig, flat))
-        rows.append(("per-point SVD loop", loop, t_loop, n_points))
+        def one_thread():
+            numba.set_num_threads(1)
+            try:
+                return triangulate(rig, obs).positions.reshape(-1, 3)
+            finally:
+                numba.set_num_threads(threads)
+
+        fast = {f"mocaptk triangulate (robust, {threads} threads)":
+                lambda: triangulate(rig, obs).positions.reshape(-1, 3),
+                "mocaptk triangulate (robust, 1 thread)": one_thread}
         if group is not None:
             group.triangulate(flat[:, :1000])  # JAX compiles on first use; not timed
-            anipose, t_anipose = timed(lambda: group.triangulate(flat), repeat=args.repeat)
-            rows.append(("aniposelib triangulate", anipose, t_anipose, n_points))
+            fast["aniposelib triangulate"] = lambda: group.triangulate(flat)
+        fast = timed_together(fast, repeat=args.repeat)
+        rows = [(name, result, seconds, n_points) for name, (result, seconds) in fast.items()]
+        ours, t_ours = rows[0][1], rows[0][2]
+        loop, t_loop = timed(lambda: per_point_loop(rig, flat))
+        rows.insert(2, ("per-point SVD loop", loop, t_loop, n_points))
         if legacy is not None:
             legacy.triangulate(flat[:, :100])  # numba compiles on first use; not timed
             old, t_old = timed(lambda: legacy.triangulate(flat[:, :args.slow_points]))
