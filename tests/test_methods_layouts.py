@@ -109,8 +109,8 @@ def test_paper_factor_bisection_hits_the_count():
 def test_hybrid_reports_its_contenders():
     problem, _ = driven_problem()
     result = select_layout(problem, 8, method="hybrid")
-    scores = result.details["cv_rmse_mm"]
-    assert set(scores) == {"clusters", "thin-shell", "qr", "greedy"}
+    scores = result.details["local_rmse_mm"]
+    assert set(scores) == {"clusters", "thin-shell", "qr", "greedy", "thin-shell+local"}
     assert scores[result.details["winner"]] == min(scores.values())
 
 
