@@ -125,8 +125,8 @@ def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
     inliers = np.empty((len(rig), n_points), dtype=np.bool_)
     rms = np.empty(n_points)
     _triangulate_kernel(np.ascontiguousarray(observations), cameras, poses, focal,
-                        min_views, float(outlier_threshold_px), refine_iterations,
-                        points, inliers, rms)
+                        int(min_views), float(outlier_threshold_px), int(refine_iterations),
+                        points, inliers, rms)  # plain int/float: one compiled signature
     return points, inliers, rms
 
 
