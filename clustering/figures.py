@@ -99,7 +99,7 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
             xy = _front(pts, frame)
             ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{name} ({len(pts)})")
     ax.set_aspect("equal")
-    ax.legend(loc="best", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)  # off the markers
     ax.set_xlabel("lateral (mm, + = subject's left)")
     ax.set_ylabel("up (mm)")
     ax.set_title("regions (front view)")
