@@ -169,9 +169,10 @@ def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshol
         u = np.empty(n_cams)
         v = np.empty(n_cams)
         use = np.empty(n_cams, dtype=np.bool_)
-        best = np.empty(n_cams, dtype=np.bool_)
         error = np.empty(n_cams)
+        views = np.empty(n_cams, dtype=np.int64)
         weight = np.empty(n_cams)
+        terms = np.empty((n_cams, 9))
         x = np.empty(3)
         for k in range(size):
             p = start + k
@@ -181,7 +182,7 @@ def _triangulate_kernel(observations, cameras, poses, focal, min_views, threshol
                 cam[n], u[n], v[n] = c, rays_u[c, k], rays_v[c, k]
                 n += seen[c, k]
             _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
-                               n, cam, u, v, use, best, error, weight, x)
+                               n, cam, u, v, use, error, views, weight, terms, x)
             points[p] = x
             count = 0
             squared = 0.0
@@ -226,41 +227,46 @@ def _undistort(observations, start, size, camera, u, v, valid, x0, y0):
 
 @_inlined
 def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
-                       n, cam, u, v, use, best, error, weight, x):
+                       n, cam, u, v, use, error, views, weight, terms, x):
     """Robust solve of one point seen by the ``n`` cameras ``cam[:n]`` (ascending) with rays
     ``u, v`` into ``x (3,)``; ``use[:n]`` ends as its inlier views.
-    ``best, error, weight``: scratch. (Arrays of length >= n; only the first n are used.)"""
+    ``error, views, weight, terms``: scratch. (Arrays of length >= n; only the first n are
+    used.)"""
+    for j in range(n):
+        _normal_terms(poses, cam[j], u[j], v[j], terms[j])
     # 1) all views; a point whose views all agree is done
     for j in range(n):
         use[j] = True
-    _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+    _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
     _errors_px(poses, focal, n, cam, u, v, x, error)
     n_inliers = 0
     for j in range(n):
         use[j] = error[j] <= threshold
         n_inliers += use[j]
     if n >= 2 and n_inliers < n:
-        # 2) consensus over the two-view hypotheses of every camera pair seeing the point
-        best_count, best_cost = 0, np.inf
+        # 2) consensus over the two-view hypotheses of every camera pair seeing the point:
+        # each pair is solved from its two views only; a pair that can no longer beat the
+        # best count (even with all its remaining views agreeing) stops being checked
+        best_count, best_cost, best_mask = 0, np.inf, 0
         for i in range(n):
             for j in range(i + 1, n):
+                views[0], views[1] = i, j
+                weight[0], weight[1] = focal[cam[i]], focal[cam[j]]
+                _solve_weighted(2, views, weight, terms, x)
+                count, cost, mask = 0, 0.0, 0
                 for m in range(n):
-                    weight[m] = 0.0
-                weight[i], weight[j] = focal[cam[i]], focal[cam[j]]
-                _solve_weighted(poses, n, cam, u, v, weight, x)
-                _errors_px(poses, focal, n, cam, u, v, x, error)
-                count, cost = 0, 0.0
-                for m in range(n):
-                    if error[m] <= threshold:
+                    if count + n - m < best_count:
+                        break
+                    e = _error_px(poses, focal[cam[m]], cam[m], u[m], v[m], x)
+                    if e <= threshold:
                         count += 1
-                        cost += error[m]
+                        cost += e
+                        mask |= 1 << m
                 if count > best_count or (count == best_count and cost < best_cost):
-                    best_count, best_cost = count, cost
-                    for m in range(n):
-                        best[m] = error[m] <= threshold
+                    best_count, best_cost, best_mask = count, cost, mask
         for j in range(n):
-            use[j] = best[j]
-        _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+            use[j] = (best_mask >> j) & 1 == 1
+        _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
         # views that agree with the refit consensus point join it (one more pass)
         _errors_px(poses, focal, n, cam, u, v, x, error)
         grown = 0
@@ -269,7 +275,7 @@ def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
         if grown > best_count:
             for j in range(n):
                 use[j] = error[j] <= threshold
-            _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x)
+            _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
     n_inliers = 0
     for j in range(n):
         n_inliers += use[j]
@@ -281,59 +287,74 @@ def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
 
 
 @_inlined
-def _solve(poses, focal, n, cam, u, v, use, refine_iterations, weight, x):
+def _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x):
     """Weighted inhomogeneous DLT over the views ``use[:n]`` into ``x (3,)`` mm; NaN with
     fewer than 2 views or a degenerate system.
 
     Rows are weighted by ``focal / depth`` (depth from the previous solution), so after the
-    first step the algebraic residual is the reprojection error in px.
+    first step the algebraic residual is the reprojection error in px. ``views, weight``:
+    scratch.
     """
     count = 0
     for j in range(n):
-        weight[j] = focal[cam[j]] if use[j] else 0.0
-        count += use[j]
+        if use[j]:
+            views[count], weight[count] = j, focal[cam[j]]
+            count += 1
     for step in range(refine_iterations + 1):
-        _solve_weighted(poses, n, cam, u, v, weight, x)
+        _solve_weighted(count, views, weight, terms, x)
         if count < 2:
             x[:] = np.nan
         if step < refine_iterations:
-            for j in range(n):
-                c = cam[j]
+            for k in range(count):
+                c = cam[views[k]]
                 depth = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] \
                     + poses[c, 2, 3]
-                weight[j] = focal[c] / depth if use[j] and depth > 0 else 0.0  # NaN: False
+                weight[k] = focal[c] / depth if depth > 0 else 0.0  # NaN: 0
 
 
 @_inlined
-def _solve_weighted(poses, n, cam, u, v, weight, x):
-    """Solve the DLT normal equations of the views ``cam[:n]`` with row weights ``weight`` (0: view unused) in
-    closed form (adjugate) into ``x (3,)``; NaN where the matrix is (nearly) singular.
+def _normal_terms(poses, c, u, v, terms):
+    """The 9 terms ``terms (9,)`` that the view of camera ``c`` with ray ``u, v`` adds (times
+    its squared row weight) to the DLT normal equations: ``a aᵀ + b bᵀ`` (upper triangle
+    00 01 02 11 12 22) and ``a a₄ + b b₄`` (3), with the rows ``a = u P3 - P1`` and
+    ``b = v P3 - P2`` (``P1..P3`` the rows of ``[R | t]``)."""
+    a0 = u * poses[c, 2, 0] - poses[c, 0, 0]
+    a1 = u * poses[c, 2, 1] - poses[c, 0, 1]
+    a2 = u * poses[c, 2, 2] - poses[c, 0, 2]
+    a3 = u * poses[c, 2, 3] - poses[c, 0, 3]
+    b0 = v * poses[c, 2, 0] - poses[c, 1, 0]
+    b1 = v * poses[c, 2, 1] - poses[c, 1, 1]
+    b2 = v * poses[c, 2, 2] - poses[c, 1, 2]
+    b3 = v * poses[c, 2, 3] - poses[c, 1, 3]
+    terms[0] = a0 * a0 + b0 * b0
+    terms[1] = a0 * a1 + b0 * b1
+    terms[2] = a0 * a2 + b0 * b2
+    terms[3] = a1 * a1 + b1 * b1
+    terms[4] = a1 * a2 + b1 * b2
+    terms[5] = a2 * a2 + b2 * b2
+    terms[6] = a0 * a3 + b0 * b3
+    terms[7] = a1 * a3 + b1 * b3
+    terms[8] = a2 * a3 + b2 * b3
 
-    Camera c contributes the rows ``a = u P3 - P1`` and ``b = v P3 - P2`` (``P1..P3`` the
-    rows of ``[R | t]``); the normal matrix is ``sum w² (a aᵀ + b bᵀ)`` over the first 3
-    columns, the right-hand side ``-sum w² (a a₄ + b b₄)``.
-    """
+
+@_inlined
+def _solve_weighted(count, views, weight, terms, x):
+    """Solve the DLT normal equations of the views ``views[:count]`` (rows of ``terms``, see
+    :func:`_normal_terms`) with row weights ``weight[:count]`` in closed form (adjugate) into
+    ``x (3,)``; NaN where the matrix is (nearly) singular."""
     m00 = m01 = m02 = m11 = m12 = m22 = r0 = r1 = r2 = 0.0
-    for j in range(n):
-        c = cam[j]
-        w2 = weight[j] * weight[j]
-        a0 = u[j] * poses[c, 2, 0] - poses[c, 0, 0]
-        a1 = u[j] * poses[c, 2, 1] - poses[c, 0, 1]
-        a2 = u[j] * poses[c, 2, 2] - poses[c, 0, 2]
-        a3 = u[j] * poses[c, 2, 3] - poses[c, 0, 3]
-        b0 = v[j] * poses[c, 2, 0] - poses[c, 1, 0]
-        b1 = v[j] * poses[c, 2, 1] - poses[c, 1, 1]
-        b2 = v[j] * poses[c, 2, 2] - poses[c, 1, 2]
-        b3 = v[j] * poses[c, 2, 3] - poses[c, 1, 3]
-        m00 += w2 * (a0 * a0 + b0 * b0)
-        m01 += w2 * (a0 * a1 + b0 * b1)
-        m02 += w2 * (a0 * a2 + b0 * b2)
-        m11 += w2 * (a1 * a1 + b1 * b1)
-        m12 += w2 * (a1 * a2 + b1 * b2)
-        m22 += w2 * (a2 * a2 + b2 * b2)
-        r0 -= w2 * (a0 * a3 + b0 * b3)
-        r1 -= w2 * (a1 * a3 + b1 * b3)
-        r2 -= w2 * (a2 * a3 + b2 * b3)
+    for k in range(count):
+        t = terms[views[k]]
+        w2 = weight[k] * weight[k]
+        m00 += w2 * t[0]
+        m01 += w2 * t[1]
+        m02 += w2 * t[2]
+        m11 += w2 * t[3]
+        m12 += w2 * t[4]
+        m22 += w2 * t[5]
+        r0 -= w2 * t[6]
+        r1 -= w2 * t[7]
+        r2 -= w2 * t[8]
     c00 = m11 * m22 - m12 * m12
     c01 = m02 * m12 - m01 * m22
     c02 = m01 * m12 - m02 * m11
@@ -352,17 +373,26 @@ def _solve_weighted(poses, n, cam, u, v, weight, x):
 
 @_inlined
 def _errors_px(poses, focal, n, cam, u, v, x, error):
-    """Reprojection errors ``error[:n]`` in px (normalized coordinates times focal length)
-    of the views ``cam[:n]``; ``inf`` behind the camera or where ``x`` is NaN."""
-    finite = np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])
+    """Reprojection errors ``error[:n]`` in px of the views ``cam[:n]`` (see
+    :func:`_error_px`)."""
     for j in range(n):
-        c = cam[j]
-        z = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] + poses[c, 2, 3]
-        du = (poses[c, 0, 0] * x[0] + poses[c, 0, 1] * x[1] + poses[c, 0, 2] * x[2]
-              + poses[c, 0, 3]) / z - u[j]
-        dv = (poses[c, 1, 0] * x[0] + poses[c, 1, 1] * x[1] + poses[c, 1, 2] * x[2]
-              + poses[c, 1, 3]) / z - v[j]
-        error[j] = focal[c] * np.sqrt(du * du + dv * dv) if finite and z > 0 else np.inf
+        error[j] = _error_px(poses, focal[cam[j]], cam[j], u[j], v[j], x)
+
+
+@_inlined
+def _error_px(poses, focal, c, u, v, x):
+    """Reprojection error in px (normalized coordinates times ``focal``) of ``x (3,)`` in
+    camera ``c`` against the ray ``u, v``; ``inf`` behind the camera or where ``x`` is NaN."""
+    if not (np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])):
+        return np.inf
+    z = poses[c, 2, 0] * x[0] + poses[c, 2, 1] * x[1] + poses[c, 2, 2] * x[2] + poses[c, 2, 3]
+    if not z > 0:
+        return np.inf
+    du = (poses[c, 0, 0] * x[0] + poses[c, 0, 1] * x[1] + poses[c, 0, 2] * x[2]
+          + poses[c, 0, 3]) / z - u
+    dv = (poses[c, 1, 0] * x[0] + poses[c, 1, 1] * x[1] + poses[c, 1, 2] * x[2]
+          + poses[c, 1, 3]) / z - v
+    return focal * np.sqrt(du * du + dv * dv)
 
 
 @_inlined
