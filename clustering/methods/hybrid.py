@@ -30,7 +30,7 @@ from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
 from .reconstruction import (CrossValidatedError, _gains, _residual_gram, greedy_layout,
-                             pivoted_qr_layout, training_frames, training_gram)
+                             pivoted_qr_layout, swap_descent, training_frames, training_gram)
 
 
 def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start: np.ndarray, *,
@@ -84,21 +84,12 @@ def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *
     allowed[problem.candidate_points()] = True
     dist = np.linalg.norm(problem.neutral[:, None] - problem.neutral[None], axis=2)
     near = np.argsort(dist, axis=1, kind="stable")
-    current = [int(p) for p in layout]
-    best = score.rmse(current)
-    for _ in range(max_passes):
-        improved = False
-        for slot in range(len(current)):
-            used = set(current)
-            tried = [int(p) for p in near[current[slot]] if allowed[p] and int(p) not in used][:neighbours]
-            for cand in tried:
-                trial = current[:slot] + [cand] + current[slot + 1:]
-                value = score.rmse(trial)
-                if value < best - 1e-12:
-                    best, current, improved = value, trial, True
-        if not improved:
-            break
-    return np.sort(np.array(current, dtype=np.intp)), best
+
+    def candidates(slot: int, current: list[int]) -> list[int]:
+        used = set(current)
+        return [int(p) for p in near[current[slot]] if allowed[p] and int(p) not in used][:neighbours]
+
+    return swap_descent(layout, candidates, score.rmse, max_passes=max_passes)
 
 
 def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,

@@ -14,7 +14,7 @@ of touching the frames:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -194,26 +194,38 @@ def swap_refine(problem: LayoutProblem, layout: Sequence[int] | np.ndarray, *,
     jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[problem.candidate_points()] = True
-    current = [int(i) for i in layout]
     keep = {int(i) for i in fixed}
-    best = scorer.rmse(current)
+
+    def candidates(slot: int, current: list[int]) -> list[int]:
+        if current[slot] in keep:
+            return []
+        others = current[:slot] + current[slot + 1:]
+        gain = _gains(_residual_gram(gram, others, jitter), jitter)
+        gain[~allowed] = -np.inf
+        gain[current] = -np.inf
+        order = np.argsort(-gain, kind="stable")[:candidates_per_swap]
+        return [int(c) for c in order if np.isfinite(gain[c])]
+
+    return swap_descent(layout, candidates, scorer.rmse, max_passes=max_passes)
+
+
+def swap_descent(layout: Sequence[int] | np.ndarray,
+                 candidates: Callable[[int, list[int]], Sequence[int]],
+                 score: Callable[[list[int]], float], *, max_passes: int) -> tuple[np.ndarray, float]:
+    """First-improvement swap search: for each slot of the layout in turn, try the points
+    ``candidates(slot, layout)`` (listed once per slot) in its place and keep every swap that
+    lowers ``score``; repeat until a sweep improves nothing or ``max_passes`` sweeps.
+    Returns (sorted layout, its score)."""
+    current = [int(i) for i in layout]
+    best = score(current)
     for _ in range(max_passes):
         improved = False
         for slot in range(len(current)):
-            if current[slot] in keep:
-                continue
-            others = current[:slot] + current[slot + 1:]
-            gain = _gains(_residual_gram(gram, others, jitter), jitter)
-            gain[~allowed] = -np.inf
-            gain[current] = -np.inf
-            order = np.argsort(-gain, kind="stable")[:candidates_per_swap]
-            for cand in order:
-                if not np.isfinite(gain[cand]):
-                    break
-                trial = others[:slot] + [int(cand)] + others[slot:]
-                score = scorer.rmse(trial)
-                if score < best - 1e-12:
-                    best, current, improved = score, trial, True
+            for cand in candidates(slot, current):
+                trial = current[:slot] + [int(cand)] + current[slot + 1:]
+                value = score(trial)
+                if value < best - 1e-12:
+                    best, current, improved = value, trial, True
         if not improved:
             break
     return np.sort(np.array(current, dtype=np.intp)), best
