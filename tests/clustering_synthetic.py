@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from mocaptk import Take, Trajectories
@@ -67,3 +70,11 @@ def planted_session(*, per_group: int = 4, frames: int = 600, noise: float = 0.0
         positions[rng.random((frames, n_markers)) < gaps] = np.nan
     meta = {"takes": take_list if takes else []}
     return Trajectories(positions, labels, 60.0, metadata=meta), group_of
+
+
+def save_session(traj: Trajectories, path: Path) -> tuple[Path, Path]:
+    """Write ``traj`` as a mocaptk ``.npz`` at ``path`` and its takes as ``takes.json`` beside it."""
+    np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
+    takes = path.with_name("takes.json")
+    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    return path, takes

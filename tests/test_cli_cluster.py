@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from clustering_synthetic import planted_session
+from clustering_synthetic import planted_session, save_session
 from conftest import SAMPLES, shared_path
 
 
@@ -15,10 +15,7 @@ def session_files(tmp_path_factory):
     """A planted half-face session as .npz plus its takes file."""
     folder = tmp_path_factory.mktemp("planted")
     traj, group_of = planted_session(seed=21)
-    path = folder / "planted.npz"
-    np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
-    takes = folder / "takes.json"
-    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    path, takes = save_session(traj, folder / "planted.npz")
     return path, takes, group_of
 
 

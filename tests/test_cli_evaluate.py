@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
-from clustering_synthetic import planted_session
+from clustering_synthetic import planted_session, save_session
 
 
 @pytest.fixture(scope="module")
@@ -17,10 +16,7 @@ def mirrored(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("evaluate")
     traj, _ = planted_session(seed=5, per_group=3, frames=240)
-    path = folder / "session.npz"
-    np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
-    takes = folder / "takes.json"
-    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    path, takes = save_session(traj, folder / "session.npz")
     session, source = load_session(str(path))
     result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
     layout = folder / "layout.json"

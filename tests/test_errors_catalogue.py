@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from clustering_synthetic import planted_session
+from clustering_synthetic import planted_session, save_session
 from conftest import REPO
 
 from mocaptk import Trajectories
@@ -28,8 +28,7 @@ def f(tmp_path_factory) -> dict[str, Path]:
 
     d = tmp_path_factory.mktemp("catalogue")
     traj, _ = planted_session(seed=2, per_group=3, frames=120)
-    np.savez(d / "session.npz", positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
-    (d / "takes.json").write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    save_session(traj, d / "session.npz")
     session, source = load_session(str(d / "session.npz"))
     result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
     write_layout(result.layout, d / "layout.json")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from clustering_synthetic import planted_session
+from clustering_synthetic import planted_session, save_session
 from conftest import REPO
 
 
@@ -38,10 +38,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
 
     folder = tmp_path_factory.mktemp("inputs")
     traj, _ = planted_session(seed=5, per_group=3, frames=240)
-    session = folder / "session.npz"
-    np.savez(session, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
-    takes = folder / "takes.json"
-    takes.write_text(json.dumps({"takes": [t.as_dict() for t in traj.takes]}))
+    session, takes = save_session(traj, folder / "session.npz")
     rig = cara_rig()
     save_rig(rig, folder / "cameras.json")
     # the planted cloud, moved in front of the head-mounted cameras (+Z forward, ~10 cm away)
