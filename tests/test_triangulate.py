@@ -78,7 +78,8 @@ def test_undistortion_matches_opencv():
     (strong radial + tangential distortion, the whole image, unseen detections)."""
     import cv2
 
-    from mocaptk.acquisition.triangulate import _UNDISTORT_ITERATIONS, _camera_table, _undistort
+    from mocaptk.acquisition.triangulate import _camera_table
+    from mocaptk.acquisition.triangulate_kernel import UNDISTORT_ITERATIONS, undistort
 
     rig = cara_rig(distortion=(-0.25, 0.12, 0.004, -0.003, -0.02))
     camera = rig[0]
@@ -89,14 +90,29 @@ def test_undistortion_matches_opencv():
     n = len(grid)
     u, v, valid, scratch_x, scratch_y = np.empty(n), np.empty(n), np.empty(n, bool), \
         np.empty(n), np.empty(n)
-    _undistort(grid, 0, n, _camera_table(rig)[0], u, v, valid, scratch_x, scratch_y)
+    undistort(grid, 0, n, _camera_table(rig)[0], u, v, valid, scratch_x, scratch_y)
     seen = np.isfinite(grid[:, 0])
     np.testing.assert_array_equal(valid, seen)
     reference = cv2.undistortPoints(grid[seen].reshape(-1, 1, 2), camera.matrix,
                                     camera.distortion,
-                                    criteria=(cv2.TERM_CRITERIA_COUNT, _UNDISTORT_ITERATIONS, 0))
+                                    criteria=(cv2.TERM_CRITERIA_COUNT, UNDISTORT_ITERATIONS, 0))
     difference_px = np.abs(np.stack([u[seen], v[seen]], 1) - reference.reshape(-1, 2))
     assert difference_px.max() * camera.focal_px < 1e-6
+
+
+def test_compile_notice_is_silent_once_the_kernel_is_compiled(markers):
+    """The CLI's "compiling..." line comes from numba's compile event: it must not fire when
+    the kernel is already compiled or loaded from numba's disk cache."""
+    from mocaptk.acquisition.triangulate import compile_notice
+
+    points, normals = markers
+    rig = cara_rig()
+    obs = project_markers(rig, points[:2], normals=normals[:2])
+    triangulate(rig, obs)  # first use in this process: compiles or loads from the cache
+    messages = []
+    with compile_notice(messages.append):
+        traj = triangulate(rig, obs)
+    assert messages == [] and np.isfinite(traj.positions).any()
 
 
 def test_camera_order_does_not_matter(markers):

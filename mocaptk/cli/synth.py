@@ -104,6 +104,7 @@ def synth(
     from ..acquisition.formats import output_format, write_trajectories
     from ..acquisition.gapfill import fill_gaps
     from ..acquisition.synth_layout import dense_layout
+    from ..acquisition.triangulate import compile_notice
     from ..atomic import check_writable
     from ..errors import OptionError
 
@@ -142,7 +143,9 @@ def synth(
         traj = synthetic.trajectories
         if camera_rig is not None:
             with console.status(f"capturing the {role} through the {rig} rig "
-                                f"({synthetic.truth.n_frames} frames)..."):
+                                f"({synthetic.truth.n_frames} frames)..."), compile_notice(
+                    lambda message: console.print(f"mocaptk: {message}", highlight=False,
+                                                  soft_wrap=True)):
                 traj = ss.camera_capture(model, synthetic.truth, camera_rig, noise_mm=noise,
                                          dropout=dropout, ghost_rate=ghosts, seed=seed)
             if max_gap > 0:

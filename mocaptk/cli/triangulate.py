@@ -39,6 +39,7 @@ def triangulate(
 
     from ..acquisition.cameras import load_rig
     from ..acquisition.formats import output_format, write_trajectories
+    from ..acquisition.triangulate import compile_notice
     from ..acquisition.triangulate import triangulate as triangulate_rig
     from ..atomic import check_writable
     from ..errors import OptionError
@@ -51,7 +52,9 @@ def triangulate(
     check_writable(target, force=force)
     rig = load_rig(rig_path)
     points2d, labels, rate = read_observations(observations_path, rig.names)
-    with Console(stderr=True, quiet=quiet).status("triangulating..."):
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("triangulating..."), compile_notice(
+            lambda message: console.print(f"mocaptk: {message}", highlight=False, soft_wrap=True)):
         traj = triangulate_rig(rig, points2d, labels=labels, rate=rate, min_views=min_views,
                                outlier_threshold_px=threshold)
     write_trajectories(traj, target, fmt=fmt, force=force)
