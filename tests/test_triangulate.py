@@ -115,6 +115,17 @@ def test_compile_notice_is_silent_once_the_kernel_is_compiled(markers):
     assert messages == [] and np.isfinite(traj.positions).any()
 
 
+def test_importing_acquisition_does_not_import_numba():
+    """numba (~0.4 s to import) is loaded on the first triangulation only."""
+    import subprocess
+    import sys
+
+    code = "import sys, mocaptk.acquisition; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False"
+
+
 def test_camera_order_does_not_matter(markers):
     points, normals = markers
     rig = cara_rig()
