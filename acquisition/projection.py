@@ -104,6 +104,24 @@ def project_markers(rig: CameraRig, points: np.ndarray, *, normals: np.ndarray |
     return observations
 
 
+def ellipsoid_markers(frames: int, markers: int, *, max_yaw: float = np.pi,
+                      seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Random points on a head-sized ellipsoid (half-axes 80 × 110 × 60 mm, centre 40 mm ahead of
+    the origin, +Z forward) with outward normals, for projection and triangulation tests.
+
+    ``max_yaw`` (rad): how far around the head from the front they go (π: all around; ~1.1:
+    the face). Returns ``points (frames, markers, 3)`` mm and ``normals`` of the same shape.
+    """
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-max_yaw, max_yaw, (frames, markers))
+    pitch = rng.uniform(-0.9, 0.9, (frames, markers))
+    axes = np.array([80.0, 110.0, 60.0])
+    unit = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
+    normals = unit / axes
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    return unit * axes + np.array([0.0, 0.0, 40.0]), normals
+
+
 def _add_ghosts(observations: np.ndarray, visible: np.ndarray, rate: float,
                 rng: np.random.Generator) -> None:
     """Replace a fraction ``rate`` of the visible observations in place by wrong positions."""

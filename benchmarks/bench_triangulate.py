@@ -39,20 +39,8 @@ import numba
 import numpy as np
 
 from mocaptk.acquisition.cameras import CameraRig, room_rig
-from mocaptk.acquisition.projection import project_markers
+from mocaptk.acquisition.projection import ellipsoid_markers, project_markers
 from mocaptk.acquisition.triangulate import triangulate
-
-
-def head_markers(frames: int, markers: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Markers all around a head-sized ellipsoid (mm) with outward normals."""
-    rng = np.random.default_rng(seed)
-    yaw = rng.uniform(-np.pi, np.pi, (frames, markers))
-    pitch = rng.uniform(-0.9, 0.9, (frames, markers))
-    axes = np.array([80.0, 110.0, 60.0])
-    unit = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
-    normals = unit / axes
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    return unit * axes + np.array([0.0, 0.0, 40.0]), normals
 
 
 def per_point_loop(rig: CameraRig, observations: np.ndarray) -> np.ndarray:
@@ -147,7 +135,7 @@ def main() -> None:
     args = parser.parse_args()
 
     rig = room_rig(n_cameras=8)
-    truth, normals = head_markers(args.frames, args.markers, seed=0)
+    truth, normals = ellipsoid_markers(args.frames, args.markers, seed=0)  # all around the head
     flat_truth = truth.reshape(-1, 3)
     n_points = flat_truth.shape[0]
     try:

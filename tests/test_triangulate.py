@@ -7,20 +7,13 @@ import pytest
 
 from conftest import shared_path
 from mocaptk.acquisition.cameras import cara_rig, read_qca, room_rig, save_rig
-from mocaptk.acquisition.projection import project_markers
+from mocaptk.acquisition.projection import ellipsoid_markers, project_markers
 from mocaptk.acquisition.triangulate import triangulate
 
 
 def face_markers(frames: int, markers: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Random markers on the front of a face-sized ellipsoid (mm, +Z forward) + normals."""
-    rng = np.random.default_rng(seed)
-    yaw = rng.uniform(-1.1, 1.1, (frames, markers))
-    pitch = rng.uniform(-0.9, 0.9, (frames, markers))
-    axes = np.array([80.0, 110.0, 60.0])
-    unit = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
-    normals = unit / axes
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    return unit * axes + np.array([0.0, 0.0, 40.0]), normals
+    return ellipsoid_markers(frames, markers, max_yaw=1.1, seed=seed)
 
 
 @pytest.fixture(scope="module")
