@@ -158,6 +158,31 @@ def fill_gaps(traj: Trajectories, *, max_gap: int = 10, method: str = "auto",
     return traj.replace(positions=out), FillReport(tuple(records))
 
 
+def held_out_gaps(traj: Trajectories, *, rng: np.random.Generator, length: int = 30,
+                  every: int = 3) -> tuple[Trajectories, list[tuple[int, int]]]:
+    """Cut one ``length``-frame gap at a random place into every ``every``-th marker, where the
+    marker is observed there and one frame either side — held-out gaps for measuring a filler.
+
+    Returns the cut session and ``(marker, first frame)`` of every gap.
+    """
+    cut = traj.positions.copy()
+    holes = []
+    for m in range(0, traj.n_markers, every):
+        start = int(rng.integers(10, traj.n_frames - length - 10))
+        if not np.isnan(traj.positions[start - 1:start + length + 1, m]).any():
+            cut[start:start + length, m] = np.nan
+            holes.append((m, start))
+    return traj.replace(positions=cut), holes
+
+
+def held_out_errors(filled: np.ndarray, truth: np.ndarray, holes: list[tuple[int, int]], *,
+                    length: int = 30) -> np.ndarray:
+    """Distances (mm) between ``filled`` and ``truth`` positions (frames, markers, 3) over the
+    frames of the :func:`held_out_gaps` ``holes``, concatenated."""
+    return np.concatenate([np.linalg.norm(filled[s:s + length, m] - truth[s:s + length, m], axis=1)
+                           for m, s in holes])
+
+
 def _interpolate(track: np.ndarray, valid: np.ndarray, gaps: list[tuple[int, int]], *, akima: bool) -> None:
     """Fill ``gaps`` of one marker's (frames, 3) ``track`` in place from its ``valid`` frames."""
     known = np.flatnonzero(valid)

@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from mocaptk import Trajectories
 from mocaptk.acquisition.formats import read_trajectories, write_trajectories
-from mocaptk.acquisition.gapfill import fill_gaps
+from mocaptk.acquisition.gapfill import fill_gaps, held_out_errors, held_out_gaps
 from mocaptk.acquisition.stabilize import kabsch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,18 +76,10 @@ def main() -> None:
 
     sample = read_trajectories(REPO / "sample_c3d" / "dense_halfface_performance.c3d")
     truth = load_ground_truth(REPO / "sample_c3d" / "dense_halfface_performance_truth.npz").positions
-    cut = sample.positions.copy()
-    holes = []
-    for m in range(0, sample.n_markers, 3):
-        start = int(rng.integers(10, sample.n_frames - 40))
-        if not np.isnan(sample.positions[start - 1:start + 31, m]).any():
-            cut[start:start + 30, m] = np.nan
-            holes.append((m, start))
-    session = sample.replace(positions=cut)
+    session, holes = held_out_gaps(sample, rng=rng)
     for method, max_gap in (("cubic", 1000), ("neighbours", 10), ("auto", 10)):
         (filled, report), wall, cpu = timed(fill_gaps, session, max_gap=max_gap, method=method)
-        err = np.concatenate([np.linalg.norm(filled.positions[s:s + 30, m] - truth[s:s + 30, m], axis=1)
-                              for m, s in holes])
+        err = held_out_errors(filled.positions, truth, holes)
         print(f"fill_gaps {method:10s} facial sample ({sample.n_markers} markers x {sample.n_frames} frames, "
               f"{len(report.records)} gaps): {wall:.2f} s wall / {cpu:.2f} s CPU; held-out 30-frame gaps RMSE "
               f"{np.sqrt(np.mean(err ** 2)):.3f} mm")

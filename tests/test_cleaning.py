@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from mocaptk import Take, Trajectories
 from mocaptk.acquisition.filtering import lowpass
 from mocaptk.acquisition.formats import read_trajectories
-from mocaptk.acquisition.gapfill import fill_gaps
+from mocaptk.acquisition.gapfill import fill_gaps, held_out_errors, held_out_gaps
 from mocaptk.acquisition.stabilize import detect_rigid_markers, kabsch, stabilize_head
 from mocaptk.errors import MocaptkError, OptionError
 
@@ -249,20 +249,11 @@ def test_gap_filling_error_on_held_out_facial_gaps(sample_face):
     """Held-out 30-frame (0.5 s) gaps in the facial sample, error vs the noise-free truth."""
     observed, truth = sample_face
     observed, truth_positions = observed.frames(0, 600), truth.positions[:600]
-    rng = np.random.default_rng(5)
-    cut = observed.positions.copy()
-    holes = []
-    for m in range(0, observed.n_markers, 3):
-        start = int(rng.integers(10, observed.n_frames - 40))
-        if not np.isnan(observed.positions[start - 1:start + 31, m]).any():
-            cut[start:start + 30, m] = np.nan
-            holes.append((m, start))
-    session = observed.replace(positions=cut)
+    session, holes = held_out_gaps(observed, rng=np.random.default_rng(5))
     rmse = {}
     for method, max_gap in (("cubic", 1000), ("neighbours", 10)):
         filled, _ = fill_gaps(session, max_gap=max_gap, method=method)
-        err = np.concatenate([np.linalg.norm(filled.positions[s:s + 30, m] - truth_positions[s:s + 30, m], axis=1)
-                              for m, s in holes])
+        err = held_out_errors(filled.positions, truth_positions, holes)
         rmse[method] = float(np.sqrt(np.mean(err ** 2)))
     print(f"facial sample, {len(holes)} held-out 30-frame gaps, RMSE vs truth: cubic {rmse['cubic']:.3f} mm, "
           f"neighbours {rmse['neighbours']:.3f} mm (noise 0.27 mm)")
