@@ -27,7 +27,10 @@ def evaluation_table(result: dict) -> str:
 
 
 def layout_rigid_set(layout) -> tuple[str, ...] | None:
-    """The rigid head markers the layout's session was stabilized on (None: not recorded)."""
+    """The rigid head markers the layout's session was stabilized on (None: not stabilized, e.g.
+    already head-relative, or not recorded)."""
+    if not layout.parameters.get("stabilized"):  # a detected set is recorded even when not applied
+        return None
     labels = layout.extra.get("stabilization", {}).get("rigid_labels")
     return tuple(labels) if labels else None
 
