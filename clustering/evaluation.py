@@ -11,7 +11,6 @@ present in a frame are reproduced exactly (they are measured). Errors are Euclid
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,130 +18,18 @@ from ..errors import OptionError
 from ..trajectories import Take
 from .baselines import farthest_point_layout, kmeans_layout, random_layout
 from .neutral import neutral_pose
-
-#: Default ridge strength, relative to the mean diagonal of the input Gram matrix.
-DEFAULT_RIDGE = 1e-3
+from .reconstruction_models import DEFAULT_RIDGE, FaceModel, ReconstructionModel, fit_model, fit_reconstruction
 
 
-def _row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct rows of a 2-D bool array and, per row, the number of its pattern (fast np.unique)."""
-    packed = np.ascontiguousarray(np.packbits(mask, axis=1))
-    keys = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return mask[first], inverse.ravel()
-
-
-def _ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ridge fit ``targets ≈ inputs @ W + b``; inputs finite (F, K), targets may hold NaN (F, T).
-
-    Each target column is fitted on its finite rows (the intercept is not penalised); columns
-    sharing a NaN pattern share one Gram matrix. A column with fewer than 2 finite rows gets
-    W = 0 and b = its mean (or 0).
-    """
-    n_frames, n_in = inputs.shape
-    n_out = targets.shape[1]
-    coef = np.zeros((n_in, n_out))
-    intercept = np.zeros(n_out)
-    present = np.isfinite(targets)
-    patterns, inverse = _row_patterns(present.T)
-    shift = inputs.mean(axis=0)  # centring keeps the normal equations well conditioned
-    aug = np.hstack([inputs - shift, np.ones((n_frames, 1))])
-    rhs = aug.T @ np.where(present, targets, 0.0)  # (K+1, T): NaN rows contribute nothing
-    full = aug.T @ aug
-    for p, rows in enumerate(patterns):
-        cols = np.flatnonzero(inverse == p)
-        n_rows = int(rows.sum())
-        if n_rows < 1:
-            continue
-        if n_rows < 2:
-            intercept[cols] = rhs[n_in, cols] / n_rows
-            continue
-        if n_rows == n_frames:
-            gram = full.copy()
-        elif n_rows >= n_frames // 2:  # gaps are usually rare: subtract the few missing rows
-            missing = aug[~rows]
-            gram = full - missing.T @ missing
-        else:
-            kept = aug[rows]
-            gram = kept.T @ kept
-        sums = gram[n_in, :n_in]
-        centred_trace = float(np.trace(gram[:n_in, :n_in]) - sums @ sums / n_rows)
-        lam = ridge * max(centred_trace / n_in, 1e-12)
-        gram[np.arange(n_in), np.arange(n_in)] += lam
-        solution = np.linalg.solve(gram, rhs[:, cols])
-        coef[:, cols] = solution[:n_in]
-        intercept[cols] = solution[n_in] - shift @ solution[:n_in]
-    return coef, intercept
-
-
-@dataclass
-class ReconstructionModel:
-    """Ridge reconstruction of all markers from the layout markers, fitted on training frames.
-
-    Sub-models for frames where some layout markers are missing are fitted on demand and cached.
-    """
-
-    train: np.ndarray  # (F, M, 3) mm, NaN gaps
-    layout: np.ndarray  # (L,) intp
-    ridge: float = DEFAULT_RIDGE
-    _cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
-
-    def submodel(self, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(W (3K, 3M), b (3M,)) using only the layout markers flagged in ``present`` (L,) bool."""
-        key = present.tobytes()
-        if key not in self._cache:
-            cols = self.layout[present]
-            x = self.train[:, cols].reshape(self.train.shape[0], -1)
-            rows = np.isfinite(x).all(axis=1)
-            y = self.train[rows].reshape(int(rows.sum()), -1)
-            self._cache[key] = _ridge_fit(x[rows], y, self.ridge)
-        return self._cache[key]
-
-
-def fit_reconstruction(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
-                       ridge: float = DEFAULT_RIDGE) -> ReconstructionModel:
-    """Prepare the reconstruction of all markers from ``layout_idx``.
-
-    Parameters
-    ----------
-    train : (frames, markers, 3) float, mm, NaN gaps
-    layout_idx : (L,) int
-        Indices of the layout markers (columns of ``train``).
-    ridge : float
-        Ridge strength relative to the mean input variance (scale-free).
-    """
-    layout = np.unique(np.asarray(layout_idx, dtype=np.intp))
-    train = np.asarray(train, dtype=np.float64)
-    if layout.size == 0 or layout[0] < 0 or layout[-1] >= train.shape[1]:
-        raise OptionError(f"layout indices must be in 0..{train.shape[1] - 1} and not empty")
-    if ridge < 0:
-        raise OptionError(f"ridge must be >= 0, got {ridge}")
-    return ReconstructionModel(train, layout, float(ridge))
-
-
-def reconstruct(model: ReconstructionModel, test: np.ndarray) -> np.ndarray:
+def reconstruct(model: ReconstructionModel | FaceModel, test: np.ndarray) -> np.ndarray:
     """Predicted positions ``(frames, markers, 3)`` mm of ``test`` from its layout markers.
 
     Frames with no layout marker present are NaN; present layout markers are copied.
     """
-    test = np.asarray(test, dtype=np.float64)
-    n_frames, n_markers = test.shape[:2]
-    out = np.full(test.shape, np.nan)
-    present = np.isfinite(test[:, model.layout]).all(axis=2)  # (F, L)
-    patterns, inverse = _row_patterns(present)
-    for p, pattern in enumerate(patterns):
-        if not pattern.any():
-            continue
-        frames = np.flatnonzero(inverse == p)
-        coef, intercept = model.submodel(pattern)
-        x = test[np.ix_(frames, model.layout[pattern])].reshape(frames.size, -1)
-        out[frames] = (x @ coef + intercept).reshape(frames.size, n_markers, 3)
-    observed = test[:, model.layout]
-    out[:, model.layout] = np.where(np.isfinite(observed), observed, out[:, model.layout])
-    return out
+    return model.predict_positions(np.asarray(test, dtype=np.float64)[:, model.layout])
 
 
-def reconstruction_errors(model: ReconstructionModel, test: np.ndarray) -> np.ndarray:
+def reconstruction_errors(model: ReconstructionModel | FaceModel, test: np.ndarray) -> np.ndarray:
     """Per-point reconstruction error ``(frames, markers)`` mm; NaN where truth or prediction is missing."""
     test = np.asarray(test, dtype=np.float64)
     pred = reconstruct(model, test)
@@ -211,18 +98,27 @@ def holdout_splits(n_frames: int, takes: Sequence[Take] = (), *, split: str = "b
 
 def heldout_errors(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray,
                    splits: Sequence[tuple[np.ndarray, np.ndarray]], *,
-                   test: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE) -> np.ndarray:
+                   test: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE,
+                   model_kind: str | None = None) -> np.ndarray:
     """Errors ``(frames, markers)`` mm of held-out frames.
 
     With ``test`` (a separate performance, same markers): fit on all of ``positions``, return the
     errors on ``test``. Otherwise pool the test frames of every split (frames never tested stay NaN).
+    ``model_kind``: a kind of :func:`~mocaptk.clustering.reconstruction_models.fit_model`
+    (default: ``evaluate``'s exact ridge).
     """
     positions = np.asarray(positions, dtype=np.float64)
+
+    def fit(train: np.ndarray) -> ReconstructionModel | FaceModel:
+        if model_kind is None:
+            return fit_reconstruction(train, layout_idx, ridge=ridge)
+        return fit_model(train, layout_idx, kind=model_kind, ridge=ridge)
+
     if test is not None:
-        return reconstruction_errors(fit_reconstruction(positions, layout_idx, ridge=ridge), test)
+        return reconstruction_errors(fit(positions), test)
     errors = np.full(positions.shape[:2], np.nan)
     for train_idx, test_idx in splits:
-        model = fit_reconstruction(positions[train_idx], layout_idx, ridge=ridge)
+        model = fit(positions[train_idx])
         errors[test_idx] = reconstruction_errors(model, positions[test_idx])
     return errors
 

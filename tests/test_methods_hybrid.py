@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocaptk.clustering.evaluation import _ridge_fit
+from mocaptk.clustering.reconstruction_models import ridge_fit as _ridge_fit
 from mocaptk.clustering.methods import LayoutProblem, select_layout
 from mocaptk.clustering.methods.hybrid import local_error, local_swaps
 from mocaptk.clustering.methods.local_fit import LocalError

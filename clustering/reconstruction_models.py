@@ -1,0 +1,711 @@
+"""Reconstruction models: every dense marker from a layout's markers, behind one interface.
+
+All models work in head-relative coordinates (mm) and take the layout markers of each frame with
+NaN for the ones lost; a frame is solved from the markers present in it (never filled first).
+
+Kinds (``MODEL_KINDS``):
+
+- ``ridge``: ridge regression of all marker coordinates from the present layout coordinates
+  (the model of ``mocaptk evaluate``), one closed-form model per presence pattern, from the
+  training covariance (sufficient statistics: a new pattern costs one small solve), cached.
+- ``thin-shell``: Le, Zhu & Deng's ``W = Â⁻¹B̂`` on the marker surface mesh of the neutral pose:
+  the dense displacement is the minimal stretching + bending surface through the present layout
+  markers' displacements (a lost marker's constraint is dropped: W of the present ones).
+- ``pdm-linear`` / ``pdm-biquadratic``: thin-shell + Ma et al. (2008) polynomial displacement
+  detail. Per layout marker a 5-D local deformation (3-D offset, 2 in-plane strains from its
+  2-ring of layout neighbours), PCA to (d1, d2), interpolated over the mesh with the thin-shell
+  weights; per dense marker and axis a (bi)quadratic / linear polynomial in (d1, d2) fitted by
+  ridge least squares to the thin-shell residual of the training frames.
+- ``local-ridge`` (ours): each dense marker by ridge from its ``neighbours`` (4) nearest *present*
+  layout markers (neutral pose, Euclidean), from the same training covariance as ``ridge``. A
+  global ridge learns cross-region correlations of the training takes (the brow is still while
+  the mouth take runs) that a production performance, which mixes regions, does not have; the
+  local model cannot (docs/solve.md measures it).
+
+Every prediction carries a per-frame expected error (mm): the model's RMS error over the dense
+markers on (up to 200) training frames with every layout marker present, plus, per missing layout
+marker, the increase measured with that marker alone dropped (added in quadrature; an
+approximation for several markers lost at once).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import zipfile
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocaptk.atomic import write_bytes
+from mocaptk.errors import InputFileError, OptionError, unreadable
+from mocaptk.jsonio import dumps
+from mocaptk.surface_mesh import marker_surface_mesh, mesh_edges
+from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
+
+from .neutral import neutral_pose
+
+__all__ = [
+    "DEFAULT_KIND", "DEFAULT_RIDGE", "MODEL_FORMAT", "MODEL_KINDS", "MODEL_VERSION", "FaceModel",
+    "Prediction", "ReconstructionModel", "fit_model", "fit_reconstruction", "load_model",
+    "model_from_arrays", "row_patterns", "save_model",
+]
+
+#: Default ridge strength, relative to the mean diagonal of the input Gram matrix.
+DEFAULT_RIDGE = 1e-3
+MODEL_KINDS = ("ridge", "local-ridge", "thin-shell", "pdm-linear", "pdm-biquadratic")
+#: The kind ``mocaptk solve`` uses without ``--model-kind`` (the best on held-out data, docs/solve.md).
+DEFAULT_KIND = "local-ridge"
+#: Layout markers each dense marker is solved from in ``local-ridge``.
+LOCAL_NEIGHBOURS = 4
+MODEL_FORMAT, MODEL_VERSION = "mocaptk.model", 1
+#: Ridge strength of the detail polynomials, relative to the mean diagonal of their Gram matrix.
+DETAIL_RIDGE = 1e-2
+#: Training frames used to measure the expected error (evenly subsampled).
+CHECK_FRAMES = 200
+#: Per-pattern sub-models kept (least recently used dropped first): memory stays bounded.
+CACHE_PATTERNS = 2048
+#: Thin-shell stiffness (Le et al.'s ks = 1, kb = 10) and the tiny Tikhonov term that keeps marker
+#: surface parts without a present marker (isolated outliers) at their neutral position.
+KS, KB, TIKHONOV = 1.0, 10.0, 1e-9
+
+
+def row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct rows of a 2-D bool array and, per row, the number of its pattern (fast np.unique)."""
+    packed = np.ascontiguousarray(np.packbits(mask, axis=1))
+    keys = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return mask[first], inverse.ravel()
+
+
+def ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ridge fit ``targets ≈ inputs @ W + b``; inputs finite (F, K), targets may hold NaN (F, T).
+
+    Each target column is fitted on its finite rows (the intercept is not penalised); columns
+    sharing a NaN pattern share one Gram matrix. A column with fewer than 2 finite rows gets
+    W = 0 and b = its mean (or 0).
+    """
+    n_frames, n_in = inputs.shape
+    n_out = targets.shape[1]
+    coef = np.zeros((n_in, n_out))
+    intercept = np.zeros(n_out)
+    present = np.isfinite(targets)
+    patterns, inverse = row_patterns(present.T)
+    shift = inputs.mean(axis=0)  # centring keeps the normal equations well conditioned
+    aug = np.hstack([inputs - shift, np.ones((n_frames, 1))])
+    rhs = aug.T @ np.where(present, targets, 0.0)  # (K+1, T): NaN rows contribute nothing
+    full = aug.T @ aug
+    for p, rows in enumerate(patterns):
+        cols = np.flatnonzero(inverse == p)
+        n_rows = int(rows.sum())
+        if n_rows < 1:
+            continue
+        if n_rows < 2:
+            intercept[cols] = rhs[n_in, cols] / n_rows
+            continue
+        if n_rows == n_frames:
+            gram = full.copy()
+        elif n_rows >= n_frames // 2:  # gaps are usually rare: subtract the few missing rows
+            missing = aug[~rows]
+            gram = full - missing.T @ missing
+        else:
+            kept = aug[rows]
+            gram = kept.T @ kept
+        sums = gram[n_in, :n_in]
+        centred_trace = float(np.trace(gram[:n_in, :n_in]) - sums @ sums / n_rows)
+        lam = ridge * max(centred_trace / n_in, 1e-12)
+        gram[np.arange(n_in), np.arange(n_in)] += lam
+        solution = np.linalg.solve(gram, rhs[:, cols])
+        coef[:, cols] = solution[:n_in]
+        intercept[cols] = solution[n_in] - shift @ solution[:n_in]
+    return coef, intercept
+
+
+@dataclass
+class ReconstructionModel:
+    """``evaluate``'s exact ridge: per presence pattern, fitted on the training frames where the
+    pattern's layout markers are all present, each target on its own finite rows (keeps the
+    training frames; use :func:`fit_model` for a compact, savable model).
+    """
+
+    train: np.ndarray  # (F, M, 3) mm, NaN gaps
+    layout: np.ndarray  # (L,) intp
+    ridge: float = DEFAULT_RIDGE
+    _cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def submodel(self, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(W (3K, 3M), b (3M,)) using only the layout markers flagged in ``present`` (L,) bool."""
+        key = present.tobytes()
+        if key not in self._cache:
+            cols = self.layout[present]
+            x = self.train[:, cols].reshape(self.train.shape[0], -1)
+            rows = np.isfinite(x).all(axis=1)
+            y = self.train[rows].reshape(int(rows.sum()), -1)
+            self._cache[key] = ridge_fit(x[rows], y, self.ridge)
+        return self._cache[key]
+
+    def predict_positions(self, layout_positions: np.ndarray) -> np.ndarray:
+        """(F, M, 3) mm from the layout markers (F, L, 3) (NaN = lost); present ones copied."""
+        n_markers = self.train.shape[1]
+        return _by_pattern(layout_positions, self.layout, n_markers,
+                           lambda pattern, x: _affine(x, *self.submodel(pattern), n_markers))
+
+
+def fit_reconstruction(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
+                       ridge: float = DEFAULT_RIDGE) -> ReconstructionModel:
+    """``evaluate``'s ridge reconstruction of all markers from ``layout_idx``.
+
+    Parameters
+    ----------
+    train : (frames, markers, 3) float, mm, NaN gaps
+    layout_idx : (L,) int
+        Indices of the layout markers (columns of ``train``).
+    ridge : float
+        Ridge strength relative to the mean input variance (scale-free).
+    """
+    train = np.asarray(train, dtype=np.float64)
+    return ReconstructionModel(train, _layout_indices(layout_idx, train.shape[1]), _ridge(ridge))
+
+
+def _layout_indices(layout_idx: Sequence[int] | np.ndarray, n_markers: int) -> np.ndarray:
+    layout = np.unique(np.asarray(layout_idx, dtype=np.intp))
+    if layout.size == 0 or layout[0] < 0 or layout[-1] >= n_markers:
+        raise OptionError(f"layout indices must be in 0..{n_markers - 1} and not empty")
+    return layout
+
+
+def _ridge(ridge: float) -> float:
+    if ridge < 0:
+        raise OptionError(f"ridge must be >= 0, got {ridge}")
+    return float(ridge)
+
+
+def _affine(x: np.ndarray, coef: np.ndarray, intercept: np.ndarray, n_markers: int) -> np.ndarray:
+    return (x.reshape(len(x), -1) @ coef + intercept).reshape(len(x), n_markers, 3)
+
+
+def _by_pattern(layout_positions: np.ndarray, layout: np.ndarray, n_markers: int,
+                solve: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """Apply ``solve(pattern (L,) bool, present layout markers (f, K, 3)) -> (f, M, 3)`` per
+    presence pattern; frames without any layout marker are NaN; present layout markers copied."""
+    x = np.asarray(layout_positions, dtype=np.float64)
+    out = np.full((x.shape[0], n_markers, 3), np.nan)
+    present = np.isfinite(x).all(axis=2)
+    patterns, inverse = row_patterns(present)
+    for p, pattern in enumerate(patterns):
+        if pattern.any():
+            frames = np.flatnonzero(inverse == p)
+            out[frames] = solve(pattern, x[frames][:, pattern])
+    out[:, layout] = np.where(present[..., None], x, out[:, layout])
+    return out
+
+
+class _LRU(OrderedDict):
+    """A bounded cache: the least recently used entry goes first."""
+
+    def get_or(self, key: bytes, make: Callable[[], Any]) -> Any:
+        if key in self:
+            self.move_to_end(key)
+            return self[key]
+        value = self[key] = make()
+        if len(self) > CACHE_PATTERNS:
+            self.popitem(last=False)
+        return value
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Dense markers solved from layout-marker frames.
+
+    ``positions`` (F, M, 3) mm (NaN in frames without any layout marker); ``expected_error_mm``
+    (F,) the model's expected RMS error over the dense markers for that frame's missing pattern
+    (NaN without any layout marker); ``missing`` (F, L) bool, the layout markers lost per frame.
+    """
+
+    positions: np.ndarray
+    expected_error_mm: np.ndarray
+    missing: np.ndarray
+
+
+class FaceModel:
+    """Base of the reconstruction models: ``predict`` + the expected error per missing pattern.
+
+    Subclasses set ``kind``, ``layout`` (L,) intp, ``n_markers``, ``neutral`` (M, 3) mm, implement
+    ``_solve(pattern, x)`` and ``_arrays()``; ``error_base`` (scalar) and ``error_drop`` (L,)
+    hold the expected-error table (see the module docstring).
+    """
+
+    kind: str
+    layout: np.ndarray
+    n_markers: int
+    neutral: np.ndarray
+    error_base: float = float("nan")
+    error_drop: np.ndarray
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def _arrays(self) -> dict[str, np.ndarray]:  # pragma: no cover
+        raise NotImplementedError
+
+    def predict_positions(self, layout_positions: np.ndarray) -> np.ndarray:
+        """(F, M, 3) mm from the layout markers (F, L, 3), NaN = lost; present ones copied."""
+        return _by_pattern(layout_positions, self.layout, self.n_markers, self._solve)
+
+    def predict(self, layout_positions: np.ndarray) -> Prediction:
+        """Dense markers, expected error and missing flags from layout markers (F, L, 3) mm."""
+        x = np.asarray(layout_positions, dtype=np.float64)
+        if x.ndim != 3 or x.shape[1:] != (self.layout.size, 3):
+            raise OptionError(f"expected layout frames of shape (F, {self.layout.size}, 3), got {x.shape}")
+        missing = ~np.isfinite(x).all(axis=2)
+        excess = np.maximum(self.error_drop ** 2 - self.error_base ** 2, 0.0)
+        error = np.sqrt(self.error_base ** 2 + missing.astype(float) @ excess)
+        error[missing.all(axis=1)] = np.nan
+        return Prediction(self.predict_positions(x), error, missing)
+
+    def measure_expected_error(self, check: np.ndarray) -> None:
+        """Fill the expected-error table from training frames ``check`` (f, M, 3) mm."""
+        complete = np.isfinite(check[:, self.layout]).all(axis=(1, 2))
+        check = check[complete]
+        if check.shape[0] == 0:
+            self.error_base, self.error_drop = float("nan"), np.full(self.layout.size, np.nan)
+            return
+        x = check[:, self.layout]
+        self.error_base = _rms(self.predict_positions(x) - check)
+        drops = np.empty(self.layout.size)
+        for j in range(self.layout.size):
+            lost = x.copy()
+            lost[:, j] = np.nan
+            drops[j] = _rms(self.predict_positions(lost) - check) if self.layout.size > 1 else np.nan
+        self.error_drop = drops
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Everything :func:`model_from_arrays` needs (saved in ``model.npz``)."""
+        return {"layout": self.layout, "neutral": self.neutral,
+                "error_base": np.array(self.error_base), "error_drop": self.error_drop,
+                **self._arrays()}
+
+
+def _rms(diff: np.ndarray) -> float:
+    sq = np.sum(diff ** 2, axis=-1)
+    sq = sq[np.isfinite(sq)]
+    return float(np.sqrt(sq.mean())) if sq.size else float("nan")
+
+
+class RidgeModel(FaceModel):
+    """Ridge per presence pattern from the training covariance of the gap-free frames.
+
+    ``mean`` (3M,), ``cov`` (3M, 3M) centred cross-product sums over the training frames without
+    any gap (same solution as :func:`ridge_fit` on those frames), ``frames`` their count.
+    """
+
+    kind = "ridge"
+
+    def __init__(self, *, layout: np.ndarray, neutral: np.ndarray, mean: np.ndarray,
+                 cov: np.ndarray, frames: int, ridge: float) -> None:
+        self.layout, self.neutral = layout, neutral
+        self.n_markers = neutral.shape[0]
+        self.mean, self.cov, self.frames, self.ridge = mean, cov, int(frames), float(ridge)
+        self._cache = _LRU()
+
+    @classmethod
+    def fit(cls, train: np.ndarray, layout: np.ndarray, *, ridge: float) -> RidgeModel:
+        flat = train.reshape(train.shape[0], -1)
+        rows = np.isfinite(flat).all(axis=1)
+        if rows.sum() < 2:
+            raise OptionError("ridge needs at least 2 training frames without gaps")
+        data = flat[rows]
+        mean = data.mean(axis=0)
+        centred = data - mean
+        return cls(layout=layout, neutral=neutral_pose(train), mean=mean, cov=centred.T @ centred,
+                   frames=int(rows.sum()), ridge=ridge)
+
+    def submodel(self, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(W (3K, 3M), b (3M,)) from the present layout markers ``pattern`` (L,) bool."""
+        def make() -> tuple[np.ndarray, np.ndarray]:
+            cols = (3 * self.layout[pattern][:, None] + np.arange(3)).ravel()
+            gram = self.cov[np.ix_(cols, cols)].copy()
+            lam = self.ridge * max(float(np.trace(gram)) / cols.size, 1e-12)
+            gram[np.diag_indices_from(gram)] += lam
+            coef = np.linalg.solve(gram, self.cov[cols])
+            return coef, self.mean - self.mean[cols] @ coef
+        return self._cache.get_or(pattern.tobytes(), make)
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return _affine(x, *self.submodel(pattern), self.n_markers)
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {"mean": self.mean, "cov": self.cov, "frames": np.array(self.frames),
+                "ridge": np.array(self.ridge)}
+
+
+class LocalRidgeModel(RidgeModel):
+    """Each dense marker by ridge from its ``neighbours`` nearest present layout markers."""
+
+    kind = "local-ridge"
+
+    def __init__(self, *, neighbours: int, **stats: Any) -> None:
+        super().__init__(**stats)
+        if neighbours < 1:
+            raise OptionError(f"neighbours must be >= 1, got {neighbours}")
+        self.neighbours = int(neighbours)
+
+    @classmethod
+    def fit(cls, train: np.ndarray, layout: np.ndarray, *, ridge: float,
+            neighbours: int = LOCAL_NEIGHBOURS) -> LocalRidgeModel:
+        stats = RidgeModel.fit(train, layout, ridge=ridge)
+        return cls(layout=layout, neutral=stats.neutral, mean=stats.mean, cov=stats.cov,
+                   frames=stats.frames, ridge=ridge, neighbours=neighbours)
+
+    def local_models(self, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per dense marker: its nearest present layout markers (M, k) (positions among the
+        present ones), weights (M, 3k, 3) and offsets (M, 3) of ``pattern`` (L,) bool."""
+        def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            present = self.layout[pattern]
+            k = min(self.neighbours, present.size)
+            neutral = np.nan_to_num(self.neutral, nan=np.inf)
+            dist = np.linalg.norm(neutral[:, None] - neutral[present][None], axis=2)
+            near = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (M, k)
+            cols = (3 * present[near][..., None] + np.arange(3)).reshape(self.n_markers, 3 * k)
+            gram = self.cov[cols[:, :, None], cols[:, None, :]]  # (M, 3k, 3k)
+            lam = self.ridge * np.maximum(np.einsum("mii->m", gram) / (3 * k), 1e-12)
+            gram[:, np.arange(3 * k), np.arange(3 * k)] += lam[:, None]
+            targets = 3 * np.arange(self.n_markers)[:, None] + np.arange(3)  # (M, 3)
+            coef = np.linalg.solve(gram, self.cov[cols[:, :, None], targets[:, None, :]])
+            offset = self.mean[targets] - np.einsum("mk,mkc->mc", self.mean[cols], coef)
+            return near, coef, offset
+        return self._cache.get_or(pattern.tobytes(), make)
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        near, coef, offset = self.local_models(pattern)
+        inputs = x[:, near].reshape(len(x), self.n_markers, -1)  # (f, M, 3k)
+        return np.einsum("fmk,mkc->fmc", inputs, coef) + offset
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {**super()._arrays(), "neighbours": np.array(self.neighbours)}
+
+
+class ThinShellModel(FaceModel):
+    """``W = Â⁻¹B̂`` on the marker surface mesh (vertices = the dense markers, ``faces`` (T, 3))."""
+
+    kind = "thin-shell"
+
+    def __init__(self, *, layout: np.ndarray, neutral: np.ndarray, faces: np.ndarray) -> None:
+        self.layout, self.neutral, self.faces = layout, neutral, faces
+        self.n_markers = neutral.shape[0]
+        seen = np.isfinite(neutral).all(axis=1)
+        self._seen = np.flatnonzero(seen)
+        local = np.full(self.n_markers, -1, dtype=np.intp)
+        local[self._seen] = np.arange(self._seen.size)
+        self._local_layout = local[layout]
+        op = thin_shell_operator(neutral[self._seen], local[faces], ks=KS, kb=KB)
+        scale = float(np.abs(op.diagonal()).mean()) or 1.0
+        self._operator = op + TIKHONOV * scale * _identity(op.shape[0])
+        self._cache = _LRU()
+
+    @classmethod
+    def fit(cls, train: np.ndarray, layout: np.ndarray) -> ThinShellModel:
+        neutral = neutral_pose(train)
+        if not np.isfinite(neutral[layout]).all():
+            raise OptionError("a layout marker is never seen in the training frames")
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        _, faces = marker_surface_mesh(neutral[seen])
+        return cls(layout=layout, neutral=neutral, faces=seen[np.asarray(faces, dtype=np.intp)])
+
+    def weights(self, pattern: np.ndarray) -> np.ndarray:
+        """(M_seen, K) thin-shell weights of the present layout markers ``pattern`` (L,) bool."""
+        return self._cache.get_or(pattern.tobytes(), lambda: interpolation_weights(
+            self._operator, self._local_layout[pattern]))
+
+    def interpolate(self, pattern: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Values (f, K, C) at the present layout markers -> (f, M, C) over the surface (NaN unseen)."""
+        out = np.full((values.shape[0], self.n_markers, values.shape[2]), np.nan)
+        out[:, self._seen] = np.einsum("mk,fkc->fmc", self.weights(pattern), values)
+        return out
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return self.neutral + self.interpolate(pattern, x - self.neutral[self.layout[pattern]])
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {"faces": self.faces}
+
+
+def _identity(n: int):
+    import scipy.sparse as sp
+
+    return sp.identity(n, format="csr")
+
+
+class LocalDeformation:
+    """Ma et al.'s per-marker 5-D local deformation and its PCA to (d1, d2).
+
+    For layout marker j: its offset from neutral (3) and 2 in-plane strains: the 2x2 linear map
+    taking its 2-ring neighbours' neutral offsets to their current offsets, both in the marker's
+    tangent basis (the 2 main directions of its neutral neighbourhood), minus identity, diagonal.
+    ``neighbours[j]`` (layout positions), ``tangents`` (L, 3, 2), ``pca_mean`` (L, 5),
+    ``pca_axes`` (L, 5, 2) with the standardisation folded in (d = (f − mean) @ axes); (d1, d2)
+    are clipped to their training range (a polynomial must not extrapolate: a marker with lost
+    neighbours can get an unusual strain). A strain needs >= 3 present neighbours, else it is 0.
+    """
+
+    def __init__(self, *, neutral: np.ndarray, neighbours: list[np.ndarray], tangents: np.ndarray,
+                 pca_mean: np.ndarray, pca_axes: np.ndarray, bounds: np.ndarray | None = None) -> None:
+        self.neutral, self.neighbours, self.tangents = neutral, neighbours, tangents
+        self.pca_mean, self.pca_axes = pca_mean, pca_axes
+        self.bounds = bounds  # (2, L, 2) training range of (d1, d2): no polynomial extrapolation
+
+    @classmethod
+    def fit(cls, layout_neutral: np.ndarray, train_layout: np.ndarray) -> LocalDeformation:
+        neighbours = _two_rings(layout_neutral)
+        tangents = np.zeros((len(layout_neutral), 3, 2))
+        for j, nb in enumerate(neighbours):
+            offsets = layout_neutral[nb] - layout_neutral[j]
+            tangents[j] = np.linalg.svd(offsets, full_matrices=False)[2][:2].T
+        model = cls(neutral=layout_neutral, neighbours=neighbours, tangents=tangents,
+                    pca_mean=np.zeros((len(layout_neutral), 5)),
+                    pca_axes=np.tile(np.eye(5)[:, :2], (len(layout_neutral), 1, 1)))
+        feats = model.features(train_layout)
+        mean = feats.mean(axis=0)
+        axes = np.zeros((len(layout_neutral), 5, 2))
+        for j in range(len(layout_neutral)):
+            scale = np.maximum(feats[:, j].std(axis=0), 1e-9)
+            z = (feats[:, j] - mean[j]) / scale
+            _, sing, vt = np.linalg.svd(z, full_matrices=False)
+            spread = np.maximum(sing[:2] / np.sqrt(max(len(z), 1)), 1e-9)
+            axes[j] = (vt[:2] / spread[:, None]).T / scale[:, None]  # unit variance d1, d2
+        model.pca_mean, model.pca_axes = mean, axes
+        d = model.parameters(train_layout)
+        model.bounds = np.stack([d.min(axis=0), d.max(axis=0)])
+        return model
+
+    def features(self, x: np.ndarray) -> np.ndarray:
+        """(F, L, 5) offsets + strains of layout frames ``x`` (F, L, 3), NaN = lost (a lost
+        marker's features are NaN; a marker with < 3 present neighbours gets zero strain)."""
+        offsets = x - self.neutral
+        strains = np.zeros(x.shape[:2] + (2,))
+        present = np.isfinite(x).all(axis=2)
+        for j, nb in enumerate(self.neighbours):
+            p = (self.neutral[nb] - self.neutral[j]) @ self.tangents[j]  # (K, 2)
+            q = np.nan_to_num((x[:, nb] - x[:, j:j + 1]) @ self.tangents[j])  # (F, K, 2)
+            w = (present[:, nb] & present[:, j:j + 1]).astype(float)
+            gram = np.einsum("fk,ka,kb->fab", w, p, p)
+            cross = np.einsum("fk,ka,fkb->fab", w, p, q)
+            ok = (w.sum(axis=1) >= 3) & (np.linalg.det(gram) > 1e-9 * np.einsum("faa->f", gram) ** 2)
+            if ok.any():
+                mapping = np.linalg.solve(gram[ok], cross[ok])  # (f, 2, 2): q ≈ p @ mapping
+                strains[ok, j] = np.stack([mapping[:, 0, 0], mapping[:, 1, 1]], axis=1) - 1.0
+        return np.concatenate([offsets, strains], axis=2)
+
+    def parameters(self, x: np.ndarray) -> np.ndarray:
+        """(F, L, 2) PCA parameters (d1, d2) of layout frames ``x`` (F, L, 3), clipped to the
+        training range."""
+        d = np.einsum("flc,lcd->fld", self.features(x) - self.pca_mean, self.pca_axes)
+        return d if self.bounds is None else np.clip(d, self.bounds[0], self.bounds[1])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        sizes = np.array([len(nb) for nb in self.neighbours])
+        return {"pdm_neighbours": np.concatenate(self.neighbours), "pdm_neighbour_counts": sizes,
+                "pdm_tangents": self.tangents, "pdm_mean": self.pca_mean, "pdm_axes": self.pca_axes,
+                "pdm_bounds": self.bounds}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], layout_neutral: np.ndarray) -> LocalDeformation:
+        ends = np.cumsum(arrays["pdm_neighbour_counts"])
+        neighbours = np.split(np.asarray(arrays["pdm_neighbours"], dtype=np.intp), ends[:-1])
+        return cls(neutral=layout_neutral, neighbours=neighbours, tangents=arrays["pdm_tangents"],
+                   pca_mean=arrays["pdm_mean"], pca_axes=arrays["pdm_axes"],
+                   bounds=arrays["pdm_bounds"])
+
+
+def _two_rings(points: np.ndarray) -> list[np.ndarray]:
+    """Per point, its neighbours up to 2 edges away on the surface mesh of ``points`` (L, 3)
+    (all other points when there are too few for a mesh or a ring has < 2 points)."""
+    n = len(points)
+    everyone = [np.delete(np.arange(n), j) for j in range(n)]
+    if n < 4:
+        return everyone
+    _, faces = marker_surface_mesh(points)
+    edges, _ = mesh_edges(faces)
+    adjacency = np.zeros((n, n), bool)
+    adjacency[edges[:, 0], edges[:, 1]] = adjacency[edges[:, 1], edges[:, 0]] = True
+    two = adjacency | ((adjacency.astype(int) @ adjacency.astype(int)) > 0)
+    np.fill_diagonal(two, False)
+    return [np.flatnonzero(two[j]) if two[j].sum() >= 2 else everyone[j] for j in range(n)]
+
+
+def _basis(d: np.ndarray, degree: str) -> np.ndarray:
+    """Polynomial terms (..., B) of (d1, d2) (..., 2): Ma et al.'s biquadratic or the linear one."""
+    d1, d2 = d[..., 0], d[..., 1]
+    one = np.ones_like(d1)
+    if degree == "linear":
+        return np.stack([d1, d2, one], axis=-1)
+    return np.stack([d1 * d1, d2 * d2, d1 * d2, d1, d2, one], axis=-1)
+
+
+class DetailModel(FaceModel):
+    """Thin-shell + per-marker polynomial displacement detail (Ma et al. 2008)."""
+
+    def __init__(self, *, kind: str, surface: ThinShellModel, local: LocalDeformation,
+                 coef: np.ndarray, degree: str) -> None:
+        self.kind, self.surface, self.local = kind, surface, local
+        self.coef, self.degree = coef, degree  # coef (M, B, 3)
+        self.layout, self.neutral, self.n_markers = surface.layout, surface.neutral, surface.n_markers
+
+    @classmethod
+    def fit(cls, kind: str, train: np.ndarray, layout: np.ndarray) -> DetailModel:
+        surface = ThinShellModel.fit(train, layout)
+        residual = train - surface.predict_positions(train[:, layout])
+        degree = "linear" if kind == "pdm-linear" else "biquadratic"
+        x = train[:, layout]
+        rows = np.isfinite(x).all(axis=(1, 2))
+        local = LocalDeformation.fit(surface.neutral[layout], x[rows])
+        model = cls(kind=kind, surface=surface, local=local,
+                    coef=np.zeros((train.shape[1], 6 if degree == "biquadratic" else 3, 3)),
+                    degree=degree)
+        terms = _basis(model._vertex_parameters(np.ones(layout.size, bool), x[rows]), degree)
+        model.coef = _fit_polynomials(terms, residual[rows])
+        return model
+
+    def _vertex_parameters(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(f, M, 2) (d1, d2) interpolated over the surface from the present layout markers."""
+        full = np.full((x.shape[0], self.layout.size, 3), np.nan)
+        full[:, pattern] = x
+        d = self.local.parameters(full)[:, pattern]
+        return self.surface.interpolate(pattern, d)
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        terms = _basis(self._vertex_parameters(pattern, x), self.degree)
+        detail = np.nan_to_num(np.einsum("fmb,mbc->fmc", terms, self.coef))
+        return self.surface._solve(pattern, x) + detail
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {**self.surface._arrays(), **self.local.arrays(), "pdm_coef": self.coef}
+
+
+def _fit_polynomials(terms: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """Per marker ridge least squares ``residual[:, m] ≈ terms[:, m] @ coef[m]``: coef (M, B, 3).
+
+    ``terms`` (F, M, B), ``residual`` (F, M, 3) (NaN rows of a marker left out)."""
+    ok = np.isfinite(residual).all(axis=2) & np.isfinite(terms).all(axis=2)  # (F, M)
+    t = np.where(ok[..., None], terms, 0.0)
+    r = np.where(ok[..., None], residual, 0.0)
+    gram = np.einsum("fmb,fmc->mbc", t, t)
+    rhs = np.einsum("fmb,fmc->mbc", t, r)
+    n_terms = terms.shape[2]
+    lam = DETAIL_RIDGE * np.maximum(np.einsum("mbb->m", gram) / n_terms, 1e-12)
+    gram[:, np.arange(n_terms), np.arange(n_terms)] += lam[:, None]
+    return np.linalg.solve(gram, rhs)
+
+
+def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind: str = DEFAULT_KIND,
+              ridge: float = DEFAULT_RIDGE, neighbours: int = LOCAL_NEIGHBOURS) -> FaceModel:
+    """Fit a reconstruction model of ``kind`` (see ``MODEL_KINDS``) on head-relative training frames.
+
+    Parameters
+    ----------
+    train : (frames, markers, 3) float, mm, NaN gaps
+    layout_idx : (L,) int, the layout markers (columns of ``train``)
+    kind : one of ``MODEL_KINDS``
+    ridge : ridge strength of the ridge kinds, relative to the mean input variance
+    neighbours : layout markers each dense marker is solved from (``local-ridge``)
+    """
+    train = np.asarray(train, dtype=np.float64)
+    layout = _layout_indices(layout_idx, train.shape[1])
+    ridge = _ridge(ridge)
+    if kind == "ridge":
+        model: FaceModel = RidgeModel.fit(train, layout, ridge=ridge)
+    elif kind == "thin-shell":
+        model = ThinShellModel.fit(train, layout)
+    elif kind == "local-ridge":
+        model = LocalRidgeModel.fit(train, layout, ridge=ridge, neighbours=neighbours)
+    elif kind in ("pdm-linear", "pdm-biquadratic"):
+        model = DetailModel.fit(kind, train, layout)
+    else:
+        raise OptionError(f"unknown model kind {kind!r} (choose from {', '.join(MODEL_KINDS)})")
+    step = -(-train.shape[0] // CHECK_FRAMES)
+    model.measure_expected_error(train[::step])
+    return model
+
+
+def model_from_arrays(kind: str, arrays: Mapping[str, np.ndarray]) -> FaceModel:
+    """Rebuild a model saved by :meth:`FaceModel.arrays` (the inverse of it)."""
+    a = {k: np.asarray(v) for k, v in arrays.items()}
+    layout, neutral = a["layout"].astype(np.intp), a["neutral"].astype(np.float64)
+
+    stats = {"layout": layout, "neutral": neutral, "mean": a.get("mean"), "cov": a.get("cov"),
+             "frames": int(a.get("frames", 0)), "ridge": float(a.get("ridge", 0.0))}
+    if kind == "ridge":
+        model: FaceModel = RidgeModel(**stats)
+    elif kind == "local-ridge":
+        model = LocalRidgeModel(**stats, neighbours=int(a["neighbours"]))
+    elif kind in ("thin-shell", "pdm-linear", "pdm-biquadratic"):
+        surface = ThinShellModel(layout=layout, neutral=neutral, faces=a["faces"].astype(np.intp))
+        if kind == "thin-shell":
+            model = surface
+        else:
+            local = LocalDeformation.from_arrays(a, neutral[layout])
+            model = DetailModel(kind=kind, surface=surface, local=local, coef=a["pdm_coef"],
+                                degree="linear" if kind == "pdm-linear" else "biquadratic")
+    else:
+        raise OptionError(f"unknown model kind {kind!r}")
+    model.error_base, model.error_drop = float(a["error_base"]), a["error_drop"]
+    return model
+
+
+def save_model(model: FaceModel, path: str | os.PathLike[str], *, header: Mapping[str, Any],
+               force: bool = True) -> Path:
+    """Write ``model`` as ``model.npz`` (deterministic bytes) with a JSON ``header`` entry.
+
+    ``header`` describes the session and layout (labels, session identity); ``format``,
+    ``version`` and ``kind`` are added.
+    """
+    head = {**header, "format": MODEL_FORMAT, "version": MODEL_VERSION, "kind": model.kind}
+    entries = {"header": np.frombuffer(dumps(head).encode(), dtype=np.uint8), **model.arrays()}
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name in sorted(entries):
+            item = io.BytesIO()
+            np.lib.format.write_array(item, np.asarray(entries[name], order="C"), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            archive.writestr(info, item.getvalue())
+    return write_bytes(path, buffer.getvalue(), force=force)
+
+
+def load_model(path: str | os.PathLike[str], *,
+               session: Mapping[str, Any] | None = None) -> tuple[FaceModel, dict]:
+    """Read a model written by :func:`save_model`; returns ``(model, header)``.
+
+    ``session``: the identity the model must have been trained on (``header["session"]`` must
+    match it on every key given); raises :class:`InputFileError` otherwise.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except OSError as exc:
+        raise unreadable(path, exc) from None
+    except (ValueError, zipfile.BadZipFile, EOFError):
+        raise InputFileError(path, "not a mocaptk model file (.npz)") from None
+    try:
+        header = json.loads(bytes(arrays.pop("header")).decode())
+    except (KeyError, ValueError):
+        raise InputFileError(path, "not a mocaptk model file (no header)") from None
+    if header.get("format") != MODEL_FORMAT:
+        raise InputFileError(path, f"not a mocaptk model file (format {header.get('format')!r})")
+    if header.get("version") != MODEL_VERSION:
+        raise InputFileError(path, f"model version {header.get('version')} is not supported "
+                             f"(this mocaptk reads version {MODEL_VERSION})")
+    trained = header.get("session") or {}
+    for key, value in (session or {}).items():
+        if trained.get(key) != value:
+            raise InputFileError(path, f"the model was trained on another session ({key} "
+                                 f"{trained.get(key)!r}, expected {value!r})")
+    try:
+        return model_from_arrays(header["kind"], arrays), header
+    except KeyError as exc:
+        raise InputFileError(path, f"model file is incomplete (no {exc.args[0]})") from None
