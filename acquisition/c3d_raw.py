@@ -4,11 +4,10 @@ Two jobs:
 
 * :func:`read_structure` parses and checks the header and parameter section (a few kB) of any
   C3D file — Intel, DEC (VAX floats) or MIPS (big-endian) processor, integer or float storage —
-  and checks that the declared point data fit in the file. :mod:`.c3d_read` runs it on every file
-  *before* handing it to ezc3d (C++), so a malformed file is refused in Python instead of reaching
-  native code, and memory use is bounded by the file size.
-* :func:`read_points` reads the 3-D point block with numpy; used where ezc3d cannot read a file
-  (MIPS files, float ``OFFSET`` parameters, > 65,535 frames, header-only files).
+  and checks that the declared point data fit in the file, so a malformed file is refused in
+  Python instead of reaching native code (ezc3d), and memory use is bounded by the file size.
+* :func:`read_points` reads the 3-D point block with numpy, in blocks of frames; it is the
+  reader :func:`.c3d_read.read_c3d` uses for every file (ezc3d only as a fallback).
 
 Nothing here imports ezc3d.
 """
@@ -100,13 +99,17 @@ def _check(path: Path, condition: bool, problem: str) -> None:
         raise InputFileError(path, problem)
 
 
-def _parse_parameters(path: Path, data: bytes, processor: str) -> dict[str, dict[str, ParamValue]]:
+def _parse_parameters(path: Path, data: bytes, processor: str,
+                      data_blocks: int = 0) -> dict[str, dict[str, ParamValue]]:
     """Parse the group/parameter records of the parameter section ``data`` (from its 4-byte head).
 
-    A record may run past the declared section (parameterOverflow.c3d); a record whose
-    "next" pointer leaves the declared section ends the parse.
+    The section ends at its declared block count (one byte) or, if later, where the header
+    puts the point data (``data_blocks`` blocks after the section's start): sections of more
+    than 255 blocks (thousands of labels) declare a wrapped or saturated count. A record may
+    run past the declared section (parameterOverflow.c3d); a record whose "next" pointer
+    leaves the section ends the parse.
     """
-    section_end = max(data[2], 1) * BLOCK
+    section_end = max(data[2], 1, data_blocks) * BLOCK
     i16 = np.dtype(_dtypes(processor)[0])
     groups: dict[int, str] = {}
     raw_params: list[tuple[int, str, ParamValue]] = []
@@ -234,7 +237,7 @@ def read_structure(path: str | os.PathLike[str]) -> C3DStructure:
             data_block = int(np.frombuffer(head, _dtypes(processor)[0], 1, 16)[0]) & 0xFFFF
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
-    params = _parse_parameters(path, section, processor)
+    params = _parse_parameters(path, section, processor, data_block - head[0])
     return _layout(path, head, params, processor, file_size, data_block)
 
 
@@ -348,15 +351,28 @@ def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,
     return header_words
 
 
-def read_points(structure: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
-    """Read the 3-D point block of a checked C3D file.
+#: Frames decoded per step of :func:`read_points` (bounds its temporaries to a few MB).
+READ_BLOCK_BYTES = 8 * 2**20
+
+
+def read_points(structure: C3DStructure, *, unit_scale: float = 1.0,
+                gaps_as_nan: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Read the 3-D point block of a checked C3D file, a few MB of frames at a time.
+
+    Parameters
+    ----------
+    unit_scale : multiply positions and residuals by this (e.g. mm per POINT:UNITS unit).
+    gaps_as_nan : set positions and residuals to NaN where the file marks a point invalid
+        (residual < 0) or a coordinate is not finite.
 
     Returns
     -------
     positions : (frames, points, 3) float64
-        In the file's units (POINT:UNITS), SCALE applied; invalid points are *not* masked.
+        File units times ``unit_scale``, SCALE applied.
     residuals : (frames, points) float64
-        Residual in file units; negative where the file marks the point invalid.
+        Same units; negative where the file marks the point invalid (unless ``gaps_as_nan``).
+
+    Memory: the two outputs plus one block of :data:`READ_BLOCK_BYTES`.
     """
     s = structure
     int_type, float_type = _dtypes(s.processor)
@@ -366,31 +382,52 @@ def read_points(structure: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
         word = int_type
     frame = np.dtype([("points", word, (s.n_points, 4)),
                       ("rest", "V", s.frame_bytes - s.n_points * 4 * np.dtype(word).itemsize)])
+    xyz = np.empty((s.n_frames, s.n_points, 3))
+    residuals = np.empty((s.n_frames, s.n_points))
+    step = max(1, READ_BLOCK_BYTES // max(frame.itemsize, 1))
     try:
         with open(s.path, "rb") as handle:
             handle.seek(s.data_offset)
-            block = np.fromfile(handle, frame, s.n_frames)["points"]
+            for start in range(0, s.n_frames, step):
+                count = min(step, s.n_frames - start)
+                block = np.fromfile(handle, frame, count)["points"]
+                _check(s.path, len(block) == count, "truncated C3D file (point data cut short)")
+                with np.errstate(over="ignore", invalid="ignore"):  # garbage: inf / NaN
+                    _decode_points(block, s, unit_scale, gaps_as_nan,
+                                   xyz[start:start + count], residuals[start:start + count])
     except OSError as exc:
         raise InputFileError(s.path, f"cannot read ({exc.strerror or exc})") from None
-    _check(s.path, len(block) == s.n_frames, "truncated C3D file (point data cut short)")
-    with np.errstate(over="ignore", invalid="ignore"):  # garbage values become inf / NaN
-        return _decode_points(block, s)
+    return xyz, residuals
 
 
-def _decode_points(block: np.ndarray, s: C3DStructure) -> tuple[np.ndarray, np.ndarray]:
+def _decode_points(block: np.ndarray, s: C3DStructure, unit_scale: float, gaps_as_nan: bool,
+                   xyz: np.ndarray, residuals: np.ndarray) -> None:
+    """Decode raw point words ``block`` (frames, points, 4) into ``xyz`` and ``residuals``."""
     if s.processor == "dec" and s.float_storage:
         block = _dec(block)
-    xyz = block[..., :3].astype(np.float64)
     fourth = block[..., 3]
     if s.float_storage:
+        xyz[...] = block[..., :3]
         residual_word = np.where(np.isfinite(fourth), fourth, -1).astype(np.float64)
+        if unit_scale != 1.0:
+            xyz *= unit_scale
     else:
-        xyz *= abs(s.scale)
+        np.multiply(block[..., :3], abs(s.scale) * unit_scale, out=xyz)
         residual_word = fourth.astype(np.float64)
     invalid = residual_word < 0
     code = np.clip(np.where(invalid, 0, residual_word), 0, 0xFFFF).astype(np.int64)
-    residuals = np.where(invalid, -1.0, (code & 0xFF) * abs(s.scale))
-    return xyz, residuals
+    residuals[...] = np.where(invalid, -1.0, (code & 0xFF) * (abs(s.scale) * unit_scale))
+    if gaps_as_nan:
+        mark_gaps(xyz, residuals)
+
+
+def mark_gaps(xyz: np.ndarray, residuals: np.ndarray) -> None:
+    """In place: NaN in ``xyz`` (F, N, 3) and ``residuals`` (F, N) where the residual is
+    negative (invalid point) or a coordinate is not finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        missing = (residuals < 0) | ~np.isfinite(xyz.sum(axis=-1))
+    xyz[missing] = np.nan
+    residuals[missing] = np.nan
 
 
 def header_only_labels(n_points: int) -> list[str]:

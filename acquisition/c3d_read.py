@@ -1,12 +1,12 @@
 """Read C3D files into :class:`mocaptk.Trajectories` (millimetres, NaN gaps).
 
 Every file is first checked by our own header/parameter parser (:mod:`.c3d_raw`): a malformed
-file is refused with an :class:`InputFileError` before any native code sees it, and the declared
-point data must fit in the file (so memory is bounded by the file size). Point values are then
-read by ezc3d in a guarded child process (:mod:`.c3d_ezc3d`); files ezc3d cannot read or
-misreads (MIPS processor, float ``OFFSET`` parameters, more than 65,535 frames, no parameters,
-analog layout it gets wrong, crashes, time or memory limits) are read by
-:func:`.c3d_raw.read_points`, with a note in ``metadata["notes"]``.
+file is refused with an :class:`InputFileError`, and the declared point data must fit in the file
+(so memory is bounded by the file size). Point values are then read by our numpy reader
+(:func:`.c3d_raw.read_points`), which reads every file the check accepts (any processor,
+integer or float storage, any frame count); ezc3d in a guarded child process
+(:mod:`.c3d_ezc3d`) is the fallback should it ever fail, and can be asked for with
+``reader="ezc3d"`` (cross-checks). ``metadata["reader"]`` says which one supplied the points.
 Labels, units, rate and metadata always come from the checked parameter section.
 """
 
@@ -32,15 +32,20 @@ UNIT_SCALES = {"mm": 1.0, "millimeter": 1.0, "millimeters": 1.0, "millimetre": 1
 #: Parameter group in which :func:`.c3d_write.write_c3d` stores takes.
 TAKES_GROUP = "MOCAPTK"
 EZC3D_MAX_FRAMES = 0xFFFF
+#: ezc3d 1.7 reads POINT:USED as signed: from 32,768 points it fails (vector::_M_default_append).
+EZC3D_MAX_POINTS = 0x7FFF
 
 
-def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> Trajectories:
+def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False,
+             reader: str = "mocaptk") -> Trajectories:
     """Read the 3-D points of a C3D file.
 
     Parameters
     ----------
     path : path of a ``.c3d`` file (any processor type, integer or float storage).
     strip_prefixes : drop ``Subject:`` label prefixes (the subjects stay in the metadata).
+    reader : ``"mocaptk"`` (our numpy reader, ezc3d if it fails) or ``"ezc3d"`` (ezc3d in a
+        guarded child, our reader where ezc3d cannot read or misreads the file, noted).
 
     Returns
     -------
@@ -60,17 +65,10 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
     mm_per_unit, units = _units(structure)
     labels = _labels(structure, notes)
     try:
-        xyz, residual, reader = _read_point_values(structure, notes)
+        xyz, residual, reader = _read_point_values(structure, notes, mm_per_unit, reader)
     except MemoryError:  # within MAX_POINT_SAMPLES but more than this machine/process can hold
         raise InputFileError(path, f"not enough memory to read {structure.n_frames} frames of "
                                    f"{structure.n_points} markers") from None
-    with np.errstate(over="ignore", invalid="ignore"):  # huge values become inf: gaps
-        if mm_per_unit != 1.0:
-            xyz *= mm_per_unit
-            residual *= mm_per_unit
-        missing = (residual < 0) | ~np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2])
-        xyz[missing] = np.nan
-        residual[missing] = np.nan
     metadata: dict[str, Any] = {
         "source": str(path), "format": "c3d", "original_units": units,
         "subjects": _subjects(structure, labels),
@@ -93,27 +91,51 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False) -> T
     return traj
 
 
-def _read_point_values(s: C3DStructure, notes: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
-    """(xyz (F, N, 3) file units, residual (F, N) file units, <0 invalid, reader name)."""
-    if s.processor == "mips":
-        reason = "ezc3d does not read MIPS files"
-    elif s.n_frames > EZC3D_MAX_FRAMES:
-        reason = f"ezc3d reads at most {EZC3D_MAX_FRAMES} frames"
-    elif "POINT" not in s.parameters:
-        reason = "no POINT parameters (ezc3d would see no points)"
-    else:
-        result = c3d_ezc3d.read_points(s.path, s.n_frames, s.n_points)
-        if isinstance(result, str):
-            reason = result
-        elif result.analog_words != s.analog_words:
-            # e.g. sample28/*.C3D: no ANALOG:RATE, ezc3d assumes no analog data and misreads
-            reason = (f"ezc3d's frame layout ({result.analog_words} analog samples per frame) "
-                      f"disagrees with the file's ({s.analog_words})")
-        else:
-            return result.xyz, result.residual, "ezc3d"
-    notes.append(f"{reason}; points read with mocaptk's own C3D reader")
-    xyz, residual = c3d_raw.read_points(s)
+def _read_point_values(s: C3DStructure, notes: list[str], mm_per_unit: float,
+                       reader: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """(xyz (F, N, 3) mm, residual (F, N) mm, NaN at gaps, name of the reader used)."""
+    if reader == "ezc3d":
+        result = _ezc3d_points(s)
+        if not isinstance(result, str):
+            xyz, residual = result
+            xyz *= mm_per_unit
+            residual *= mm_per_unit
+            c3d_raw.mark_gaps(xyz, residual)
+            return xyz, residual, "ezc3d"
+        notes.append(f"{result}; points read with mocaptk's own C3D reader")
+    elif reader != "mocaptk":
+        raise ValueError(f"unknown C3D reader {reader!r} (expected 'mocaptk' or 'ezc3d')")
+    try:
+        xyz, residual = c3d_raw.read_points(s, unit_scale=mm_per_unit, gaps_as_nan=True)
+    except (MocaptkError, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - a defect of ours on an odd file: try ezc3d
+        if reader == "ezc3d":
+            raise
+        notes.append(f"mocaptk's C3D reader failed ({type(exc).__name__}: {exc}); "
+                     "points read with ezc3d")
+        return _read_point_values(s, notes, mm_per_unit, "ezc3d")
     return xyz, residual, "mocaptk"
+
+
+def _ezc3d_points(s: C3DStructure) -> tuple[np.ndarray, np.ndarray] | str:
+    """ezc3d's (xyz, residual) in file units, or why ezc3d cannot supply them."""
+    if s.processor == "mips":
+        return "ezc3d does not read MIPS files"
+    if s.n_frames > EZC3D_MAX_FRAMES:
+        return f"ezc3d reads at most {EZC3D_MAX_FRAMES} frames"
+    if s.n_points > EZC3D_MAX_POINTS:
+        return f"ezc3d reads at most {EZC3D_MAX_POINTS} points"
+    if "POINT" not in s.parameters:
+        return "no POINT parameters (ezc3d would see no points)"
+    result = c3d_ezc3d.read_points(s.path, s.n_frames, s.n_points)
+    if isinstance(result, str):
+        return result
+    if result.analog_words != s.analog_words:
+        # e.g. sample28/*.C3D: no ANALOG:RATE, ezc3d assumes no analog data and misreads
+        return (f"ezc3d's frame layout ({result.analog_words} analog samples per frame) "
+                f"disagrees with the file's ({s.analog_words})")
+    return result.xyz, result.residual
 
 
 def _units(s: C3DStructure) -> tuple[float, str]:

@@ -100,7 +100,8 @@ def test_bad_parameter_section():
 
 def test_ezc3d_memory_blowup_is_contained():
     """ezc3d asks for ~12 GB on this 583 kB file; its child hits the limit, our reader reads it."""
-    traj = read_c3d(shared_path("c3d", "btkdata", "c3d.org", "sample22", "BKINtechnologies.c3d"))
+    traj = read_c3d(shared_path("c3d", "btkdata", "c3d.org", "sample22", "BKINtechnologies.c3d"),
+                    reader="ezc3d")
     assert traj.metadata["reader"] == "mocaptk" and traj.n_frames == 5065
     assert any("bad_alloc" in note or "needed more than" in note for note in traj.metadata["notes"])
 
@@ -122,11 +123,11 @@ def test_ezc3d_crash_or_hang_falls_back_to_own_reader(monkeypatch, tmp_path, sma
 
     path = tmp_path / "ok.c3d"
     path.write_bytes(small_c3d)
-    expected = read_c3d(path)
+    expected = read_c3d(path, reader="ezc3d")
     assert expected.metadata["reader"] == "ezc3d"
     monkeypatch.setattr(ezc3d, "c3d", behaviour)
     monkeypatch.setattr(c3d_ezc3d, "TIME_BASE", 1.0)
-    traj = read_c3d(path)
+    traj = read_c3d(path, reader="ezc3d")
     assert traj.metadata["reader"] == "mocaptk"
     assert any(note in n for n in traj.metadata["notes"])
     np.testing.assert_array_equal(traj.positions, expected.positions)

@@ -67,8 +67,9 @@ def read(rel: str):
 
 
 @functools.cache
-def py_c3d(rel: str) -> tuple[np.ndarray, float, int] | None:
-    """(points (F, N, 3) file units NaN-masked, rate, n_points) from py-c3d, or None."""
+def py_c3d(rel: str) -> tuple[np.ndarray, float, int, np.ndarray] | None:
+    """(points (F, N, 3) file units NaN-masked, rate, n_points, residuals (F, N) NaN-masked)
+    from py-c3d, or None."""
     import c3d
 
     try:
@@ -82,7 +83,8 @@ def py_c3d(rel: str) -> tuple[np.ndarray, float, int] | None:
     points = np.array(frames).reshape(len(frames), used, 5)
     xyz = points[..., :3].astype(np.float64)
     xyz[points[..., 3] < 0] = np.nan
-    return xyz, rate, used
+    residuals = np.where(points[..., 3] < 0, np.nan, points[..., 3])
+    return xyz, rate, used, residuals
 
 
 def peers_read(rel: str) -> bool:
@@ -118,7 +120,7 @@ def test_reads_every_file_a_peer_reads_and_refuses_the_rest(rel):
     elif key == MAC_SAMPLE:  # values cross-checked in test_mac_sample_is_plausible
         expected = (33, 180, 60.0)
     else:  # ezc3d fails (MIPS, float OFFSET, BKIN): py-c3d's counts
-        pts, rate, used = py_c3d(key)
+        pts, rate, used, _ = py_c3d(key)
         expected = (used, len(pts), rate)
     assert (result.n_markers, result.n_frames, result.rate) == expected
     assert result.metadata["format"] == "c3d" and len(set(result.labels)) == result.n_markers
@@ -132,11 +134,13 @@ def test_point_values_equal_py_c3d(rel):
     if rel in NO_POINTS:
         assert isinstance(traj, InputFileError)
         return
-    expected, _, _ = py_c3d(rel)
+    expected, _, _, residuals = py_c3d(rel)
     got = traj.positions / mm_per_unit(traj)
     assert got.shape == expected.shape
     np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-3 / mm_per_unit(traj))
+    # residual word: low byte x |SCALE| (C3D spec; ezc3d 1.7 decodes it differently)
+    np.testing.assert_allclose(traj.residuals / mm_per_unit(traj), residuals, rtol=1e-5, atol=1e-6)
 
 
 #: ezc3d reads these without error but gets the analog layout (and so the points) wrong.
@@ -146,23 +150,24 @@ EZC3D_MISREADS = {"btkdata/c3d.org/sample28/dynamic.C3D", "btkdata/c3d.org/sampl
 
 @pytest.mark.parametrize("rel", EZC3D_READS)
 def test_ezc3d_and_own_reader_agree(rel):
-    """Where ezc3d supplied the values, our numpy reader gives the same ones and the same labels;
-    where ezc3d misreads, mocaptk noticed and used its own reader (values checked vs py-c3d)."""
+    """Our numpy reader supplies the points of every file; where ezc3d reads a file right, it
+    gives the same values and labels; where ezc3d misreads, ``reader="ezc3d"`` noticed and
+    fell back to our reader (values checked vs py-c3d)."""
     import ezc3d
 
     shared_path("c3d", rel)
     traj = read(rel)
+    assert traj.metadata["reader"] == "mocaptk" and not any(
+        "ezc3d" in note for note in traj.metadata["notes"])
+    theirs = read_c3d(shared_path("c3d", rel), reader="ezc3d")
     if rel in EZC3D_MISREADS or rel in HEADER_ONLY:  # ezc3d: wrong values / no points
-        assert traj.metadata["reader"] == "mocaptk"
+        assert theirs.metadata["reader"] == "mocaptk"
         reason = "frame layout" if rel in EZC3D_MISREADS else "no POINT parameters"
-        assert any(reason in note for note in traj.metadata["notes"])
+        assert any(reason in note for note in theirs.metadata["notes"])
         return
-    assert traj.metadata["reader"] == "ezc3d"
-    structure = c3d_raw.read_structure(shared_path("c3d", rel))
-    xyz, residual = c3d_raw.read_points(structure)
-    xyz[residual < 0] = np.nan
-    np.testing.assert_array_equal(np.isnan(traj.positions), np.isnan(xyz))
-    np.testing.assert_allclose(traj.positions, xyz * mm_per_unit(traj), rtol=1e-6, atol=1e-9)
+    assert theirs.metadata["reader"] == "ezc3d"
+    np.testing.assert_array_equal(np.isnan(traj.positions), np.isnan(theirs.positions))
+    np.testing.assert_allclose(traj.positions, theirs.positions, rtol=1e-6, atol=1e-9)
     params = ezc3d.c3d(str(shared_path("c3d", rel)))["parameters"]["POINT"]
     labels = [lab for key in ["LABELS", "LABELS2", "LABELS3"] if key in params
               for lab in params[key]["value"]][:traj.n_markers]
@@ -281,3 +286,15 @@ def test_saturated_header_without_trial_fields_uses_the_file_size(tmp_path):
     traj = read_c3d(tmp_path / "ez.c3d")
     assert traj.n_frames == 70_000 and traj.metadata["reader"] == "mocaptk"
     np.testing.assert_allclose(traj.positions, points[:3].transpose(2, 1, 0), rtol=2**-23)
+
+
+def test_info_json_names_the_reader(run_cli):
+    """`info --json` says which reader supplied the points: ours, for every C3D it accepts."""
+    import json
+
+    from conftest import SAMPLES
+
+    result = run_cli("info", "--json", SAMPLES / "dense_halfface.c3d")
+    assert result.exit_code == 0, result.stderr
+    info, = json.loads(result.stdout)["files"]
+    assert info["reader"] == "mocaptk" and info["format"] == "c3d"

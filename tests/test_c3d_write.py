@@ -41,7 +41,7 @@ def test_round_trip_with_gaps_takes_and_prefixes(tmp_path):
     traj = traj.replace(metadata={"takes": [Take("brows", 0, 200, "brow"), Take("jaw", 200, 500)]})
     back = read_c3d(write_c3d(traj, tmp_path / "s.c3d"))
     assert_same(back, traj)
-    assert back.metadata["reader"] == "ezc3d" and back.metadata["subjects"] == ["Anna"]
+    assert back.metadata["reader"] == "mocaptk" and back.metadata["subjects"] == ["Anna"]
     assert back.metadata["original_units"] == "mm"
     assert back.takes[0].region == "brow" and back.takes[1].region is None
 
@@ -72,7 +72,9 @@ def test_more_than_65535_frames(tmp_path):
     assert structure.header_saturated and structure.n_frames == 70_000
     back = read_c3d(path)
     assert_same(back, traj)
-    assert back.metadata["reader"] == "mocaptk"  # ezc3d stops at 65,535 frames
+    theirs = read_c3d(path, reader="ezc3d")
+    assert theirs.metadata["reader"] == "mocaptk"  # ezc3d stops at 65,535 frames
+    assert any("at most 65535 frames" in note for note in theirs.metadata["notes"])
 
 
 def test_residuals_round_trip_to_the_c3d_step(tmp_path):
@@ -137,3 +139,43 @@ def test_nothing_to_write_is_refused(tmp_path):
     with pytest.raises(OutputError, match="nothing to write"):
         write_c3d(Trajectories(np.zeros((0, 2, 3)), ["a", "b"], 100.0), tmp_path / "e.c3d")
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("markers", [10_000, 32_767, 65_535])
+def test_label_table_round_trips_to_65535_markers(tmp_path, markers):
+    """LABELS, LABELS2, ... LABELS257 (a 250+ block parameter section): every label read back,
+    by our reader and, up to its limit of 32,767 points, by ezc3d."""
+    import ezc3d
+
+    traj = session(2, markers, gaps=0.01, prefix="Face:")
+    path = write_c3d(traj, tmp_path / "wide.c3d")
+    back = read_c3d(path)
+    assert_same(back, traj)
+    assert back.metadata["reader"] == "mocaptk" and back.metadata["notes"] == []
+    if markers > 32_767:  # ezc3d 1.7 reads POINT:USED as signed 16-bit
+        with pytest.raises(RuntimeError):
+            ezc3d.c3d(str(path))
+        return
+    c3d = ezc3d.c3d(str(path))
+    params = c3d["parameters"]["POINT"]
+    keys = ["LABELS"] + [f"LABELS{k}" for k in range(2, 300) if f"LABELS{k}" in params]
+    assert [lab.strip() for key in keys for lab in params[key]["value"]] == list(traj.labels)
+    np.testing.assert_allclose(c3d["data"]["points"][:3].transpose(2, 1, 0), traj.positions,
+                               rtol=F32)
+
+
+def test_writer_memory_is_bounded_by_its_block(tmp_path, monkeypatch):
+    """The point block is encoded a block of frames at a time: peak extra memory is about one
+    block (here 1 MB), not the session's size (200 markers x 4,000 frames, 19 MB of float64)."""
+    import tracemalloc
+
+    from mocaptk.acquisition import c3d_write
+
+    monkeypatch.setattr(c3d_write, "BLOCK_BYTES", 2**20)
+    traj = session(4_000, 200, gaps=0.02, prefix="")
+    tracemalloc.start()
+    path = write_c3d(traj, tmp_path / "long.c3d")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 0.25 * traj.positions.nbytes, peak
+    assert_same(read_c3d(path), traj)

@@ -30,6 +30,7 @@ def summary(traj, path: Path) -> dict[str, Any]:
         units += " (assumed)"
     return {
         "path": str(path), "format": traj.metadata.get("format", "?"),
+        "reader": traj.metadata.get("reader", "mocaptk"),  # C3D: "mocaptk" or "ezc3d" (fallback)
         "markers": traj.n_markers, "frames": traj.n_frames, "first_frame": traj.first_frame,
         "rate_hz": traj.rate, "duration_s": traj.duration, "units": units,
         "missing_percent": 100.0 * stats.total_missing_fraction,
