@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Install the test-only readers that check our rig exports (never shipped, never imported by mocaptk):
+# Install the test-only readers that check our outputs (never shipped, never imported by mocaptk):
 #   ufbx (PyPI), the FBX2glTF binary from npm fbx2gltf@0.9.7 (Autodesk FBX SDK inside),
-#   and the Khronos gltf-validator (npm). npm tools go to <repo>/.tools/ (git-ignored).
+#   the Khronos gltf-validator (npm), and Debian's chromium (apt-get, as root; opens report.html
+#   headless in tests/test_report_browser.py). npm tools go to <repo>/.tools/ (git-ignored).
 #   With --blender also Blender as a module: PyPI bpy 5.0.1 (GPL, ~1.2 GB, Python 3.11 only,
 #   pins numpy<2) in its own venv .tools/bpyvenv, used by scripts/check_fbx_blender.py.
 # Usage: scripts/install-readers.sh [--blender]  (idempotent; tests skip a missing reader)
@@ -29,10 +30,21 @@ else
     fi
 fi
 
+python -c "import websocket" 2>/dev/null || python -m pip install --quiet "websocket-client>=1.7"
+if command -v chromium >/dev/null || command -v chromium-browser >/dev/null; then
+    :
+elif command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null \
+        || echo "install-readers: apt-get could not install chromium (the browser tests skip)" >&2
+else
+    echo "install-readers: no chromium and no root apt-get, skipping it (the browser tests skip)" >&2
+fi
+
 if [ "${1:-}" = "--blender" ] && [ ! -x "$tools/bpyvenv/bin/python" ]; then
     python3.11 -m venv "$tools/bpyvenv"
     "$tools/bpyvenv/bin/python" -m pip install --quiet "bpy==5.0.1"
 fi
 
 echo "readers installed: ufbx $(python -c 'import importlib.metadata as m; print(m.version("ufbx"))')," \
-     "FBX2glTF $tools/fbx2gltf/bin/Linux/FBX2glTF, gltf-validator $tools/node_modules/gltf-validator"
+     "FBX2glTF $tools/fbx2gltf/bin/Linux/FBX2glTF, gltf-validator $tools/node_modules/gltf-validator," \
+     "chromium $(command -v chromium || command -v chromium-browser || echo 'not installed')"

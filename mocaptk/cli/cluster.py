@@ -20,6 +20,7 @@ import typer
 from ..errors import OutputError
 from .app import app
 from .options import Rate, Rigid, Units, rigid_labels
+from .report import write_cluster_report
 
 
 def default_out_dir(session: Path) -> Path:
@@ -170,8 +171,9 @@ def cluster(
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:
         write_cluster_outputs(result, folder)
-        cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
-                            formats=formats, quiet=quiet)
+        build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
+                                    formats=formats, quiet=quiet)
+        write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
     if not quiet:
         typer.echo(summary_text(result), nl=False)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

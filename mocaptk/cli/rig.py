@@ -110,16 +110,17 @@ def rig(
 
 
 def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influences: int,
-                        formats: str, quiet: bool) -> None:
+                        formats: str, quiet: bool):
     """What ``mocaptk cluster`` adds to its output folder: rig files + guide (``formats`` may be
-    ``none`` to skip both). ``result`` is the clustering pipeline's ``ClusterResult``."""
+    ``none`` to skip both). ``result`` is the clustering pipeline's ``ClusterResult``.
+    Returns the :class:`~mocaptk.retarget.build.RigBuild` (None when skipped)."""
     from rich.console import Console
 
     from ..retarget.build import write_rig_outputs
 
     chosen = parse_formats(formats)
     if chosen == ("none",):
-        return
+        return None
     console = Console(stderr=True, quiet=quiet)
     with console.status("building the rig") as status:
         build, _ = write_rig_outputs(
@@ -131,3 +132,4 @@ def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influenc
     if not quiet:
         typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
                    f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
+    return build

@@ -1,0 +1,368 @@
+// mocaptk report page: draws the embedded report data with plotly (offline bundle above).
+// Rig frame: X = subject's left, Y up, Z forward, mm. Exposes window.mocaptkReport for tests.
+(function () {
+  "use strict";
+  const started = performance.now();
+  const data = JSON.parse(document.getElementById("report-data").textContent);
+  const M = data.markers;
+  const N = M.labels.length;
+  const NC = M.captured;
+  const clusters = data.clusters || [];
+  const errors = data.errors || [];
+  const mesh = data.mesh;
+  const plane = data.mirror_plane;
+  const gd = document.getElementById("scene");
+  const GAP = -32768;
+
+  const clips = (data.clips || []).map(function (c) {
+    const raw = atob(c.positions);
+    const bytes = new Uint8Array(raw.length);
+    for (let i = 0; i < raw.length; i++) bytes[i] = raw.charCodeAt(i);
+    return Object.assign({}, c, {track: new Int16Array(bytes.buffer)});  // little-endian (x86, ARM)
+  });
+
+  const state = {clip: 0, frame: 0, colour: errors.length && !clusters.length ? 0 : -1,
+                 show: {face: true, dense: true, links: true, numbers: true, mirrored: true},
+                 regions: {}, playing: false};
+  data.regions.forEach(function (r) { state.regions[r] = true; });
+
+  const clusterOfMarker = M.cluster;
+  const repOf = {};
+  clusters.forEach(function (c, k) { repOf[c.marker] = k; });
+
+  // ---- positions -------------------------------------------------------------------------
+  function mirrorPoint(p) {
+    const q = plane.point, n = plane.normal;
+    const d = (p[0] - q[0]) * n[0] + (p[1] - q[1]) * n[1] + (p[2] - q[2]) * n[2];
+    return [p[0] - 2 * d * n[0], p[1] - 2 * d * n[1], p[2] - 2 * d * n[2]];
+  }
+
+  // Marker positions (N x [x, y, z], NaN in gaps) at the current frame of the current clip.
+  function markerPositions() {
+    const out = new Array(N);
+    const clip = clips[state.clip];
+    for (let i = 0; i < NC; i++) {
+      if (!clip) { out[i] = M.neutral[i]; continue; }
+      const o = (state.frame * NC + i) * 3, n0 = M.neutral[i], r = clip.resolution_mm;
+      out[i] = clip.track[o] === GAP ? [NaN, NaN, NaN]
+        : [n0[0] + r * clip.track[o], n0[1] + r * clip.track[o + 1], n0[2] + r * clip.track[o + 2]];
+    }
+    for (let i = NC; i < N; i++) {
+      const src = M.mirror_of[i];
+      out[i] = clip && plane && src >= 0 ? mirrorPoint(out[src]) : M.neutral[i];
+    }
+    return out;
+  }
+
+  // Face vertices moved by the skin: v + sum_k w_k (p_m(t) - p_m(neutral)); a gap moves nothing.
+  function meshVertices(pos) {
+    const V = mesh.vertices.length;
+    const x = new Array(V), y = new Array(V), z = new Array(V);
+    for (let v = 0; v < V; v++) {
+      const rest = mesh.vertices[v];
+      let dx = 0, dy = 0, dz = 0;
+      const idx = mesh.skin_marker[v], w = mesh.skin_weight[v];
+      for (let k = 0; k < idx.length; k++) {
+        if (!w[k]) continue;
+        const p = pos[idx[k]], n0 = M.neutral[idx[k]];
+        const ex = p[0] - n0[0], ey = p[1] - n0[1], ez = p[2] - n0[2];
+        if (isFinite(ex) && isFinite(ey) && isFinite(ez)) { dx += w[k] * ex; dy += w[k] * ey; dz += w[k] * ez; }
+      }
+      x[v] = rest[0] + dx; y[v] = rest[1] + dy; z[v] = rest[2] + dz;
+    }
+    return {x: x, y: y, z: z};
+  }
+
+  // ---- what is shown -----------------------------------------------------------------------
+  function markerVisible(i) {
+    return state.regions[M.regions[i]] && (state.show.mirrored || M.mirror_of[i] < 0);
+  }
+
+  // The layout shown: the clusters (numbered as in guide.pdf) or an error map's own layout.
+  function shownLayout() {
+    const map = state.colour >= 0 ? errors[state.colour] : null;
+    if (map && map.layout) return map.layout.map(function (m, k) { return {marker: m, number: k + 1}; });
+    return clusters.map(function (c) { return {marker: c.marker, number: c.number, cluster: c}; });
+  }
+
+  function fmt(v, digits) { return v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toFixed(digits); }
+
+  function errorOf(i) {
+    if (state.colour < 0) return null;
+    const v = errors[state.colour].values[i];
+    return v === null || v === undefined ? null : v;
+  }
+
+  function hoverLayout(entry) {
+    const i = entry.marker, c = entry.cluster;
+    const lines = ["<b>#" + entry.number + " " + M.labels[i] + "</b>",
+                   "region " + M.regions[i] + " · side " + (c ? c.side : M.sides[i] || "–")];
+    if (c) {
+      if (c.mirrored_from) lines.push("mirrored from " + c.mirrored_from);
+      const members = c.members.filter(function (m) { return m !== i; });
+      lines.push("replaces " + members.length + " marker" + (members.length === 1 ? "" : "s") + (members.length ? ":" : ""));
+      for (let k = 0; k < members.length; k += 2) {
+        lines.push(members.slice(k, k + 2).map(function (m) {
+          return M.labels[m] + " (C " + fmt(M.correlation[m], 2) + ")";
+        }).join(", "));
+      }
+    }
+    const e = errorOf(i);
+    if (e !== null) lines.push(errors[state.colour].name + ": " + fmt(e, 2) + " mm");
+    return lines.join("<br>");
+  }
+
+  function hoverDense(i) {
+    const lines = ["<b>" + M.labels[i] + "</b>", "region " + M.regions[i] + " · side " + (M.sides[i] || "–")];
+    const k = clusterOfMarker[i];
+    if (k >= 0) {
+      const c = clusters[k];
+      lines.push("replaced by #" + c.number + " " + c.label + " · member correlation " + fmt(M.correlation[i], 2));
+    }
+    if (M.mirror_of[i] >= 0) lines.push("mirrored from " + M.labels[M.mirror_of[i]]);
+    const e = errorOf(i);
+    if (state.colour >= 0) lines.push(errors[state.colour].name + ": " + (e === null ? "not measured" : fmt(e, 2) + " mm"));
+    return lines.join("<br>");
+  }
+
+  function errorRange() {
+    let hi = 0;
+    errors.forEach(function (map) {
+      const v = map.values.filter(function (x) { return x !== null && isFinite(x); }).sort(function (a, b) { return a - b; });
+      if (v.length) hi = Math.max(hi, v[Math.min(v.length - 1, Math.floor(0.98 * v.length))]);
+    });
+    return hi > 0 ? hi : 1;
+  }
+  const errorMax = errors.length ? errorRange() : 1;
+  const SCALE = "YlOrRd";
+
+  function nanToNull(v) { return isFinite(v) ? v : null; }
+  // Drawn marker position: off the skin by the stored lift (the data positions stay untouched).
+  function drawn(pos, i, axis) { return nanToNull(pos[i][axis] + mesh.marker_lift[i][axis]); }
+
+  function traces() {
+    const pos = markerPositions();
+    const layoutEntries = shownLayout().filter(function (e) { return markerVisible(e.marker); });
+    const isLayout = {};
+    layoutEntries.forEach(function (e) { isLayout[e.marker] = true; });
+    const out = [];
+    // face
+    const mv = meshVertices(pos);
+    const fi = [], fj = [], fk = [];
+    mesh.faces.forEach(function (f) {
+      if (!state.show.mirrored && mesh.mirrored[f[0]] && mesh.mirrored[f[1]] && mesh.mirrored[f[2]]) return;
+      fi.push(f[0]); fj.push(f[1]); fk.push(f[2]);
+    });
+    const face = {type: "mesh3d", name: "face", x: mv.x, y: mv.y, z: mv.z, i: fi, j: fj, k: fk,
+                  visible: state.show.face, hoverinfo: "skip", flatshading: false, showscale: false,
+                  lighting: {ambient: 0.55, diffuse: 0.6, specular: 0.05, roughness: 0.9},
+                  lightposition: {x: 0, y: 200, z: 1000}};
+    if (state.colour >= 0) {
+      const values = errors[state.colour].values;
+      face.intensity = mesh.nearest_marker.map(function (m) { const v = values[m]; return v === null ? 0 : v; });
+      face.colorscale = SCALE; face.cmin = 0; face.cmax = errorMax;
+    } else {
+      face.vertexcolor = mesh.colours;
+    }
+    out.push(face);
+    // member links to the representative
+    const lx = [], ly = [], lz = [], lc = [];
+    if (state.colour < 0 || !errors[state.colour].layout) {
+      layoutEntries.forEach(function (e) {
+        if (!e.cluster) return;
+        e.cluster.members.forEach(function (m) {
+          if (m === e.marker || !markerVisible(m)) return;
+          lx.push(drawn(pos, e.marker, 0), drawn(pos, m, 0), null);
+          ly.push(drawn(pos, e.marker, 1), drawn(pos, m, 1), null);
+          lz.push(drawn(pos, e.marker, 2), drawn(pos, m, 2), null);
+        });
+      });
+    }
+    out.push({type: "scatter3d", mode: "lines", name: "member links", x: lx, y: ly, z: lz, visible: state.show.links, hoverinfo: "skip",
+              line: {color: "rgba(40,40,40,0.55)", width: 2}});
+    // dense markers
+    const dense = [];
+    for (let i = 0; i < N; i++) if (markerVisible(i) && !isLayout[i]) dense.push(i);
+    const denseTrace = {type: "scatter3d", mode: "markers", name: "dense markers",
+      x: dense.map(function (i) { return drawn(pos, i, 0); }),
+      y: dense.map(function (i) { return drawn(pos, i, 1); }),
+      z: dense.map(function (i) { return drawn(pos, i, 2); }),
+      customdata: dense, text: dense.map(hoverDense), hovertemplate: "%{text}<extra></extra>",
+      visible: state.show.dense, marker: {size: 2.4, line: {width: 0}}};
+    if (state.colour >= 0) {
+      const values = errors[state.colour].values;
+      denseTrace.marker.color = dense.map(function (i) { const v = values[i]; return v === null ? NaN : v; });
+      denseTrace.marker.colorscale = SCALE; denseTrace.marker.cmin = 0; denseTrace.marker.cmax = errorMax;
+      denseTrace.marker.showscale = true;
+      denseTrace.marker.colorbar = {title: {text: "mm"}, len: 0.5, thickness: 12, x: 0.02};
+    } else {
+      denseTrace.marker.color = dense.map(function (i) {
+        const k = clusterOfMarker[i];
+        return k >= 0 ? clusters[k].dense_colour : "#777777";
+      });
+    }
+    out.push(denseTrace);
+    // layout markers, numbered as in guide.pdf
+    out.push({type: "scatter3d", mode: state.show.numbers ? "markers+text" : "markers", name: "layout markers",
+      x: layoutEntries.map(function (e) { return drawn(pos, e.marker, 0); }),
+      y: layoutEntries.map(function (e) { return drawn(pos, e.marker, 1); }),
+      z: layoutEntries.map(function (e) { return drawn(pos, e.marker, 2); }),
+      customdata: layoutEntries.map(function (e) { return e.marker; }),
+      text: layoutEntries.map(function (e) { return String(e.number); }),
+      hovertext: layoutEntries.map(hoverLayout), hovertemplate: "%{hovertext}<extra></extra>",
+      textposition: "top right", textfont: {size: 12, color: "#000000"},
+      marker: {size: 4.5, color: layoutEntries.map(function (e) {
+        return e.cluster ? e.cluster.colour : "#1f3b73";
+      }), line: {color: "#ffffff", width: 1.5}}});
+    return out;
+  }
+
+  const plotLayout = {
+    margin: {l: 0, r: 0, t: 0, b: 0}, showlegend: false, paper_bgcolor: "#ffffff", uirevision: "keep",
+    hoverlabel: {align: "left", bgcolor: "#ffffff", font: {size: 12}},
+    scene: {aspectmode: "data", dragmode: "orbit", bgcolor: "#ffffff",
+            xaxis: {visible: false}, yaxis: {visible: false}, zaxis: {visible: false},
+            camera: {eye: {x: 0, y: 0.1, z: 1.85}, up: {x: 0, y: 1, z: 0}, center: {x: 0, y: 0, z: 0}}}
+  };
+  const config = {displaylogo: false, responsive: true, modeBarButtonsToRemove: ["toImage"]};
+
+  let drawing = null, pending = false;
+  function redraw() {
+    if (drawing) { pending = true; return drawing; }
+    drawing = Plotly.react(gd, traces(), plotLayout, config).then(function () {
+      drawing = null;
+      if (pending) { pending = false; return redraw(); }
+    });
+    return drawing;
+  }
+
+  // ---- panel -----------------------------------------------------------------------------
+  document.getElementById("title").textContent = data.title || "mocaptk report";
+  document.getElementById("summary").textContent = (data.summary || "").replace(/\s+$/, "") +
+    "\n\nreport.html: " + data.size + " (plotly.js " + data.plotly_version + " embedded, works offline)";
+  const nLayout = clusters.length;
+  document.getElementById("subtitle").textContent = [
+    (NC) + " dense markers" + (N > NC ? " + " + (N - NC) + " mirrored" : ""),
+    nLayout ? nLayout + " layout markers (numbers as in guide.pdf)" : null,
+    mesh.vertices.length + "-vertex face"].filter(Boolean).join(" · ");
+
+  function checkbox(parent, text, checked, onChange, colour) {
+    const label = document.createElement("label");
+    const box = document.createElement("input");
+    box.type = "checkbox"; box.checked = checked;
+    box.addEventListener("change", function () { onChange(box.checked); redraw(); });
+    label.appendChild(box);
+    if (colour) { const s = document.createElement("span"); s.className = "swatch"; s.style.background = colour; label.appendChild(s); }
+    label.appendChild(document.createTextNode(text));
+    parent.appendChild(label);
+    return box;
+  }
+  const show = document.getElementById("show");
+  checkbox(show, "face", true, function (v) { state.show.face = v; });
+  checkbox(show, "dense markers", true, function (v) { state.show.dense = v; });
+  checkbox(show, "member links", true, function (v) { state.show.links = v; });
+  checkbox(show, "numbers", true, function (v) { state.show.numbers = v; });
+  if (N > NC) checkbox(show, "mirrored half", true, function (v) { state.show.mirrored = v; });
+  const regionBox = document.getElementById("regions");
+  data.regions.forEach(function (r) {
+    checkbox(regionBox, r, true, function (v) { state.regions[r] = v; }, data.region_colours[r]);
+  });
+  const colouring = document.getElementById("colouring");
+  const colourSelect = document.createElement("select");
+  if (clusters.length) colourSelect.add(new Option("clusters (influence regions)", "-1"));
+  errors.forEach(function (map, k) { colourSelect.add(new Option(map.name + " (mm)", String(k))); });
+  colourSelect.value = String(state.colour);
+  colourSelect.addEventListener("change", function () { pick(Number(colourSelect.value)); });
+  colouring.appendChild(colourSelect);
+  if (!errors.length) colouring.appendChild(document.createTextNode(" (held-out errors: see evaluate / compare reports)"));
+
+  const rowsByMap = {};
+  function pick(k) {
+    state.colour = k; colourSelect.value = String(k);
+    Object.keys(rowsByMap).forEach(function (key) { rowsByMap[key].forEach(function (tr) { tr.classList.toggle("picked", Number(key) === k); }); });
+    redraw();
+  }
+  const tables = document.getElementById("tables");
+  (data.tables || []).forEach(function (t) {
+    const table = document.createElement("table");
+    table.createCaption().textContent = t.title;
+    const head = table.createTHead().insertRow();
+    t.columns.forEach(function (c) { const th = document.createElement("th"); th.textContent = c; head.appendChild(th); });
+    const body = table.createTBody();
+    t.rows.forEach(function (row, r) {
+      const tr = body.insertRow();
+      row.forEach(function (cell) { tr.insertCell().textContent = cell === null ? "–" : String(cell); });
+      const k = t.picks ? t.picks[r] : null;
+      if (k !== null && k !== undefined) {
+        tr.classList.add("pickable"); tr.title = "colour the face by this row's held-out error";
+        (rowsByMap[k] = rowsByMap[k] || []).push(tr);
+        tr.addEventListener("click", function () { pick(k); });
+      }
+    });
+    tables.appendChild(table);
+    if (t.note) { const p = document.createElement("p"); p.textContent = t.note; tables.appendChild(p); }
+  });
+
+  // ---- time ------------------------------------------------------------------------------
+  const slider = document.getElementById("time");
+  const clock = document.getElementById("clock");
+  const clipSelect = document.getElementById("clip");
+  const play = document.getElementById("play");
+  clips.forEach(function (c, k) { clipSelect.add(new Option(c.name, String(k))); });
+  function ordinal(n) { return n === 1 ? "every frame" : "every " + n + (n === 2 ? "nd" : n === 3 ? "rd" : "th") + " frame"; }
+  function showClock() {
+    const c = clips[state.clip];
+    if (!c) { clock.textContent = "neutral pose (no recording)"; return; }
+    const source = state.frame * c.step;
+    clock.textContent = (source / c.source_rate_hz).toFixed(2) + " s · frame " + source + "/" + c.source_frames +
+      " @ " + fmt(c.source_rate_hz, 0) + " Hz · replay " + fmt(c.rate_hz, 1) + " Hz (" + ordinal(c.step) + ")";
+  }
+  function setClip(k) {
+    state.clip = k; state.frame = 0; clipSelect.value = String(k);
+    slider.max = String(clips[k] ? clips[k].frames - 1 : 0); slider.value = "0";
+    showClock();
+    return redraw();
+  }
+  function setFrame(f) {
+    const c = clips[state.clip];
+    state.frame = c ? Math.max(0, Math.min(c.frames - 1, Math.round(f))) : 0;
+    slider.value = String(state.frame);
+    showClock();
+    return redraw();
+  }
+  slider.addEventListener("input", function () { setFrame(Number(slider.value)); });
+  clipSelect.addEventListener("change", function () { setClip(Number(clipSelect.value)); });
+  let playStart = 0, playFrom = 0;
+  function tick(now) {
+    if (!state.playing) return;
+    const c = clips[state.clip];
+    const f = playFrom + (now - playStart) / 1000 * c.rate_hz;
+    if (f >= c.frames - 1) { setFrame(c.frames - 1); togglePlay(); return; }
+    (drawing || Promise.resolve()).then(function () {
+      setFrame(f);
+      requestAnimationFrame(tick);
+    });
+  }
+  function togglePlay() {
+    if (!clips.length) return;
+    state.playing = !state.playing;
+    play.innerHTML = state.playing ? "&#10073;&#10073;" : "&#9654;";
+    if (state.playing) {
+      if (state.frame >= clips[state.clip].frames - 1) state.frame = 0;
+      playStart = performance.now(); playFrom = state.frame;
+      requestAnimationFrame(tick);
+    }
+  }
+  play.addEventListener("click", togglePlay);
+  if (!clips.length) { play.disabled = true; slider.disabled = true; clipSelect.disabled = true; }
+
+  window.mocaptkReport = {data: data, state: state, setFrame: setFrame, setClip: setClip, pick: pick,
+                          markerPositions: markerPositions, ready: false, loadMs: null,
+                          view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(function () { return true; }); },
+                          settled: function () { return drawing || Promise.resolve(); }};
+  setClip(0).then(function () {
+    window.mocaptkReport.ready = true;
+    window.mocaptkReport.loadMs = performance.now();  // since navigation start
+    window.mocaptkReport.drawMs = performance.now() - started;
+  });
+})();

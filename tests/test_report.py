@@ -1,0 +1,85 @@
+"""report.html without a browser: self-contained, byte-identical for the same input, written
+atomically, its replay subsampled within budget and its data matching the layout."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import numpy as np
+import pytest
+from clustering_synthetic import planted_session, save_session
+
+from mocaptk.retarget.report import replay_clips, replay_step
+
+
+@pytest.fixture(scope="module")
+def planted_reports(tmp_path_factory):
+    """``mocaptk cluster`` twice on one planted session (rig.json + guide included)."""
+    from mocaptk.cli import main
+
+    folder = tmp_path_factory.mktemp("planted_report")
+    path, takes = save_session(planted_session(seed=21)[0], folder / "planted.npz")
+    outs = []
+    for name in ("a", "b"):
+        try:
+            main(["cluster", str(path), "--takes", str(takes), "--no-stabilize", "--quiet",
+                  "--out", str(folder / name), "--formats", "json"])
+        except SystemExit as exc:
+            assert not exc.code, exc
+        outs.append(folder / name)
+    return outs
+
+
+def page_data(path) -> dict:
+    text = path.read_text(encoding="utf-8")
+    block = re.search(r'<script id="report-data" type="application/json">(.*?)</script>', text, re.S)
+    return json.loads(block.group(1))
+
+
+def test_report_is_byte_identical_and_self_contained(planted_reports):
+    a, b = (folder / "report.html" for folder in planted_reports)
+    assert a.read_bytes() == b.read_bytes()
+    text = a.read_text(encoding="utf-8")
+    # nothing is fetched: no external script, stylesheet, image or frame
+    assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)=", text)
+    assert not [p.name for p in planted_reports[0].parent.rglob("*.part")]  # staging cleaned up
+    summary = (planted_reports[0] / "summary.txt").read_text()
+    size = re.search(r"report\.html: ([\d.]+) MB", summary)
+    assert size and abs(float(size.group(1)) - a.stat().st_size / 1e6) <= 0.051
+
+
+def test_report_data_matches_the_layout(planted_reports):
+    folder = planted_reports[0]
+    data = page_data(folder / "report.html")
+    layout = json.loads((folder / "layout.json").read_text())
+    assert data["format"] == "mocaptk.report" and data["version"] == 1 and data["kind"] == "cluster"
+    assert [c["label"] for c in data["clusters"]] == layout["layout"]
+    assert [c["number"] for c in data["clusters"]] == list(range(1, len(layout["layout"]) + 1))
+    labels = data["markers"]["labels"]
+    for cluster, source in zip(data["clusters"], layout["clusters"]):
+        assert [labels[m] for m in cluster["members"]] == source["members"]
+    # mirrored markers are drawn from their source marker; the rig moves the face
+    captured = data["markers"]["captured"]
+    assert all(m >= 0 for m in data["markers"]["mirror_of"][captured:])
+    assert any(c["mirrored_from"] for c in data["clusters"])
+    assert len(data["mesh"]["vertices"]) > captured and len(data["mesh"]["skin_marker"]) == len(data["mesh"]["vertices"])
+    clip = data["clips"][0]
+    track = np.frombuffer(base64.b64decode(clip["positions"]), "<i2")
+    assert track.size == clip["frames"] * captured * 3
+    assert clip["frames"] == -(-clip["source_frames"] // clip["step"])
+
+
+def test_replay_subsampling_keeps_rate_and_budget():
+    assert replay_step(60.0, 6841, 139, budget_bytes=4_000_000) == 2  # 30 Hz fits
+    assert replay_step(60.0, 6841, 139, budget_bytes=1_000_000) == 6  # budget forces 10 Hz
+    assert replay_step(25.0, 100, 10, budget_bytes=4_000_000) == 1
+    positions = np.zeros((10, 2, 3))
+    positions[4, 1] = np.nan
+    positions[:, 0, 0] = np.arange(10) * 0.1
+    (clip,) = replay_clips([("s", positions)], 100.0, np.zeros((2, 3)))
+    assert clip["step"] == 4 and clip["frames"] == 3 and clip["rate_hz"] == 25.0
+    track = np.frombuffer(base64.b64decode(clip["positions"]), "<i2").reshape(3, 2, 3)
+    np.testing.assert_array_equal(track[:, 0, 0], [0, 8, 16])  # 0.05 mm steps: 0, 0.4, 0.8 mm
+    assert (track[1, 1] == -32768).all() and (track[[0, 2], 1] == 0).all()  # the gap stays a gap

@@ -1,0 +1,113 @@
+"""The sample's ``report.html`` opened in headless Chromium (Debian's package, installed by
+scripts/install-readers.sh): it shows the face, logs no JS error, holds the layout's markers,
+and the time slider moves them. Skips only where no Chromium is installed."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import REPO, SAMPLES
+
+spec = importlib.util.spec_from_file_location("chromium_cdp", REPO / "scripts" / "chromium_cdp.py")
+chromium_cdp = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(chromium_cdp)
+
+READY = "window.mocaptkReport && window.mocaptkReport.ready"
+#: JS: [[x, y, z], ...] of the layout-marker trace as plotly holds it.
+LAYOUT_POINTS = ("(() => { const t = document.getElementById('scene').data"
+                 ".find(d => d.name === 'layout markers'); return t.x.map((x, i) => [x, t.y[i], t.z[i]]); })()")
+
+
+@pytest.fixture(scope="module")
+def sample_report(tmp_path_factory):
+    """``mocaptk cluster`` on the bundled sample (rig included): its output folder."""
+    from mocaptk.cli import main
+
+    folder = tmp_path_factory.mktemp("report")
+    session = folder / "dense_halfface.c3d"
+    shutil.copy(SAMPLES / "dense_halfface.c3d", session)
+    try:
+        main(["cluster", str(session), "--factor", "1.1", "--out", str(folder / "layout"), "--quiet",
+              "--formats", "json"])
+    except SystemExit as exc:
+        assert not exc.code, exc
+    return folder / "layout"
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if chromium_cdp.chromium_path() is None:
+        pytest.skip("chromium not installed (scripts/install-readers.sh installs Debian's package)")
+    pytest.importorskip("websocket", reason="websocket-client (test extra) drives Chromium")
+    with chromium_cdp.Chromium(width=1400, height=900) as chromium:
+        yield chromium
+
+
+def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
+    page = sample_report / "report.html"
+    layout = json.loads((sample_report / "layout.json").read_text())
+    assert page.stat().st_size < 20e6  # the issue's budget for the sample
+    browser.open(page, ready=READY, timeout=120)
+    assert browser.console == []
+
+    # the face is on screen: the canvas is not blank white, and covers a face-sized area
+    from PIL import Image
+
+    shot = np.asarray(Image.open(browser.screenshot(tmp_path / "rest.png")).convert("RGB"), float)
+    scene = shot[:850, :950]  # the 3-D view (panel on the right, transport bar below)
+    drawn = np.abs(scene - 255.0).sum(axis=2) > 30
+    assert 0.2 < drawn.mean() < 0.85, drawn.mean()
+    rows, cols = np.nonzero(drawn)
+    assert np.ptp(rows) > 500 and np.ptp(cols) > 350  # tall and wide like a face, not a dot
+    # skin colours of the influence regions are there, not only marker dots
+    assert len(np.unique((scene[drawn] // 32).astype(int), axis=0)) > 20
+
+    # the page's data holds exactly the layout's markers (mirrored ones included)
+    points = browser.evaluate(LAYOUT_POINTS)
+    assert len(points) == len(layout["clusters"]) == len(layout["layout"])
+    numbers = browser.evaluate("document.getElementById('scene').data"
+                               ".find(d => d.name === 'layout markers').text")
+    assert sorted(map(int, numbers)) == list(range(1, len(layout["clusters"]) + 1))
+
+    # the time slider moves the markers (read back from plotly's trace data) exactly as recorded:
+    # the sample is head-relative (not stabilized), so |p(t) - p(0)| must match the C3D's
+    from mocaptk.acquisition import read_trajectories
+
+    session = read_trajectories(SAMPLES / "dense_halfface.c3d", strip_prefixes=True)
+    clip = browser.evaluate("mocaptkReport.data.clips[0].step")
+    slider_max = int(browser.evaluate("document.getElementById('time').max"))
+    assert clip == 2 and slider_max == (session.n_frames - 1) // 2  # 60 Hz replayed at 30 Hz
+    measured = [k for k, c in enumerate(layout["clusters"]) if c["mirrored_from"] is None]
+    columns = [session.labels.index(layout["clusters"][k]["representative"]) for k in measured]
+    motion = np.linalg.norm(session.positions[::2, columns] - session.positions[0, columns], axis=2)
+    frame = int(np.nanargmax(np.nanmax(motion, axis=1)))
+    browser.evaluate(f"(async () => {{ const s = document.getElementById('time'); s.value = {frame};"
+                     " s.dispatchEvent(new Event('input')); await mocaptkReport.settled(); })()")
+    assert browser.evaluate("mocaptkReport.state.frame") == frame
+    moved = np.array(browser.evaluate(LAYOUT_POINTS), float)
+    shift = np.linalg.norm(moved - np.array(points, float), axis=1)
+    assert np.nanmax(shift) > 5.0
+    np.testing.assert_allclose(shift[measured], motion[frame], atol=0.15)  # int16 0.05 mm steps
+    assert browser.console == []
+
+
+def test_toggles_hide_and_show_markers(sample_report, browser):
+    page = sample_report / "report.html"
+    browser.open(page, ready=READY, timeout=120)
+    count = "document.getElementById('scene').data.find(d => d.name === 'layout markers').x.length"
+    everything = browser.evaluate(count)
+    toggle = ("(async () => {{ const box = [...document.querySelectorAll('#{box} label')]"
+              ".find(l => l.textContent.trim() === '{name}').querySelector('input');"
+              " box.click(); await mocaptkReport.settled(); }})()")
+    browser.evaluate(toggle.format(box="show", name="mirrored half"))
+    measured = browser.evaluate(count)
+    layout = json.loads((sample_report / "layout.json").read_text())
+    assert measured == sum(c["mirrored_from"] is None for c in layout["clusters"]) < everything
+    browser.evaluate(toggle.format(box="regions", name="chin"))
+    assert browser.evaluate(count) == sum(c["mirrored_from"] is None and c["region"] != "chin"
+                                          for c in layout["clusters"])
+    assert browser.console == []
