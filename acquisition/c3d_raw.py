@@ -81,7 +81,8 @@ def _dtypes(processor: str) -> tuple[str, str]:
 def _dec(raw: np.ndarray) -> np.ndarray:
     """VAX F-floats (``uint32`` little-endian words as stored) -> float32."""
     swapped = ((raw >> 16) | (raw << 16)).astype(np.uint32)
-    return swapped.view("<f4") * np.float32(0.25)
+    with np.errstate(invalid="ignore"):  # a signalling NaN (corrupt file) is just NaN
+        return swapped.view("<f4") * np.float32(0.25)
 
 
 def _floats(buf: bytes | np.ndarray, processor: str, count: int = -1, offset: int = 0) -> np.ndarray:
@@ -186,11 +187,14 @@ def _decode_value(raw: bytes, size: int, dims: list[int], processor: str) -> Par
 
 
 def _unsigned(value: ParamValue | None) -> int | None:
-    """First element of an integer parameter read as unsigned 16-bit (floats taken as is)."""
+    """First element of an integer parameter read as unsigned 16-bit (a float is taken if it is
+    a whole number in 0..65535, else ``None``)."""
     if not isinstance(value, np.ndarray) or value.size == 0 or not np.isfinite(value[0]):
         return None
     first = value[0]
-    return int(first) if value.dtype.kind == "f" else int(first) & 0xFFFF
+    if value.dtype.kind == "f":
+        return int(first) if 0 <= first <= 0xFFFF and first == int(first) else None
+    return int(first) & 0xFFFF
 
 
 def _field(value: ParamValue | None) -> int | None:
@@ -252,11 +256,16 @@ def _layout(path: Path, head: bytes, params: dict[str, dict[str, ParamValue]], p
     header_rate = float(_floats(head, processor, 1, 20)[0])
     point = params.get("POINT", {})
 
+    notes = []
     n_points = _unsigned(point.get("USED"))
-    n_points = header_points if n_points is None else n_points
+    if n_points is None:
+        used = point.get("USED")
+        if isinstance(used, np.ndarray) and used.size:  # e.g. a float -1.0 (fuzzed file)
+            notes.append(f"POINT:USED {used[0]:g} is not a point count; used the header's "
+                         f"{header_points}")
+        n_points = header_points
     scale = _scalar(point.get("SCALE"))
     scale = header_scale if scale is None or scale == 0 else scale
-    notes = []
     if np.isfinite(header_scale) and not np.isclose(abs(header_scale), abs(scale), rtol=1e-4):
         notes.append(f"header scale {header_scale:.6g} differs from POINT:SCALE {scale:.6g}; "
                      "used POINT:SCALE")  # MACsample.c3d

@@ -140,6 +140,10 @@ def _ezc3d_points(s: C3DStructure) -> tuple[np.ndarray, np.ndarray] | str:
 
 def _units(s: C3DStructure) -> tuple[float, str]:
     value = s.param("POINT", "UNITS")
+    if isinstance(value, np.ndarray):  # a numeric parameter: the file is corrupt
+        shown = ", ".join(f"{v:g}" for v in value[:4]) + (", ..." if value.size > 4 else "")
+        raise InputFileError(s.path, f"POINT:UNITS is a number ({shown}), not text such as "
+                                     "'mm' (corrupt parameter section)")
     if not value or not value[0].strip():
         return 1.0, "mm"  # C3D default when POINT:UNITS is absent
     text = value[0].strip()

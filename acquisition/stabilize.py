@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from mocaptk.errors import OptionError
+from mocaptk.errors import InputFileError, MocaptkError, OptionError
 from mocaptk.trajectories import Trajectories
 
 from .filtering import lowpass
@@ -108,7 +108,8 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     re-pick by head-relative motion (95th percentile distance from the marker's median position in
     head coordinates): the steadiest markers pairwise 25 % of the diameter apart, then the steadiest
     others, up to 6, all moving less than ``max(1 mm, 2.5 × the steadiest one's motion)``.
-    Raises :class:`OptionError` if no 3 markers qualify.
+    Raises :class:`InputFileError` naming ``metadata["source"]`` (else :class:`OptionError`) if
+    no 3 markers qualify.
     """
     step = max(1, traj.n_frames // _DETECT_FRAMES)
     pos = traj.positions[::step]
@@ -122,12 +123,12 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     usable = (shared >= _MIN_SHARED * with_data) & np.isfinite(change)
     np.fill_diagonal(usable, False)
     if not usable.any():
-        raise OptionError("cannot detect rigid markers: no two markers are seen together often enough")
+        raise _undetected(traj, "no two markers are seen together often enough")
     spread = typical >= AUTO_RIGID_SPREAD * typical[usable].max()
     score = np.where(usable & spread, change, np.inf)
     i, j = np.unravel_index(np.argmin(score), score.shape)
     if not np.isfinite(score[i, j]):
-        raise OptionError("cannot detect rigid markers: no distant marker pair is seen together")
+        raise _undetected(traj, "no distant marker pair is seen together")
     tolerance = max(AUTO_RIGID_MIN_TOLERANCE_MM, 2.5 * float(score[i, j]))
     chosen = [int(i), int(j)]
     while len(chosen) < AUTO_RIGID_MAX:
@@ -138,7 +139,7 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
         k = int(np.argmin(worst))
         if not np.isfinite(worst[k]):
             if len(chosen) < 3:
-                raise OptionError("cannot detect 3 rigid markers (no third marker far from the first two)")
+                raise _undetected(traj, "no third marker far from the first two")
             break
         if worst[k] > tolerance and len(chosen) >= 3:
             break
@@ -147,6 +148,14 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     for _ in range(_REFINE_ROUNDS):
         chosen = _least_moving_spread_set(sample, chosen, spread_mm=AUTO_RIGID_SPREAD * typical[usable].max())
     return tuple(traj.labels[k] for k in sorted(chosen))
+
+
+def _undetected(traj: Trajectories, why: str) -> MocaptkError:
+    """The error for a session whose rigid head markers cannot be found (names the file)."""
+    problem = (f"cannot detect 3 rigid head markers ({why}); name them with --rigid A,B,C, "
+               "or use --no-stabilize for head-relative data")
+    source = traj.metadata.get("source")
+    return InputFileError(source, problem) if source else OptionError(problem)
 
 
 def _least_moving_spread_set(sample: Trajectories, chosen: list[int], *, spread_mm: float) -> list[int]:

@@ -15,6 +15,8 @@ import pytest
 from clustering_synthetic import planted_session, save_session
 from conftest import REPO
 
+FUZZ = REPO / "tests" / "data" / "fuzz"
+
 from mocaptk import Trajectories
 from mocaptk.acquisition.formats import write_trajectories
 
@@ -81,8 +83,10 @@ def f(tmp_path_factory) -> dict[str, Path]:
         if text is not None:
             (d / name).write_text(text, encoding="utf-8")
     (d / "latin1.trc").write_bytes("\n".join(trc).replace("\tA\t", "\tÄ\t").encode("latin-1"))
-    (d / "cut.c3d").write_bytes((d / "good.c3d").read_bytes()[:1636])  # data from byte 1536
-    (d / "params.c3d").write_bytes((d / "good.c3d").read_bytes()[:1100])
+    good = (d / "good.c3d").read_bytes()
+    data_start = (int.from_bytes(good[16:18], "little") - 1) * 512
+    (d / "cut.c3d").write_bytes(good[:data_start + 100])  # cut inside the point data
+    (d / "params.c3d").write_bytes(good[:600])  # cut inside the parameter section
     (d / "npz_bad.npz").write_bytes(b"PK\x03\x04 not really a zip")
     np.savez(d / "npz_lacks.npz", positions=np.zeros((2, 1, 3)))
     doc = json.loads((d / "layout.json").read_text())
@@ -120,6 +124,8 @@ CATALOGUE = [
     ("E-TEXT-UTF8", lambda f: ["info", f["latin1.trc"]], "not UTF-8 text (bad byte at offset"),
     ("E-C3D-TRUNC", lambda f: ["info", f["cut.c3d"]], "truncated C3D file"),
     ("E-C3D-PARAMS", lambda f: ["info", f["params.c3d"]], "bad parameter section"),
+    ("E-C3D-UNITS-NUMBER", lambda f: ["info", FUZZ / "c3d_units_numeric.c3d"],
+     "{file}: POINT:UNITS is a number (28013), not text such as 'mm'"),
     ("E-NPZ-UNREADABLE", lambda f: ["info", f["npz_bad.npz"]], "unreadable .npz archive"),
     ("E-NPZ-LACKS", lambda f: ["info", f["npz_lacks.npz"]], ".npz lacks labels, rate"),
     # -- TRC
@@ -166,6 +172,10 @@ CATALOGUE = [
      "low-pass cut-off must be between 0 and 50 Hz"),
     ("E-STAB-FEW", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B"],
      "stabilization needs at least 3 distinct rigid markers"),
+    ("E-RIGID-DETECT", lambda f: ["cluster", FUZZ / "face_in_metres_read_as_mm.trc", "--formats",
+                                  "none", "--out", f["dir"] / "rd"],
+     "{file}: cannot detect 3 rigid head markers (no third marker far from the first two); "
+     "name them with --rigid A,B,C, or use --no-stabilize"),
     ("E-LABELS-UNKNOWN", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--rigid", "A,B,Z"],
      "rigid markers not in the session: Z"),
     ("E-RIGID-NO-STABILIZE", lambda f: ["cluster", f["good.trc"], "--rigid", "A,B,Z", "--no-stabilize",
