@@ -127,7 +127,7 @@ def baseline_layouts(positions: np.ndarray, count: int, *, n_random: int = 10, s
                      frame_step: int = 1) -> dict[str, list[np.ndarray]]:
     """Baseline layouts of ``count`` markers chosen from a session ``(frames, markers, 3)`` mm.
 
-    ``random``: ``n_random`` seeds (``seed``, ``seed+1``, ...); ``farthest_point`` on the neutral
+    ``random``: ``n_random`` seeds (``seed``, ``seed+1``, ...); ``farthest-point`` on the neutral
     pose (per-marker median); ``kmeans`` on displacement trajectories sampled every ``frame_step``.
     """
     positions = np.asarray(positions, dtype=np.float64)
@@ -136,7 +136,7 @@ def baseline_layouts(positions: np.ndarray, count: int, *, n_random: int = 10, s
     disp = positions[::frame_step] - neutral[None]
     return {
         "random": [random_layout(n_markers, count, seed=seed + i) for i in range(n_random)],
-        "farthest_point": [farthest_point_layout(neutral, count)],
+        "farthest-point": [farthest_point_layout(neutral, count)],
         "kmeans": [kmeans_layout(disp, count, seed=seed)],
     }
 

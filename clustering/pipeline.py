@@ -143,12 +143,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     if options.stabilize:
         if progress:
             progress("stabilizing")
-        traj, stabilization = stabilize(traj, rigid=options.rigid)
-        if not stabilization["applied"]:
-            notes.append("the session is already head-relative (the rigid set "
-                         f"{', '.join(stabilization['rigid_labels'])} moves "
-                         f"{stabilization['rigid_set_motion_rms_mm']:.2f} mm RMS < "
-                         f"{HEAD_RELATIVE_RMS_MM} mm): not stabilized")
+        traj, stabilization = stabilize(traj, rigid=options.rigid)  # not applied: see stabilization_note
     labels = list(traj.labels)
     neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
@@ -245,6 +240,16 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
     digest = hashlib.sha256(file.read_bytes()).hexdigest()
     return traj, {"path": file.name, "sha256": digest}
+
+
+def stabilization_note(stabilization: dict[str, Any]) -> str | None:
+    """The note for a session found already head-relative (the normal case with head-mounted cameras);
+    None when it was stabilized or stabilization was not asked for."""
+    if not stabilization or stabilization.get("applied"):
+        return None
+    return (f"the session is already head-relative (the rigid set {', '.join(stabilization['rigid_labels'])} "
+            f"moves {stabilization['rigid_set_motion_rms_mm']:.2f} mm RMS < {HEAD_RELATIVE_RMS_MM} mm): "
+            "not stabilized")
 
 
 def load_session_and_test(session: str | Path, test: str | Path | None, *, stabilized: bool,

@@ -1,12 +1,18 @@
-"""Atomic file output: write to a temporary file in the same folder, then rename.
+"""Atomic outputs: write to a temporary file (or folder) beside the output, then rename.
 
-An interrupted run leaves either the old file or the new one, never a truncated one.
+An interrupted run leaves either the old output or the new one, never a mix or a truncated file.
+A command claims its outputs (:func:`claim_output`): an exclusive lock, so that two mocaptk
+processes never write the same output, and the clean-up of what a killed run left behind.
+Files and folders get the permissions the umask gives (like ``touch`` / ``mkdir``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,10 +21,159 @@ from typing import IO
 from .errors import OutputError
 
 
-def _cannot_write(target: Path, exc: OSError) -> OutputError:
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _cannot_write(target: Path, exc: OSError, *, hint: str = "") -> OutputError:
+    if exc.errno == errno.ENOSPC:
+        return OutputError(f"{target}: no space left on device (nothing was written)")
     if isinstance(exc, (FileExistsError, NotADirectoryError)):
         return OutputError(f"{target}: cannot write (a part of the folder path is a file, not a folder)")
-    return OutputError(f"{target}: cannot write ({exc.strerror or exc})")
+    return OutputError(f"{target}: cannot write ({exc.strerror or exc}){hint}")
+
+
+#: Outputs this process holds the lock of: absolute path -> open lock file descriptor.
+_claims: dict[Path, int] = {}
+
+
+def _lock_file(target: Path) -> Path:
+    return target.parent / f".{target.name}.lock"
+
+
+def _lock(target: Path, *, hint: str = "") -> bool:
+    """Take the exclusive lock on ``target`` (False: this process holds it already)."""
+    key = Path(os.path.abspath(target))
+    if key in _claims:
+        return False
+    lock = _lock_file(key)
+    while True:
+        try:
+            key.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise _cannot_write(target, exc, hint=hint) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise OutputError(f"{target}: is being written by another mocaptk process") from None
+        # the previous holder removes the lock file when done: a lock on a removed file is no lock
+        with contextlib.suppress(FileNotFoundError):
+            if os.path.samestat(os.fstat(fd), os.stat(lock)):
+                _claims[key] = fd
+                return True
+        os.close(fd)
+
+
+def _unlock(target: Path) -> None:
+    key = Path(os.path.abspath(target))
+    fd = _claims.pop(key, None)
+    if fd is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(_lock_file(key))  # before closing: a waiting process then sees a removed file
+        os.close(fd)
+
+
+def release_claims() -> None:
+    """Release every output lock this process holds (the CLI does at the end of a command)."""
+    for key in list(_claims):
+        _unlock(key)
+
+
+def _aside(out_dir: Path) -> Path:
+    """Where ``staged_folder`` moves the old folder during a ``--force`` swap."""
+    return out_dir.parent / f".{out_dir.name}.old"
+
+
+def _recover(target: Path) -> None:
+    """Undo what a killed run left beside ``target`` (the caller holds the lock): put an old folder
+    moved aside back if the new one never arrived, else remove it; remove temporary parts."""
+    parent = target.parent
+    if not parent.is_dir():
+        return
+    aside = _aside(target)
+    if aside.is_dir():
+        if target.exists():
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
+            os.replace(aside, target)
+    for leftover in parent.glob(f".{target.name}.*.part"):
+        if leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                leftover.unlink()
+    for leftover in parent.glob(f".{target.stem}.*.part{target.suffix}"):
+        with contextlib.suppress(OSError):
+            leftover.unlink()
+
+
+def claim_output(path: str | os.PathLike[str], *, force: bool, folder: bool = False, hint: str = "") -> Path:
+    """Check, lock and tidy an output before a command's slow part; returns it as a Path.
+
+    Refuses an existing file (``folder=False``) or a non-empty folder (``folder=True``) unless
+    ``force``; takes the exclusive lock on it for the rest of the command (:func:`release_claims`, or
+    the end of the process, lets it go); cleans up after a killed earlier run. ``hint`` is added to a
+    cannot-write message (e.g. ``"; use --out to write elsewhere"``).
+    """
+    target = Path(path)
+    _lock(target, hint=hint)
+    _recover(target)
+    if folder:
+        _check_folder(target, force=force)
+    else:
+        check_writable(target, force=force)
+    return target
+
+
+def _check_folder(out_dir: Path, *, force: bool) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"{out_dir}: exists and is not a folder")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
+        raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
+
+
+@contextlib.contextmanager
+def staged_folder(out_dir: Path, *, force: bool) -> Iterator[Path]:
+    """A temporary sibling folder that becomes ``out_dir`` when the block ends without error.
+
+    An existing, non-empty ``out_dir`` is refused unless ``force``; with ``force`` the whole folder is
+    replaced in one rename (the old one is moved aside first, then removed; a run killed in between
+    is recovered by the next :func:`claim_output`). On failure nothing changes.
+    """
+    took = _lock(out_dir)
+    try:
+        _recover(out_dir)
+        _check_folder(out_dir, force=force)
+        parent = out_dir.parent
+        try:
+            staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".part", dir=parent))
+            os.chmod(staging, 0o777 & ~_umask())
+        except OSError as exc:
+            raise _cannot_write(out_dir, exc) from None
+        try:
+            yield staging
+            if out_dir.is_dir():
+                aside = _aside(out_dir)
+                os.replace(out_dir, aside)
+                os.replace(staging, out_dir)
+                shutil.rmtree(aside, ignore_errors=True)  # a leftover is removed by the next run
+            else:
+                os.replace(staging, out_dir)
+        except BaseException as exc:
+            shutil.rmtree(staging, ignore_errors=True)
+            _recover(out_dir)  # the old folder back, if the swap itself failed
+            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+                raise _cannot_write(out_dir, exc) from None
+            if isinstance(exc, OutputError) and str(staging) in str(exc):  # name the real output
+                raise OutputError(str(exc).replace(str(staging), str(out_dir))) from None
+            raise
+    finally:
+        if took:
+            _unlock(out_dir)
 
 
 def check_writable(path: str | os.PathLike[str], *, force: bool) -> Path:
@@ -53,11 +208,13 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb", *, force: bool =
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
-        os.chmod(tmp_name, 0o644)
+        os.chmod(tmp_name, 0o666 & ~_umask())
         os.replace(tmp_name, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp_name)
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            raise _cannot_write(target, exc) from None
         raise
 
 
@@ -81,11 +238,13 @@ def atomic_path(path: str | os.PathLike[str], *, force: bool = True) -> Iterator
         yield Path(tmp_name)
         with open(tmp_name, "rb+") as handle:
             os.fsync(handle.fileno())
-        os.chmod(tmp_name, 0o644)
+        os.chmod(tmp_name, 0o666 & ~_umask())
         os.replace(tmp_name, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp_name)
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            raise _cannot_write(target, exc) from None
         raise
 
 

@@ -129,7 +129,7 @@ def test_evaluate_layout_reports_baselines_of_equal_size(mirrored_layout):
     idx = [index[c.representative] for c in result.layout.clusters if c.mirrored_from is None]
     out = evaluate_layout(traj.positions, idx, takes=traj.takes, n_random=3, regions={"all": range(traj.n_markers)})
     methods = out["methods"]
-    assert set(methods) == {"layout", "random", "farthest_point", "kmeans"}
+    assert set(methods) == {"layout", "random", "farthest-point", "kmeans"}
     assert all(m["count"] == len(idx) for m in methods.values())
     assert methods["random"]["layouts"] == 3 and "rmse_sd_mm" in methods["random"]
     # the planted layout (one marker per driving signal) reconstructs far better than random

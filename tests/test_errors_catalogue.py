@@ -165,6 +165,7 @@ CATALOGUE = [
     ("E-OUT-CANNOT", lambda f: ["convert", f["good.trc"], f["afile"] / "x.trc", "--force"], "cannot write"),
     ("E-OUT-NOTEMPTY", lambda f: ["cluster", S(f), "--out", f["full"]], "folder exists and is not empty"),
     ("E-OUT-SWEEP-NOTEMPTY", lambda f: ["sweep", S(f), "--out", f["full"]], "folder exists and is not empty"),
+    ("E-OPT-PARSE", lambda f: ["cluster", S(f), "--factor", "abc"], "Invalid value for '--factor'"),
     # -- clean
     ("E-CLEAN-RIGID", lambda f: ["clean", f["good.trc"], f["dir"] / "c.trc", "--no-stabilize", "--rigid", "A,B,C"],
      "--rigid needs --stabilize"),

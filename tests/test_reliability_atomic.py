@@ -58,7 +58,7 @@ def test_convert_killed_mid_write_keeps_the_old_file(big_session, tmp_path, suff
     target.write_bytes(b"the previous, complete output\n")
     kill_while_writing(["convert", str(big_session), str(target), "--force"], tmp_path)
     assert target.read_bytes() == b"the previous, complete output\n"
-    leftovers = [p.name for p in tmp_path.iterdir() if p != target]
+    leftovers = [p.name for p in tmp_path.iterdir() if p != target and p.name != f".{target.name}.lock"]
     assert leftovers and all(n.startswith(f".{target.name}.") and n.endswith(".part") for n in leftovers)
 
 
@@ -70,6 +70,7 @@ def test_convert_killed_mid_write_without_old_file_leaves_no_output(big_session,
     done = run_cli("convert", big_session, target)
     assert done.exit_code == 0, done.stderr
     assert read_trajectories(target).positions.shape == (6000, 40, 3)
+    assert [p.name for p in tmp_path.iterdir()] == [target.name]  # and it removed the leftovers
 
 
 def test_error_inside_a_write_leaves_old_file_and_no_temporary(tmp_path):
@@ -99,9 +100,13 @@ def test_existing_output_needs_force_and_folders_are_refused(tmp_path):
         write_text(blocked / "sub" / "out.txt", "x")  # parent is a file
 
 
-def test_atomic_output_permissions_follow_a_normal_file(tmp_path):
-    target = write_text(tmp_path / "x.txt", "x")
-    assert os.stat(target).st_mode & 0o777 == 0o644
+def test_atomic_output_permissions_follow_the_umask(tmp_path):
+    old = os.umask(0o027)
+    try:
+        target = write_text(tmp_path / "x.txt", "x")
+    finally:
+        os.umask(old)
+    assert os.stat(target).st_mode & 0o777 == 0o640
 
 
 WRITING_METHODS = {"savefig", "savez", "savez_compressed", "save", "output", "write_text", "write_bytes",

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from .app import app
-from .options import Rate, Rigid, Units, rigid_labels
+from .options import Quiet, Rate, Rigid, Units, rigid_labels
 
 
 @app.command()
@@ -32,15 +32,18 @@ def clean(
     force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report) if they exist."),
     units: Units = None,
     rate: Rate = None,
+    quiet: Quiet = False,
 ) -> None:
     """Clean a session: stabilize the head, fill gaps, low-pass filter (in that order), write OUT."""
     import numpy as np
+
+    echo = (lambda text: None) if quiet else typer.echo
 
     from ..acquisition.filtering import check_cutoff, lowpass
     from ..acquisition.formats import output_format, write_trajectories
     from ..acquisition.gapfill import fill_gaps
     from ..acquisition.stabilize import stabilize_head
-    from ..atomic import check_writable
+    from ..atomic import claim_output
     from ..errors import OptionError
     from ..jsonio import write_json
     from .info import read_marker_file
@@ -48,9 +51,9 @@ def clean(
     fmt = output_format(target)
     if rigid and not stabilize:
         raise OptionError("--rigid needs --stabilize")
-    check_writable(target, force=force)
+    claim_output(target, force=force)
     if report is not None:
-        check_writable(report, force=force)
+        claim_output(report, force=force)
     traj = read_marker_file(source, units=units, rate=rate)
     if lowpass_hz is not None:
         check_cutoff(lowpass_hz, rate=traj.rate)  # fail before the slower steps
@@ -65,7 +68,7 @@ def clean(
         no_pose = int(np.isnan(result.rotations[:, 0, 0]).sum())
         bridged = int((~fitted).sum()) - no_pose
         median_rms = float(np.median(result.rms_residual_mm[fitted])) if fitted.any() else float("nan")
-        typer.echo(f"stabilized on {', '.join(result.rigid_labels)} (reference frame {result.reference_frame}): "
+        echo(f"stabilized on {', '.join(result.rigid_labels)} (reference frame {result.reference_frame}): "
                    f"median rigid-fit RMS {median_rms:.3f} mm, {bridged} frames with an interpolated head pose, "
                    f"{no_pose} frames without one")
         doc["stabilization"] = {"rigid_labels": list(result.rigid_labels), "reference_frame": result.reference_frame,
@@ -74,16 +77,16 @@ def clean(
                                 "frames_without_pose": no_pose}
     if fill_max_gap > 0:
         traj, fill_report = fill_gaps(traj, max_gap=fill_max_gap)
-        typer.echo(f"gap filling: {fill_report.summary()}")
+        echo(f"gap filling: {fill_report.summary()}")
         doc["gap_filling"] = {"max_gap": fill_max_gap, **fill_report.as_dict()}
     if lowpass_hz is not None:
         traj = lowpass(traj, cutoff_hz=lowpass_hz)
-        typer.echo(f"low-pass: Butterworth order 4, zero phase, {lowpass_hz:g} Hz")
+        echo(f"low-pass: Butterworth order 4, zero phase, {lowpass_hz:g} Hz")
         doc["lowpass_hz"] = lowpass_hz
     after = 100 * traj.gap_stats().total_missing_fraction
     doc["missing_percent"] = {"before": before, "after": after}
     write_trajectories(traj, target, fmt=fmt, force=force)
     if report is not None:
         write_json(report, doc, force=force)
-    typer.echo(f"wrote {target}: {traj.n_markers} markers, {traj.n_frames} frames, "
+    echo(f"wrote {target}: {traj.n_markers} markers, {traj.n_frames} frames, "
                f"missing {before:.2f} % -> {after:.2f} %")

@@ -9,18 +9,19 @@ Extension points for later issues:
 
 from __future__ import annotations
 
-import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import typer
 
-from ..errors import OutputError
+from ..atomic import claim_output, staged_folder
 from .app import app
-from .options import Rate, Rigid, Units, rigid_labels
+from .options import Quiet, Rate, Rigid, Units, rigid_labels
 from .report import write_cluster_report
+
+
+#: Added to a cannot-write message about an output placed next to the input by default.
+OUT_HINT = "; use --out to write elsewhere"
 
 
 def default_out_dir(session: Path) -> Path:
@@ -28,43 +29,10 @@ def default_out_dir(session: Path) -> Path:
     return session.with_name(f"{session.stem}_layout")
 
 
-def staged_folder(out_dir: Path, *, force: bool):
-    """Context manager: a temporary sibling folder moved into ``out_dir`` on success.
-
-    Rule: an existing, non-empty ``out_dir`` is refused unless ``force``; with ``force`` the new
-    files replace same-named files in it (other files are left alone). On failure nothing changes.
-    """
-    import contextlib
-
-    @contextlib.contextmanager
-    def manager():
-        if out_dir.exists() and not out_dir.is_dir():
-            raise OutputError(f"{out_dir}: exists and is not a folder")
-        if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
-            raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
-        parent = out_dir.parent
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-            staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".part", dir=parent))
-        except OSError as exc:
-            raise OutputError(f"{out_dir}: cannot write ({exc.strerror or exc})") from None
-        try:
-            yield staging
-            if out_dir.is_dir():
-                for item in sorted(staging.iterdir()):
-                    os.replace(item, out_dir / item.name)
-                staging.rmdir()
-            else:
-                os.replace(staging, out_dir)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-
-    return manager()
-
-
 def summary_text(result) -> str:
-    """Short text summary: markers per region (measured + mirrored), total, warnings."""
+    """Short text summary: markers per region (measured + mirrored), total, notes, warnings."""
+    from ..clustering.pipeline import stabilization_note
+
     layout = result.layout
     lines = [f"mocaptk cluster: {layout.source.get('path')}  factor {layout.parameters['factor']}  "
              f"step {layout.parameters['step']}  stabilized {layout.parameters['stabilized']}  "
@@ -82,6 +50,9 @@ def summary_text(result) -> str:
     rigid = stabilization.get("rigid_labels")
     if rigid and stabilization.get("applied"):
         lines.append(f"stabilized on rigid set: {', '.join(rigid)}")
+    note = stabilization_note(stabilization)
+    if note:
+        lines.append(f"note: {note}")
     for note in result.notes:
         lines.append(f"warning: {note}")
     return "\n".join(lines) + "\n"
@@ -131,23 +102,26 @@ def cluster(
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress or summary (warnings still shown)."),
+    quiet: Quiet = False,
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh for the rig (OBJ, PLY, glTF; "
                               "default: a surface through the dense markers)."),
     max_influences: int = typer.Option(4, "--max-influences", help="Rig joints per vertex (1-8)."),
     formats: str = typer.Option("json,fbx,glb", "--formats", help="Rig files to write (json,fbx,glb) "
                                 "with guide.pdf; 'none' skips the rig and the guide."),
 ) -> None:
-    """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra)."""
+    """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra).
+
+    Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json, pictures,
+    summary.txt, rig files and guide.pdf.
+    """
     from rich.console import Console
 
     from ..clustering.pipeline import ClusterOptions, cluster_session, load_session
     from ..clustering.regions import read_regions
     from ..clustering.takes import read_takes
 
-    out_dir = out or default_out_dir(session)
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not force:  # fail before the slow part
-        raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
+    out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
+                           hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
     from .rig import cluster_rig_outputs, rig_options
 
@@ -176,4 +150,7 @@ def cluster(
         write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
     if not quiet:
         typer.echo(summary_text(result), nl=False)
+        if build is not None:  # after the summary's header, not before it
+            typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
+                       f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

@@ -8,7 +8,7 @@ import typer
 
 from ..errors import OptionError
 from .app import app
-from .options import Rate, Rigid, Units, rigid_labels
+from .options import Quiet, Rate, Rigid, Units, rigid_labels
 
 
 def parse_counts(text: str) -> list[int]:
@@ -41,7 +41,7 @@ def compare(
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress and no table on screen."),
+    quiet: Quiet = False,
 ) -> None:
     """Held-out RMSE and p95 (mm), run time and layout statistics of every layout method at every count.
 
@@ -51,7 +51,7 @@ def compare(
     """
     from rich.console import Console
 
-    from ..atomic import check_writable, write_text
+    from ..atomic import claim_output, write_text
     from ..clustering.compare import (DEFAULT_METHODS, compare_methods, compare_plot, layout_gallery,
                                       rows_as_json, rows_as_markdown)
     from ..clustering.methods import method_names
@@ -68,8 +68,10 @@ def compare(
         raise OptionError(f"--restarts must be >= 1, got {restarts}")
     folder = out or session.with_name(session.stem + "_compare")
     targets = [folder / name for name in ("compare.md", "compare.json", "rmse_vs_markers.png", "layouts.png")]
+    from .cluster import OUT_HINT
+
     for target in targets:
-        check_writable(target, force=force)
+        claim_output(target, force=force, hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
     traj, perf, source = load_session_and_test(session, test, stabilized=not no_stabilize,
                                                rate=rate, units=units, rigid=rigid_labels(rigid))

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from .app import app
-from .options import Rate, Units
+from .options import Quiet, Rate, Units
 
 
 @app.command()
@@ -19,16 +19,18 @@ def convert(
     rate: Rate = None,
     strip_prefixes: bool = typer.Option(False, "--strip-prefixes",
                                         help="Drop 'Subject:' prefixes from marker labels."),
+    quiet: Quiet = False,
 ) -> None:
     """Convert a marker file; the output is written atomically (never a partial file)."""
     from ..acquisition.formats import output_format, write_trajectories
-    from ..atomic import check_writable
+    from ..atomic import claim_output
     from .info import read_marker_file
 
     fmt = output_format(target)
-    check_writable(target, force=force)  # fail before the (possibly long) read
+    claim_output(target, force=force)  # fail before the (possibly long) read
     traj = read_marker_file(source, units=units, rate=rate, strip_prefixes=strip_prefixes)
     write_trajectories(traj, target, fmt=fmt, force=force)
-    typer.echo(f"wrote {target} ({fmt}: {traj.n_markers} markers, {traj.n_frames} frames, {traj.rate:g} Hz)")
+    if not quiet:
+        typer.echo(f"wrote {target} ({fmt}: {traj.n_markers} markers, {traj.n_frames} frames, {traj.rate:g} Hz)")
     if traj.takes and fmt == "trc":
-        typer.echo(f"note: TRC has no place for takes; {len(traj.takes)} takes not written")
+        typer.echo(f"mocaptk: warning: TRC has no place for takes; {len(traj.takes)} takes not written", err=True)

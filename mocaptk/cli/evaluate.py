@@ -9,7 +9,7 @@ import typer
 
 from ..errors import InputFileError, OptionError
 from .app import app
-from .options import Rate, Units
+from .options import Quiet, Rate, Units
 
 
 def evaluation_table(result: dict) -> str:
@@ -63,12 +63,12 @@ def evaluate(
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress and no table."),
+    quiet: Quiet = False,
 ) -> None:
     """Reconstruct every dense marker from the layout's markers; compare with baselines of equal size."""
     from rich.console import Console
 
-    from ..atomic import check_writable
+    from ..atomic import claim_output
     from ..clustering.evaluation import evaluate_layout
     from ..clustering.layout import read_layout
     from ..clustering.takes import read_takes
@@ -76,8 +76,9 @@ def evaluate(
 
     if seeds < 1:
         raise OptionError(f"--seeds must be >= 1, got {seeds}")
-    out_path = out or layout.with_name("evaluation.json")
-    check_writable(out_path, force=force)
+    from .cluster import OUT_HINT
+
+    out_path = claim_output(out or layout.with_name("evaluation.json"), force=force, hint=OUT_HINT)
     lay = read_layout(layout)
     traj, test_positions, source = session_arrays(
         session, test=test, stabilized=bool(lay.parameters.get("stabilized")), rate=rate, units=units,

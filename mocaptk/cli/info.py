@@ -8,7 +8,7 @@ from typing import Any
 import typer
 
 from .app import app
-from .options import Rate, Units
+from .options import Quiet, Rate, Units
 
 
 def read_marker_file(path: Path, *, units: str | None, rate: float | None, strip_prefixes: bool = False):
@@ -68,11 +68,13 @@ def info(
     as_json: bool = typer.Option(False, "--json", help="Print one deterministic JSON document instead of text."),
     units: Units = None,
     rate: Rate = None,
+    quiet: Quiet = False,
 ) -> None:
     """Describe marker files: format, markers, frames, rate, duration, units, missing data, takes.
 
     A file that cannot be read is reported (one line on stderr, or an "error" entry with --json)
-    and the others are still described; the exit code is then 2.
+    and the others are still described; the exit code is then 2. With --quiet only the errors
+    are printed (a check that files read: exit code 0 or 2).
     """
     from ..errors import MocaptkError
     from ..jsonio import dumps
@@ -87,9 +89,9 @@ def info(
             results.append({"path": str(path), "error": str(exc)})
             if not as_json:
                 typer.echo(f"mocaptk: error: {exc}", err=True)
-    if as_json:
+    if as_json and not quiet:
         typer.echo(dumps({"format": "mocaptk-info", "version": 1, "files": results}), nl=False)
-    else:
+    elif not quiet and any("error" not in r for r in results):
         typer.echo("\n\n".join(_human(r) for r in results if "error" not in r))
     if failed:
         raise typer.Exit(2)

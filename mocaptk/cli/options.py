@@ -17,6 +17,10 @@ Rate = Annotated[float | None, typer.Option(
     "--rate", help="Frame rate (Hz) for a column CSV input without a time column.")]
 
 
+Quiet = Annotated[bool, typer.Option(
+    "--quiet", "-q", help="Print no progress, summary or table (warnings and errors are still shown).")]
+
+
 def rigid_labels(text: str | None) -> tuple[str, ...] | None:
     """The ``--rigid`` value as labels (None: detect automatically)."""
     if text is None:

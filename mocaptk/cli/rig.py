@@ -9,6 +9,7 @@ import typer
 
 from ..errors import InputFileError, OptionError
 from .app import app
+from .options import Quiet
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -68,7 +69,7 @@ def rig(
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove rigid head "
                                       "motion even if the layout was made on stabilized data."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing rig/guide files."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress or summary."),
+    quiet: Quiet = False,
 ) -> None:
     """Build a skinned face rig and a printable marker guide from a layout."""
     from rich.console import Console
@@ -129,7 +130,4 @@ def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influenc
             title=f"{result.layout.source.get('path', '')} factor "
                   f"{result.layout.parameters.get('factor')}",
             force=True, progress=lambda text: status.update(text))
-    if not quiet:
-        typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
-                   f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
     return build

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import typer
 
-from ..errors import OptionError, OutputError
+from ..errors import OptionError
 from .app import app
-from .options import Rate, Rigid, Units, rigid_labels
+from .options import Quiet, Rate, Rigid, Units, rigid_labels
 
 
 #: Each factor is one clustering + evaluation run; more than this is a typo, not a sweep.
@@ -52,29 +52,29 @@ def sweep(
     test: Path = typer.Option(None, "--test", help="Separate performance file to test on (default: "
                               "held-out blocks of the session's takes)."),
     folds: int = typer.Option(5, "--folds", help="Held-out blocks per take."),
-    out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_sweep/)."),
+    out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_sweep/ next to "
+                             "the session)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress or table."),
+    quiet: Quiet = False,
 ) -> None:
     """Cluster at every factor; report measured layout markers and held-out RMSE (table, plot, JSON)."""
     from rich.progress import Progress
 
-    from ..atomic import write_text
+    from ..atomic import claim_output, staged_folder, write_text
     from ..clustering.evaluation import error_summary, heldout_errors, holdout_splits
     from ..clustering.figures import sweep_plot
     from ..clustering.pipeline import ClusterOptions, cluster_session
     from ..clustering.regions import read_regions
     from ..clustering.takes import read_takes
     from ..jsonio import write_json
-    from .cluster import staged_folder
+    from .cluster import OUT_HINT
     from .evaluate import session_arrays
 
     values = parse_factors(factors)
-    out_dir = out or session.with_name(f"{session.stem}_sweep")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
-        raise OutputError(f"{out_dir}: folder exists and is not empty (use --force to overwrite)")
+    out_dir = claim_output(out or session.with_name(f"{session.stem}_sweep"), force=force, folder=True,
+                           hint=OUT_HINT)
     traj, test_positions, source = session_arrays(session, test=test, stabilized=not no_stabilize,
                                                   rate=rate, units=units, rigid=rigid_labels(rigid))
     region_map = read_regions(regions, traj.labels) if regions else None

@@ -15,6 +15,7 @@ from pathlib import Path
 import typer
 
 from .app import app
+from .options import Quiet
 
 
 def companion_paths(target: Path, *, performance: bool) -> dict[str, Path]:
@@ -92,7 +93,7 @@ def synth(
                                     help="ICT-FaceKit FaceXModel .tar.xz or folder (default "
                                          "$MOCAPTK_ICT_FACEKIT or ../shared/data/...)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+    quiet: Quiet = False,
 ) -> None:
     """Simulate a dense facial marker capture (per-region takes) with ground truth."""
     import numpy as np

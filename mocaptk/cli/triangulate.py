@@ -13,6 +13,7 @@ from pathlib import Path
 import typer
 
 from .app import app
+from .options import Quiet
 
 
 @app.command()
@@ -31,7 +32,7 @@ def triangulate(
                                     help="Reprojection error (px) above which a view is an "
                                          "outlier and is left out."),
     force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+    quiet: Quiet = False,
 ) -> None:
     """Triangulate labelled 2-D detections into marker trajectories (outlier-robust)."""
     import numpy as np
