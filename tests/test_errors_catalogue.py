@@ -103,6 +103,8 @@ def f(tmp_path_factory) -> dict[str, Path]:
     (d / "existing.trc").write_text("keep")
     (d / "full").mkdir()
     (d / "full" / "keep.txt").write_text("keep")
+    (d / "stem").mkdir()
+    (d / "stem" / "keep.c3d").write_text("keep")  # same stem as full/keep.txt (batch refuses)
     (d / "afile").write_text("x")
     (d / "cmp").mkdir()
     (d / "cmp" / "compare.md").write_text("an earlier comparison")
@@ -287,6 +289,25 @@ CATALOGUE = [
     ("E-OUT-COMPARE-EXISTS", lambda f: ["compare", S(f), "--out", f["cmp"], "--methods", "random"],
      "compare.md: already exists (use --force"),
     ("E-CMP-METHODS", lambda f: ["compare", S(f), "--methods", "magic", "--out", f["dir"] / "c4"], "unknown method(s) magic"),
+    # -- batch (stops before any session runs; a session's own error goes in batch.json)
+    ("E-BATCH-NOMATCH", lambda f: ["batch", f["dir"] / "none*.c3d", "--do", "info", "--out", f["dir"] / "b"],
+     "no session file matches"),
+    ("E-BATCH-DO", lambda f: ["batch", S(f), "--do", "dance", "--out", f["dir"] / "b"], "--do must be one of"),
+    ("E-BATCH-OPTION", lambda f: ["batch", S(f), "--do", "cluster", "--wobble", "--out", f["dir"] / "b"],
+     "mocaptk cluster has no option --wobble"),
+    ("E-BATCH-CONTROLLED", lambda f: ["batch", S(f), "--do", "info", "--out", f["dir"] / "b", "--json"],
+     "--json is set by batch for every session"),
+    ("E-BATCH-VALUE", lambda f: ["batch", S(f), "--do", "cluster", "--factor", "abc", "--out", f["dir"] / "b"],
+     "mocaptk cluster: Invalid value for '--factor'"),
+    ("E-BATCH-STEM", lambda f: ["batch", f["full"] / "keep.txt", f["dir"] / "stem" / "keep.c3d",
+                                "--do", "info", "--out", f["dir"] / "b"], "two sessions share the name 'keep'"),
+    ("E-BATCH-WORKERS", lambda f: ["batch", S(f), "--do", "info", "--workers", "0", "--out", f["dir"] / "b"],
+     "--workers must be >= 1"),
+    ("E-BATCH-TIMEOUT", lambda f: ["batch", S(f), "--do", "info", "--timeout", "-1", "--out", f["dir"] / "b"],
+     "--timeout must be >= 0"),
+    ("E-BATCH-SCHEDULER", lambda f: ["batch", S(f), "--do", "info", "--scheduler", "tcp://127.0.0.1:9",
+                                     "--connect-timeout", "1", "--out", f["dir"] / "b"],
+     "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered within 1 s"),
 ]
 
 

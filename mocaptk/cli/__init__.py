@@ -13,7 +13,7 @@ from ..errors import MocaptkError
 from .app import app
 
 # Command modules register themselves on import; this order is the order of `mocaptk --help`
-# (pipeline order: files -> capture -> cleaning -> layout -> evaluation -> rig).
+# (pipeline order: files -> capture -> cleaning -> layout -> evaluation -> rig; then batch).
 from . import info  # noqa: E402,F401
 from . import convert  # noqa: E402,F401
 from . import synth  # noqa: E402,F401
@@ -24,6 +24,7 @@ from . import sweep  # noqa: E402,F401
 from . import evaluate  # noqa: E402,F401
 from . import compare  # noqa: E402,F401
 from . import rig  # noqa: E402,F401
+from . import batch  # noqa: E402,F401
 
 
 def command_line():

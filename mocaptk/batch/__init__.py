@@ -1,0 +1,15 @@
+"""Many sessions at once: ``mocaptk batch`` runs one command on every session as Dask tasks.
+
+- :mod:`.sessions`: which files a batch covers, each session's options (sidecar files) and the
+  exact argv of the single command it runs;
+- :mod:`.runner`: the subprocess that runs one session's command exactly like the CLI does;
+- :mod:`.supervisor`: the Dask task: drives a runner, kills it on ``--timeout``;
+- :mod:`.engine`: the Dask client side (a ``LocalCluster`` or a farm's scheduler);
+- :mod:`.summary`: ``batch.json`` + ``batch.md``.
+
+Nothing here imports Dask at module level: ``import mocaptk`` never does.
+"""
+
+from __future__ import annotations
+
+__all__ = ["engine", "runner", "sessions", "summary", "supervisor"]

@@ -1,0 +1,165 @@
+"""One session's command, run exactly as ``mocaptk COMMAND ...`` runs it, in a child process.
+
+:func:`process_session` is the whole job for one session: build its argv, hash its inputs, skip it
+when an earlier run with the same inputs left complete outputs, else call
+:func:`mocaptk.cli.main` with that argv and describe what happened (a *record*, plain data).
+
+Run as ``python -m mocaptk.batch.runner REPLY_FD PARENT_PID`` it serves one task per line of
+stdin (JSON) and answers each on ``REPLY_FD``. The supervisor kills it on a timeout: a process is
+the one thing that can be stopped while it is stuck in numba or C code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import os
+import socket
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+ERROR_PREFIX = "mocaptk: error: "
+#: the runner's first line on its reply pipe: imports done, ready for sessions
+READY = b"ready\n"
+
+
+def run_cli(argv: list[str]) -> tuple[int, str, str, str | None]:
+    """``mocaptk ARGV`` in this process: (exit code, stdout, stderr, traceback of a crash or None)."""
+    from ..cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    crash = None
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main(argv)
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        except Exception as exc:  # a bug in the command: keep its traceback for the summary
+            code, crash = 1, traceback.format_exc()
+            print(f"{ERROR_PREFIX}internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+    return code, out.getvalue(), err.getvalue(), crash
+
+
+def error_line(stderr: str, code: int) -> str:
+    """The command's one-line error (without the ``mocaptk: error:`` prefix)."""
+    lines = [line for line in stderr.splitlines() if line.startswith(ERROR_PREFIX)]
+    if lines:
+        return lines[-1][len(ERROR_PREFIX):]
+    tail = [line for line in stderr.splitlines() if line.strip()]
+    return tail[-1] if tail else f"exit code {code}"
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, int, int]]:
+    if not folder.is_dir():
+        return {}
+    return {str(p.relative_to(folder)): (s.st_ino, s.st_mtime_ns, s.st_size)
+            for p in sorted(folder.rglob("*")) if p.is_file() and (s := p.stat())}
+
+
+def outputs_intact(outputs: dict[str, str], folder: Path) -> bool:
+    """Whether every recorded output file is still there with the recorded content."""
+    from .sessions import file_digest
+
+    try:
+        return bool(outputs) and all(file_digest(folder / name) == digest for name, digest in outputs.items())
+    except OSError:
+        return False
+
+
+def process_session(task: dict[str, Any]) -> dict[str, Any]:
+    """Run (or skip) one session; returns its record (see :mod:`mocaptk.batch.summary`)."""
+    from .. import __version__
+    from ..errors import MocaptkError, unreadable
+    from .sessions import COMMANDS, input_files, file_digest, session_argv
+    from .summary import session_metrics
+
+    start = time.perf_counter()
+    command, session, out_dir = task["command"], Path(task["session"]), Path(task["out"])
+    record: dict[str, Any] = {"session": session.stem, "path": str(session), "command": command,
+                              "host": socket.gethostname(), "warnings": [], "outputs": {}}
+    try:
+        argv = session_argv(command, session, out_dir, task["options"])
+        files = input_files(command, argv, session)
+        inputs = {}
+        for path in files:
+            try:
+                inputs[str(path)] = file_digest(path)
+            except OSError as exc:
+                raise unreadable(path, exc) from None
+    except MocaptkError as exc:
+        return record | {"status": "failed", "error": str(exc), "seconds": time.perf_counter() - start}
+    key = hashlib.sha256(json.dumps({"argv": argv, "inputs": inputs, "mocaptk": __version__},
+                                    sort_keys=True).encode()).hexdigest()
+    record |= {"argv": argv, "inputs": inputs, "key": key}
+    previous = task.get("previous") or {}
+    if (not task["force"] and previous.get("status") in ("done", "skipped") and previous.get("key") == key
+            and outputs_intact(previous.get("outputs", {}), out_dir)):
+        return previous | {"status": "skipped", "error": None}
+    before = _snapshot(out_dir)
+    run = list(argv)
+    if before and any(p.name == "force" for p in _params(command)):
+        run.append("--force")  # inputs changed or --force: replace this session's earlier outputs
+    code, stdout, stderr, crash = run_cli(run)
+    record["warnings"] = [line for line in stderr.splitlines()
+                          if line.startswith(("mocaptk: warning:", "mocaptk: note:"))]
+    record["exit_code"] = code
+    if code == 0 and COMMANDS[command].stdout_file:
+        from ..atomic import write_text
+
+        write_text(out_dir / COMMANDS[command].stdout_file, stdout)
+    if code != 0:
+        record |= {"status": "failed", "error": error_line(stderr, code)}
+        if crash:
+            record["traceback"] = crash
+    else:
+        after = _snapshot(out_dir)
+        record |= {"status": "done", "error": None,
+                   "outputs": {name: file_digest(out_dir / name) for name, stat in after.items()
+                               if before.get(name) != stat},
+                   "metrics": session_metrics(out_dir)}
+    record["seconds"] = time.perf_counter() - start
+    return record
+
+
+def _params(command: str):
+    from .sessions import click_command
+
+    return click_command(command).params
+
+
+def _die_with_parent(parent: int) -> None:
+    """Ask Linux to kill this process when its parent (the Dask worker) dies, even mid-task."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _serve(reply_fd: int) -> None:
+    # import once per runner, before the first session's clock starts: the CLI and what its
+    # layout commands import lazily (matplotlib figures, the clustering pipeline)
+    import mocaptk.cli  # noqa: F401
+    import mocaptk.clustering.figures  # noqa: F401
+    import mocaptk.clustering.pipeline  # noqa: F401
+
+    os.write(reply_fd, READY)
+    for line in sys.stdin:
+        record = process_session(json.loads(line))
+        data = (json.dumps(record) + "\n").encode()
+        while data:
+            data = data[os.write(reply_fd, data):]
+
+
+if __name__ == "__main__":
+    _die_with_parent(int(sys.argv[2]))
+    _serve(int(sys.argv[1]))

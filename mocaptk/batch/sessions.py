@@ -1,0 +1,241 @@
+"""What a batch covers: the session files, each session's options and the argv of its command.
+
+A session's options come from, in increasing priority: the batch's command line, a folder-wide
+``mocaptk.json`` beside the session, and the session's own ``<stem>.mocaptk.json``. Paths in a
+sidecar are relative to the sidecar's folder. Every path handed to a worker is absolute, so the
+workers of a farm read the same files (shared storage) whatever their working folder.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputFileError, OptionError
+
+#: suffix of a session's own options file and the name of a folder-wide one
+SIDECAR_SUFFIX = ".mocaptk.json"
+FOLDER_SIDECAR = "mocaptk.json"
+SIDECAR_FORMAT = "mocaptk.session-options"
+
+
+@dataclass(frozen=True)
+class BatchCommand:
+    """How batch runs one command: where its outputs go inside ``DIR/<stem>/``.
+
+    ``out_file``: the command's ``--out`` is this file in the session folder (None: the folder);
+    ``stdout_file``: the command prints its result (``--json``) and batch saves it under this name.
+    """
+
+    name: str
+    out_file: str | None = None
+    stdout_file: str | None = None
+    fixed: tuple[str, ...] = ("--quiet",)
+
+
+COMMANDS: dict[str, BatchCommand] = {
+    "cluster": BatchCommand("cluster"),
+    "evaluate": BatchCommand("evaluate", out_file="evaluation.json"),
+    "compare": BatchCommand("compare"),
+    "info": BatchCommand("info", stdout_file="info.json", fixed=("--json",)),
+}
+
+#: options batch itself sets for every session: a sidecar or the batch line may not
+CONTROLLED = ("--out", "--force", "--quiet", "--json", "--help")
+
+
+def _controlled(param) -> bool:
+    return any(name in CONTROLLED for name in param.opts)
+
+
+def click_command(name: str):
+    """The click command behind ``mocaptk NAME`` (its parameters drive option parsing)."""
+    import typer.main
+
+    from ..cli import app
+
+    return typer.main.get_command(app).commands[name]
+
+
+def _option_table(command) -> dict[str, Any]:
+    """``{"--factor": option, ...}`` including secondary names (``--no-mirror``)."""
+    table = {}
+    for param in command.params:
+        if param.param_type_name == "option":
+            for name in (*param.opts, *param.secondary_opts):
+                table[name] = param
+    return table
+
+
+def _is_path(param) -> bool:
+    return param.type_descriptor.annotation is Path
+
+
+def find_sessions(patterns: list[str]) -> list[Path]:
+    """Absolute session paths matching the glob ``patterns`` (``**`` recurses), in sorted order.
+
+    Sidecar files are not sessions. A pattern that matches no file, or two sessions with the
+    same stem (their outputs would share ``DIR/<stem>/``), raise :class:`OptionError`.
+    """
+    if not patterns:
+        raise OptionError("no session pattern given (e.g. 'sessions/*.c3d')")
+    found: dict[Path, None] = {}
+    for pattern in patterns:
+        matches = [Path(p).absolute() for p in sorted(glob.glob(os.path.expanduser(pattern), recursive=True))]
+        files = [p for p in matches if p.is_file() or (p.exists() and not p.is_dir())]
+        files = [p for p in files if not p.name.endswith(SIDECAR_SUFFIX) and p.name != FOLDER_SIDECAR]
+        if not files:
+            raise OptionError(f"no session file matches {pattern!r}")
+        found.update(dict.fromkeys(files))
+    by_stem: dict[str, Path] = {}
+    for path in sorted(found):
+        if path.stem in by_stem:
+            raise OptionError(f"two sessions share the name {path.stem!r} ({by_stem[path.stem]}, {path}): "
+                              "their outputs would both go in DIR/" + path.stem + "/; rename one or "
+                              "run them in separate batches")
+        by_stem[path.stem] = path
+    return sorted(found)
+
+
+def split_batch_line(command: str, tokens: list[str], *, base: Path) -> tuple[list[str], list[str]]:
+    """The batch line's free tokens as (session patterns, options for ``command``).
+
+    Options are checked against the command's own (a value follows its option, or ``--x=v``);
+    path values are made absolute (relative to ``base``) so every worker finds the same file.
+    """
+    table = _option_table(click_command(command))
+    patterns: list[str] = []
+    options: list[str] = []
+    i = 0
+    while i < len(tokens):
+        token = tokens[i]
+        i += 1
+        if not token.startswith("-") or token == "-":
+            patterns.append(token)
+            continue
+        name, eq, value = token.partition("=")
+        param = table.get(name)
+        if param is None:
+            raise OptionError(f"mocaptk {command} has no option {name} (see mocaptk {command} --help)")
+        if _controlled(param):
+            raise OptionError(f"{name} is set by batch for every session; give it to batch itself")
+        if param.is_flag or param.count:
+            options.append(token)
+            continue
+        if not eq:
+            if i >= len(tokens):
+                raise OptionError(f"option {name} needs a value")
+            value = tokens[i]
+            i += 1
+        options += [name, _absolute(value, base) if _is_path(param) else value]
+    return patterns, options
+
+
+def check_command_line(command: str, options: list[str]) -> None:
+    """Parse ``mocaptk COMMAND <a session> OPTIONS`` as the command would (types, choices), so a
+    bad value fails once, before any cluster starts, instead of once per session."""
+    import typer
+
+    try:
+        click_command(command).make_context(command, ["session", *options])
+    except typer.TyperException as exc:
+        raise OptionError(f"mocaptk {command}: {exc.format_message()}") from None
+
+
+def _absolute(value: str, base: Path) -> str:
+    path = Path(os.path.expanduser(value))
+    return str(path if path.is_absolute() else (base / path).absolute())
+
+
+def _sidecar_tokens(command: str, path: Path) -> list[str]:
+    """The options a sidecar file gives ``command`` (keys the command lacks but another batch
+    command has are left to that command; unknown keys are an error)."""
+    from ..jsonio import read_json
+
+    doc = read_json(path)
+    if not isinstance(doc, dict):
+        raise InputFileError(path, 'expected a JSON object {"option": value, ...}')
+    if doc.get("format", SIDECAR_FORMAT) != SIDECAR_FORMAT or doc.get("version", 1) != 1:
+        raise InputFileError(path, f"not a session options file (expected format {SIDECAR_FORMAT!r} "
+                                   "version 1)")
+    own = _option_table(click_command(command))
+    known = set(own)
+    for other in COMMANDS:
+        known |= set(_option_table(click_command(other)))
+    tokens: list[str] = []
+    for key, value in sorted(doc.items()):
+        if key in ("format", "version"):
+            continue
+        name = "--" + key.replace("_", "-")
+        if name not in known:
+            raise InputFileError(path, f"unknown option {key!r} (no batch command has {name})")
+        param = own.get(name)
+        if param is None:
+            continue
+        if _controlled(param):
+            raise InputFileError(path, f"{key!r} is set by batch for every session")
+        tokens += _option_tokens(path, name, param, value)
+    return tokens
+
+
+def _option_tokens(path: Path, name: str, param, value: Any) -> list[str]:
+    """One sidecar entry as command-line tokens (flags from booleans, lists joined by commas)."""
+    if param.is_flag:
+        if not isinstance(value, bool):
+            raise InputFileError(path, f"{name[2:]!r} must be true or false, got {value!r}")
+        if value:
+            return [name]
+        return list(param.secondary_opts[:1])
+    if isinstance(value, list):
+        value = ",".join(str(v) for v in value)
+    if isinstance(value, (dict, bool)) or value is None:
+        raise InputFileError(path, f"{name[2:]!r} must be a text, a number or a list, got {value!r}")
+    text = str(value)
+    return [name, _absolute(text, path.parent) if _is_path(param) else text]
+
+
+def sidecars(session: Path) -> list[Path]:
+    """The options files that apply to ``session`` (folder-wide first, then its own)."""
+    candidates = [session.parent / FOLDER_SIDECAR, session.with_name(session.stem + SIDECAR_SUFFIX)]
+    return [p for p in candidates if p.is_file()]
+
+
+def session_argv(command: str, session: Path, out_dir: Path, options: list[str]) -> list[str]:
+    """argv of the single command for one session (without ``--force``): its output in ``out_dir``.
+
+    ``options`` are the batch line's; the session's sidecars come after them, so they win.
+    """
+    spec = COMMANDS[command]
+    tokens = list(options)
+    for sidecar in sidecars(session):
+        tokens += _sidecar_tokens(command, sidecar)
+    argv = [command, str(session), *tokens, *spec.fixed]
+    if command == "evaluate" and "--layout" not in tokens:  # default: the layout a cluster batch wrote
+        argv += ["--layout", str(out_dir / "layout.json")]
+    if spec.stdout_file is None:
+        argv += ["--out", str(out_dir / spec.out_file) if spec.out_file else str(out_dir)]
+    return argv
+
+
+def input_files(command: str, argv: list[str], session: Path) -> list[Path]:
+    """Files the run reads: the session, its sidecars and every existing path-valued option."""
+    table = _option_table(click_command(command))
+    files = [session, *sidecars(session)]
+    for name, value in zip(argv, argv[1:]):
+        param = table.get(name)
+        if param is not None and not _controlled(param) and _is_path(param) and Path(value).is_file():
+            files.append(Path(value))
+    return list(dict.fromkeys(files))
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes (read in 1 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -1,0 +1,235 @@
+"""``mocaptk batch`` on real Dask clusters: a LocalCluster started by the command and a separately
+started ``dask scheduler`` + 2 ``dask worker`` processes, over 20 short sessions cut from the
+bundled sample (2 corrupt, 1 that hangs), against the serial command's outputs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import REPO
+
+SAMPLE = REPO / "sample_c3d" / "dense_halfface.c3d"
+GOOD = 17
+TIMEOUT = "30"  # a short session takes ~1-6 s here (loaded 2-core machine); the hang is killed
+MOCAPTK = [sys.executable, "-m", "mocaptk"]
+ENV = {**os.environ, "PYTHONWARNINGS": "ignore"}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory) -> Path:
+    """17 short mouth-region sessions (15 markers, 300 frames each, different windows of the
+    sample's mouth take), a truncated C3D, a file that is not C3D, and a FIFO: reading it blocks
+    forever in open(2), as a stale network mount does."""
+    from mocaptk.acquisition.formats import read_trajectories, write_trajectories
+
+    folder = tmp_path_factory.mktemp("sessions")
+    traj = read_trajectories(SAMPLE)
+    regions = json.loads((REPO / "sample_c3d" / "dense_halfface_regions.json").read_text())
+    mouth = traj.take("mouth").select(regions["mouth"])
+    for k in range(GOOD):
+        write_trajectories(mouth.frames(40 * k, 40 * k + 300), folder / f"actor{k % 3}_s{k:02d}.c3d")
+    (folder / "corrupt_cut.c3d").write_bytes((folder / "actor0_s00.c3d").read_bytes()[:3000])
+    (folder / "corrupt_text.c3d").write_text("this is not a capture\n")
+    os.mkfifo(folder / "hangs.c3d")
+    # one session with its own options (a sidecar beside it overrides the batch line)
+    (folder / "actor0_s03.mocaptk.json").write_text(json.dumps({"factor": 1.4, "step": 2}))
+    return folder
+
+
+def _batch(*args, timeout=600) -> subprocess.CompletedProcess:
+    return subprocess.run([*MOCAPTK, "batch", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=ENV, cwd=REPO)
+
+
+def _records(out: Path) -> dict[str, dict]:
+    return {r["session"]: r for r in json.loads((out / "batch.json").read_text())["sessions"]}
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def _runners_left() -> list[str]:
+    """Command lines of session runner processes still alive (none may survive a batch)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if "mocaptk.batch.runner" in cmd:
+            found.append(cmd)
+    return found
+
+
+@pytest.fixture(scope="module")
+def local_run(sessions, tmp_path_factory):
+    out = tmp_path_factory.mktemp("batch") / "out"
+    start = time.perf_counter()
+    first = _batch(sessions / "*.c3d", "--do", "cluster", "--formats", "none", "--out", out,
+                   "--workers", 2, "--timeout", TIMEOUT)
+    seconds = time.perf_counter() - start
+    return out, first, _records(out), seconds
+
+
+def test_local_cluster_isolates_failures(local_run, sessions):
+    out, first, records, seconds = local_run
+    assert first.returncode == 1, first.stderr[-2000:]  # some sessions failed; the batch finished
+    assert "Traceback" not in first.stderr
+    done = sorted(s for s, r in records.items() if r["status"] == "done")
+    assert done == sorted(f"actor{k % 3}_s{k:02d}" for k in range(GOOD))
+    failed = {s: r["error"] for s, r in records.items() if r["status"] == "failed"}
+    assert set(failed) == {"corrupt_cut", "corrupt_text", "hangs"}
+    assert "truncated C3D file" in failed["corrupt_cut"] and failed["corrupt_cut"].startswith(str(sessions))
+    assert "corrupt_text.c3d: " in failed["corrupt_text"]
+    assert failed["hangs"] == f"timed out after {TIMEOUT} s (--timeout): killed"
+    md = (out / "batch.md").read_text()
+    for session, reason in failed.items():
+        assert f"| {session} | cluster | failed |" in md and reason in md
+    assert "17 done, 0 skipped (unchanged), 3 failed" in md and "on 2 local workers" in md
+    assert all(r["metrics"]["markers"] == 15 and r["metrics"]["layout_markers"] >= 1
+               for r in records.values() if r["status"] == "done")
+    assert not list(out.glob(".*")), "a killed or failed session left temporary files"
+    assert first.stdout.count("| cluster |") == 20 and "done 17" in first.stderr  # table + progress bar
+    print(f"first batch: {seconds:.1f} s")
+
+
+def test_outputs_identical_to_the_serial_command(local_run, sessions, tmp_path, run_cli):
+    out = local_run[0]
+    for k, own in ((0, []), (3, ["--factor", "1.4", "--step", "2"]), (16, [])):  # serial, as the CLI runs
+        name = f"actor{k % 3}_s{k:02d}"
+        result = run_cli("cluster", sessions / f"{name}.c3d", "--formats", "none", *own, "--out", tmp_path / name)
+        assert result.exit_code == 0, result.stderr
+        assert _files(out / name) == _files(tmp_path / name), name
+    assert sorted(_files(out / "actor0_s00")) == ["correlation_mouth.png", "layout.json", "layout.png",
+                                                  "regions.png", "summary.txt"]
+
+
+def test_second_run_skips_unchanged_sessions_and_force_redoes(local_run, sessions):
+    out, _, first, _ = local_run
+    again = _batch(sessions / "*.c3d", "--do", "cluster", "--formats", "none", "--out", out,
+                   "--workers", 2, "--timeout", 5)
+    assert again.returncode == 1, again.stderr[-2000:]
+    records = _records(out)
+    skipped = sorted(s for s, r in records.items() if r["status"] == "skipped")
+    assert len(skipped) == GOOD and all(records[s]["key"] == first[s]["key"] for s in skipped)
+    assert {s for s, r in records.items() if r["status"] == "failed"} == {"corrupt_cut", "corrupt_text", "hangs"}
+    # a changed input is redone, and only it; --force redoes an unchanged one
+    changed = sessions / "actor1_s01.c3d"
+    changed.write_bytes((sessions / "actor1_s04.c3d").read_bytes())
+    third = _batch(sessions / "actor1_*.c3d", "--do", "cluster", "--formats", "none", "--out", out,
+                   "--workers", 1)
+    assert third.returncode == 0, third.stderr[-2000:]
+    records = _records(out)
+    assert records["actor1_s01"]["status"] == "done" and records["actor1_s04"]["status"] == "skipped"
+    assert (out / "actor1_s01" / "layout.json").read_bytes() != (out / "actor1_s04" / "layout.json").read_bytes()
+    forced = _batch(sessions / "actor1_s04.c3d", "--do", "cluster", "--formats", "none", "--out", out,
+                    "--workers", 1, "--force")
+    assert forced.returncode == 0 and _records(out)["actor1_s04"]["status"] == "done"
+
+
+@pytest.fixture
+def farm(tmp_path):
+    """``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1 (free ports), configured as
+    docs/batch.md says; the workers kill themselves on a ``kill-me`` session (test preload)."""
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "1",
+           "DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION": "1.0"}
+    dask = str(Path(sys.executable).with_name("dask"))
+    log = open(tmp_path / "farm.log", "w")
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", "127.0.0.1:0"], env=env, stdout=log, stderr=log, start_new_session=True)]
+    try:
+        for _ in range(2):
+            procs.append(subprocess.Popen(
+                [dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--host", "127.0.0.1",
+                 "--dashboard-address", "127.0.0.1:0", "--memory-limit", "0",
+                 "--preload", str(REPO / "tests" / "batch_worker_killer.py")],
+                env=env, stdout=log, stderr=log, start_new_session=True, cwd=tmp_path))
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address
+    finally:
+        for proc in reversed(procs):
+            with __import__("contextlib").suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        log.close()
+
+
+def test_separate_scheduler_and_workers(farm, local_run, sessions, tmp_path):
+    local_out = local_run[0]
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    (extra / "kill-me.c3d").write_bytes((sessions / "actor0_s00.c3d").read_bytes())
+    out = tmp_path / "out"
+    run = _batch(sessions / "*.c3d", extra / "kill-me.c3d", "--do", "cluster", "--formats", "none",
+                 "--out", out, "--scheduler", farm, "--timeout", TIMEOUT)
+    assert run.returncode == 1, run.stderr[-2000:]
+    records = _records(out)
+    done = sorted(s for s, r in records.items() if r["status"] == "done")
+    assert len(done) == GOOD
+    for name in done:  # the same files as the LocalCluster batch wrote (itself checked against serial)
+        if name != "actor1_s01":  # the skip test changed that input
+            assert _files(out / name) == _files(local_out / name), name
+    failed = {s: r["error"] for s, r in records.items() if r["status"] == "failed"}
+    assert set(failed) == {"corrupt_cut", "corrupt_text", "hangs", "kill-me"}
+    assert failed["kill-me"] == "the worker processing it died 2 times (retried 1x on another worker)"
+    assert "(2 workers)" in (out / "batch.md").read_text()
+
+
+def test_no_runner_process_outlives_a_batch(local_run):
+    deadline = time.monotonic() + 10
+    while _runners_left() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert _runners_left() == []
+
+
+def test_scheduler_that_does_not_answer(tmp_path):
+    start = time.perf_counter()
+    run = _batch(SAMPLE, "--do", "info", "--out", tmp_path / "o", "--scheduler",
+                 f"tcp://127.0.0.1:{_free_port()}", "--connect-timeout", 2)
+    seconds = time.perf_counter() - start
+    assert run.returncode == 2
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mocaptk: error: --scheduler tcp://127.0.0.1:"), run.stderr
+    assert "no Dask scheduler answered within 2 s" in lines[0]
+    assert seconds < 2 + 15  # the connect timeout + starting Python on this loaded machine
+
+
+def test_pattern_matching_nothing(tmp_path):
+    run = _batch(tmp_path / "nothing*.c3d", "--do", "cluster", "--out", tmp_path / "o")
+    assert run.returncode == 2
+    assert run.stderr.strip() == f"mocaptk: error: no session file matches '{tmp_path}/nothing*.c3d'"
+    assert not (tmp_path / "o").exists()
+
+
+def test_import_and_help_never_import_dask():
+    code = ("import sys, mocaptk, mocaptk.cli\n"
+            "try:\n    mocaptk.cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "try:\n    mocaptk.cli.main(['batch', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
+    assert run.stdout.strip().splitlines()[-1] == "[]", run.stdout[-500:] + run.stderr[-500:]
