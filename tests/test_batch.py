@@ -116,7 +116,7 @@ def test_outputs_identical_to_the_serial_command(local_run, sessions, tmp_path, 
         assert result.exit_code == 0, result.stderr
         assert _files(out / name) == _files(tmp_path / name), name
     assert sorted(_files(out / "actor0_s00")) == ["correlation_mouth.png", "layout.json", "layout.png",
-                                                  "regions.png", "summary.txt"]
+                                                  "regions.png", "report.html", "summary.txt"]
 
 
 def test_second_run_skips_unchanged_sessions_and_force_redoes(local_run, sessions):
