@@ -40,6 +40,10 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     # C3D: byte 2 is the 0x50 key; byte 1 (parameter block number) is a small, non-printable number
     if len(head) >= 2 and head[1] == 0x50 and (head[0] < 0x20 or head[0] >= 0x7F):
         return "c3d"
+    from .text_io import UTF16_PROBLEM, looks_utf16
+
+    if looks_utf16(head):
+        raise InputFileError(path, UTF16_PROBLEM)
     if b"\x00" in head:
         raise InputFileError(path, "binary content that is not C3D: not a motion-capture file")
     text = head.decode("utf-8", errors="replace")
@@ -114,6 +118,10 @@ def read_trajectories(path: str | os.PathLike[str], *, fmt: str | None = None, u
         raise
     except MocaptkError as exc:  # e.g. a zero frame rate or clashing labels after stripping prefixes
         raise InputFileError(path, str(exc)) from None
+    except MemoryError as exc:  # the file is within the size limits but this machine cannot hold it
+        detail = f" ({exc})" if str(exc) else ""
+        raise InputFileError(path, f"out of memory while reading it{detail}; close other programs or "
+                                   "use a machine with more memory") from None
 
 
 def _read_npz(path: str | os.PathLike[str]) -> Trajectories:

@@ -17,8 +17,6 @@ exports). Markers are then named ``M01``, ``M02``...
 
 from __future__ import annotations
 
-import csv
-import io
 import os
 import re
 
@@ -27,8 +25,9 @@ import numpy as np
 from mocaptk.errors import InputFileError
 from mocaptk.trajectories import Take, Trajectories
 
-from .text_io import (MISSING_CELLS, cells_to_array, check_labels, mm_per_unit, numbered_labels,
-                      rate_from_times, read_text, rows_by_frame, whole_point_gaps)
+from .text_io import (MAX_LABEL_CHARS, MISSING_CELLS, cells_to_array, check_labels, check_table_size,
+                      csv_rows, mm_per_unit, numbered_labels, positions_mm, rate_from_times, read_text,
+                      rows_by_frame)
 
 _COORD = re.compile(
     r"^(?P<label>.*?\S)(?:[\s_.:\-]+(?P<a1>[xyz])|\s*\((?P<a2>[xyz])\))"
@@ -61,6 +60,14 @@ def is_number(cell: str) -> bool:
     return True
 
 
+def _all_numbers(cells: list[str]) -> bool:
+    try:  # numbers and empty cells: parsed by numpy in C (a headerless line can hold 10^6 cells)
+        np.array([cell or "nan" for cell in cells], dtype=np.float64)
+        return True
+    except ValueError:
+        return all(map(is_number, cells))
+
+
 def read_generic_csv(path: str | os.PathLike[str], *, units: str | None = None,
                      rate: float | None = None) -> Trajectories:
     """Read a column CSV marker file.
@@ -80,21 +87,24 @@ def read_generic_csv(path: str | os.PathLike[str], *, units: str | None = None,
     if delimiter == " ":
         rows = [line.split() for line in lines]
     else:
-        rows = list(csv.reader(io.StringIO("\n".join(lines)), delimiter=delimiter))
-    has_header = not all(is_number(cell) for cell in rows[0])
+        rows = csv_rows(lines, delimiter=delimiter, path=path)
+    has_header = not _all_numbers(rows[0])
     header = [cell.strip() for cell in rows[0]] if has_header else None
     body = rows[1:] if has_header else rows
     if not body:
         raise InputFileError(path, "no data rows")
     first_line = 2 if has_header else 1
+    check_table_size(len(body), max(len(rows[0]), max(map(len, body))), sum(map(len, rows)), path=path)
     decimal_comma = delimiter != "," and any("," in c for c in body[0])  # 1,5;2,25
     if header is None:
         columns, labels, frame_col, time_col, text_col, unit = _headerless_layout(body, path=path)
     else:
         columns, labels, frame_col, time_col, text_col, unit = _header_layout(header, body, path=path)
     check_labels(labels, path=path)
-    table = cells_to_array([[r[c] if c < len(r) else "" for c in columns] for r in body],
-                           len(columns), path=path, first_line=first_line, decimal_comma=decimal_comma)
+    cells = ([r[columns.start:columns.stop] for r in body] if isinstance(columns, range)  # headerless
+             else [[r[c] if c < len(r) else "" for c in columns] for r in body])
+    table = cells_to_array(cells, len(columns), path=path, first_line=first_line, decimal_comma=decimal_comma)
+    del cells
     positions = table.reshape(len(body), len(labels), 3)
     first_number = 1
     row_frames = np.arange(len(body))
@@ -121,19 +131,22 @@ def read_generic_csv(path: str | os.PathLike[str], *, units: str | None = None,
         meta["takes"] = _takes_from_column([r[text_col] if text_col < len(r) else "" for r in body],
                                            row_frames)
         meta["take_column"] = header[text_col] if header else text_col
-    return Trajectories(whole_point_gaps(positions * scale), labels, rate,
+    return Trajectories(positions_mm(positions, scale), labels, rate,
                         first_frame=first_number, metadata=meta)
 
 
+def _filled_width(row: list[str]) -> int:
+    """Cells of ``row`` up to its last non-empty one (trailing delimiters add no column)."""
+    return next((i + 1 for i in range(len(row) - 1, -1, -1) if row[i].strip()), 0)
+
+
 def _headerless_layout(body: list[list[str]], *, path: str | os.PathLike[str]):
-    while body and all(not r[-1].strip() for r in body if r) and max(len(r) for r in body) > 1:
-        body = [r[:-1] for r in body]  # trailing delimiters
-    n = max(len(r) for r in body)
+    n = max(map(_filled_width, body))  # one pass: linear in the cells, however many delimiters
     lead = n % 3  # 0: coordinates only, 1: frame column, 2: frame + sub-frame columns
     if (n - lead) < 3:
         raise InputFileError(path, "no coordinate columns (need 3 per marker)")
     count = (n - lead) // 3
-    return list(range(lead, n)), numbered_labels(count), (0 if lead else None), None, None, None
+    return range(lead, n), numbered_labels(count), (0 if lead else None), None, None, None
 
 
 def _header_layout(header: list[str], body: list[list[str]], *, path: str | os.PathLike[str]):
@@ -141,7 +154,8 @@ def _header_layout(header: list[str], body: list[list[str]], *, path: str | os.P
     units: set[str] = set()
     frame_col = time_col = text_col = None
     for col, name in enumerate(header):
-        match = _COORD.match(name)
+        # longer cells are no coordinate header (and the lazy pattern would take quadratic time)
+        match = _COORD.match(name) if len(name) <= MAX_LABEL_CHARS + 16 else None
         if match:
             label = match["label"].strip()
             axis = (match["a1"] or match["a2"]).lower()

@@ -26,8 +26,8 @@ from mocaptk.atomic import atomic_open
 from mocaptk.errors import InputFileError
 from mocaptk.trajectories import Trajectories
 
-from .text_io import (check_labels, format_rows, mm_per_unit, numbered_labels, parse_lines,
-                      rate_from_times, read_text, rows_by_frame, whole_point_gaps)
+from .text_io import (check_labels, format_rows, mm_per_unit, numbered_labels, parse_lines, positions_mm,
+                      rate_from_times, read_text, rows_by_frame)
 
 _HEADER_KEYS = ("DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate",
                 "OrigDataStartFrame", "OrigNumFrames")
@@ -92,7 +92,7 @@ def read_trc(path: str | os.PathLike[str], *, units: str | None = None) -> Traje
         rate = rate_from_times(table[:, 1], path=path)
     file_units = header.get("Units", "") or "mm"
     scale = mm_per_unit(units) if units is not None else mm_per_unit(file_units, source=path)
-    positions = whole_point_gaps(table[:, 2:].reshape(len(table), n_markers, 3) * scale)
+    positions = positions_mm(table[:, 2:].reshape(len(table), n_markers, 3), scale)
     notes = []
     if n_frames_declared is not None and n_frames_declared != len(positions):
         notes.append(f"header says NumFrames {n_frames_declared}, file has {len(positions)} frames")

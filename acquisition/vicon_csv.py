@@ -28,8 +28,8 @@ from mocaptk.atomic import atomic_open
 from mocaptk.errors import InputFileError
 from mocaptk.trajectories import Take, Trajectories
 
-from .text_io import (check_labels, format_rows, mm_per_unit, parse_lines, read_text,
-                      rows_by_frame, whole_point_gaps)
+from .text_io import (check_labels, csv_rows, format_rows, mm_per_unit, parse_lines, positions_mm,
+                      read_text, rows_by_frame)
 
 #: First cell of a section header line in a Nexus CSV export.
 SECTION_NAMES = ("Trajectories", "Devices", "Model Outputs", "Segments", "Joints", "Events")
@@ -59,10 +59,6 @@ def _blank(line: str) -> bool:
     return not line.replace(",", "").strip()
 
 
-def _parse_rows(lines: list[str]) -> list[list[str]]:
-    return list(csv.reader(lines))
-
-
 def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) -> Trajectories:
     """Read the Trajectories section of a Vicon Nexus CSV export.
 
@@ -85,7 +81,7 @@ def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) ->
         found = ", ".join(sections) or "none"
         raise InputFileError(path, f"Vicon CSV has no Trajectories section (sections: {found})")
     start = sections["Trajectories"]
-    rows = _parse_rows(lines[start:start + 6])  # section header rows (labels may be quoted)
+    rows = csv_rows(lines[start:start + 6], path=path)  # section header rows (labels may be quoted)
     coord_at = next((i for i in range(3, len(rows)) if rows[i] and rows[i][0].strip().lower().startswith("frame")),
                     None)
     if coord_at is None:
@@ -128,7 +124,7 @@ def read_vicon_csv(path: str | os.PathLike[str], *, units: str | None = None) ->
         file_units = [(unit_row[c].strip() if c < len(unit_row) else "") or "mm" for c in columns]
         scale = np.array([mm_per_unit(u, source=path) for u in file_units])
         original = file_units[0] if len(set(file_units)) == 1 else "mixed"
-    positions = whole_point_gaps(positions * scale[None, :, None])
+    positions = positions_mm(positions, scale)
     takes = _read_takes(lines, sections, rate=rate, n_frames=len(positions), path=path)
     meta = {"source": os.fspath(path), "format": "vicon_csv", "original_units": original,
             "subjects": sorted({lab.split(":", 1)[0] for lab in labels if ":" in lab}),
@@ -146,7 +142,7 @@ def _read_takes(lines: list[str], sections: dict[str, int], *, rate: float, n_fr
         end += 1
     starts: dict[str, tuple[int, str | None]] = {}
     takes: list[Take] = []
-    for cells in _parse_rows(lines[start:end]):
+    for cells in csv_rows(lines[start:end], path=path):
         cells = cells + [""] * (6 - len(cells))
         kind, name, region = cells[2].strip(), cells[4].strip(), cells[5].strip() or None
         if kind not in ("Take Start", "Take End"):

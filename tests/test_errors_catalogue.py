@@ -83,6 +83,12 @@ def f(tmp_path_factory) -> dict[str, Path]:
         if text is not None:
             (d / name).write_text(text, encoding="utf-8")
     (d / "latin1.trc").write_bytes("\n".join(trc).replace("\tA\t", "\tÄ\t").encode("latin-1"))
+    (d / "utf16.trc").write_bytes("\n".join(trc).encode("utf-16"))
+    (d / "label_long.trc").write_text("\n".join(trc[:3] + [trc[3].replace("\tA\t", "\t" + "A" * 300 + "\t")]
+                                                + trc[4:]))
+    long = write_trajectories(Trajectories(np.ones((1000, 1, 3)), ["A"], 100.0), d / "long.trc")
+    rows = long.read_text().split("\n")
+    (d / "wide_row.trc").write_text("\n".join(rows[:9] + [rows[9] + "\t1" * 30_000] + rows[10:]))
     good = (d / "good.c3d").read_bytes()
     data_start = (int.from_bytes(good[16:18], "little") - 1) * 512
     (d / "cut.c3d").write_bytes(good[:data_start + 100])  # cut inside the point data
@@ -124,6 +130,7 @@ CATALOGUE = [
     ("E-FILE-BINARY", lambda f: ["info", f["binary.dat"]], "binary content that is not C3D"),
     ("E-FILE-UNKNOWN", lambda f: ["info", f["words.txt"]], "unrecognised content"),
     ("E-TEXT-UTF8", lambda f: ["info", f["latin1.trc"]], "not UTF-8 text (bad byte at offset"),
+    ("E-TEXT-UTF16", lambda f: ["info", f["utf16.trc"]], "not UTF-8 text (UTF-16: re-save or export it as UTF-8)"),
     ("E-C3D-TRUNC", lambda f: ["info", f["cut.c3d"]], "truncated C3D file"),
     ("E-C3D-PARAMS", lambda f: ["info", f["params.c3d"]], "bad parameter section"),
     ("E-C3D-UNITS-NUMBER", lambda f: ["info", FUZZ / "c3d_units_numeric.c3d"],
@@ -136,6 +143,8 @@ CATALOGUE = [
     ("E-TRC-NODATA", lambda f: ["info", f["trc_nodata.trc"]], "TRC file has no data rows"),
     ("E-UNITS-FILE", lambda f: ["info", f["trc_units.trc"]], "unknown length units 'furlong'"),
     ("E-LABELS-DUP", lambda f: ["info", f["trc_dup.trc"]], "duplicate marker labels: A"),
+    ("E-LABEL-LONG", lambda f: ["info", f["label_long.trc"]], "a marker label of 300 characters, more than 255"),
+    ("E-TEXT-TABLE", lambda f: ["info", f["wide_row.trc"]], "columns, but the file holds only"),
     ("E-TEXT-CELL", lambda f: ["info", f["trc_cell.trc"]], "not a number: 'abc'"),
     ("E-FRAMES-ORDER", lambda f: ["info", f["trc_order.trc"]], "frame numbers are not strictly increasing"),
     ("E-FRAMES-SPAN", lambda f: ["info", f["trc_frames.trc"]], "frame numbers run from 0 to 1000000000"),

@@ -292,7 +292,9 @@ def test_npz_from_our_tools(tmp_path):
 
 
 @pytest.mark.parametrize("content, problem", [
-    (b"\xff\xfeT\x00r\x00", "binary content"),
+    (b"\xff\xfeT\x00r\x00", r"not UTF-8 text \(UTF-16"),  # the documented message, not "binary content"
+    ("Trajectories\n100\n".encode("utf-16-be"), r"not UTF-8 text \(UTF-16"),
+    ("PathFileType\t4\t(X/Y/Z)\n".encode("utf-16-le"), r"not UTF-8 text \(UTF-16"),
     ("Trajectories\n100\n,,Ä:M\nFrame,Sub Frame,X,Y,Z\n".encode("latin-1"), "not UTF-8"),
     (b"Trajectories\n100\n", "truncated"),
     (b"Trajectories\n100\n,,\nFrame,Sub Frame\n,,\n1,0\n", "no markers"),
