@@ -83,3 +83,35 @@ def test_replay_subsampling_keeps_rate_and_budget():
     track = np.frombuffer(base64.b64decode(clip["positions"]), "<i2").reshape(3, 2, 3)
     np.testing.assert_array_equal(track[:, 0, 0], [0, 8, 16])  # 0.05 mm steps: 0, 0.4, 0.8 mm
     assert (track[1, 1] == -32768).all() and (track[[0, 2], 1] == 0).all()  # the gap stays a gap
+
+
+def test_evaluate_and_compare_write_error_reports(planted_reports, run_cli, tmp_path):
+    folder = planted_reports[0]
+    session, takes = folder.parent / "planted.npz", folder.parent / "takes.json"
+    result = run_cli("evaluate", session, "--layout", folder / "layout.json", "--takes", takes,
+                     "--seeds", "2", "--folds", "3", "--out", tmp_path / "e.json", "--quiet")
+    assert result.exit_code == 0, result.stderr
+    evaluation = json.loads((tmp_path / "e.json").read_text())
+    data = page_data(tmp_path / "e.html")
+    assert data["kind"] == "evaluate" and len(data["clusters"]) == len(json.loads(
+        (folder / "layout.json").read_text())["clusters"])
+    (errors,) = data["errors"]
+    values = np.array([np.nan if v is None else v for v in errors["values"]])
+    captured = data["markers"]["captured"]
+    assert np.isfinite(values[:captured]).all() and np.isnan(values[captured:]).all()
+    # the map's RMSE over all markers is the table's (same protocol, same frames)
+    (table,) = data["tables"]
+    assert sorted(row[0] for row in table["rows"]) == sorted(evaluation["methods"])
+    name = table["rows"][table["picks"].index(0)][0]
+    assert name == "paper"
+    # per-marker RMSEs pool back to the table's RMSE (same protocol; markers tested equally often)
+    assert np.sqrt(np.mean(values[:captured] ** 2)) == pytest.approx(evaluation["methods"][name]["rmse_mm"], rel=0.02)
+
+    result = run_cli("compare", session, "--counts", "4,6", "--methods", "kmeans,farthest-point",
+                     "--out", tmp_path / "cmp", "--no-stabilize", "--quiet")
+    assert result.exit_code == 0, result.stderr
+    data = page_data(tmp_path / "cmp" / "report.html")
+    assert data["kind"] == "compare" and not data["clusters"]
+    assert [(m["name"], len(m["layout"])) for m in data["errors"]] == [
+        ("kmeans × 4", 4), ("kmeans × 6", 6), ("farthest-point × 4", 4), ("farthest-point × 6", 6)]
+    assert data["tables"][0]["picks"] == [0, 1, 2, 3]

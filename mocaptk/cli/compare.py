@@ -9,6 +9,7 @@ import typer
 from ..errors import OptionError
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
+from .report import write_compare_report
 
 
 def parse_counts(text: str) -> list[int]:
@@ -47,7 +48,7 @@ def compare(
 
     Layout statistics (Zell & McDonnell, ε = 0.3 and 0.7): % of layout markers where no extreme
     frame of the session moves ≥ ε, and how many extreme frames no layout marker sees move ≥ ε.
-    Writes compare.md, compare.json, rmse_vs_markers.png and layouts.png.
+    Writes compare.md, compare.json, rmse_vs_markers.png, layouts.png and report.html.
     """
     from rich.console import Console
 
@@ -67,7 +68,8 @@ def compare(
     if restarts < 1:
         raise OptionError(f"--restarts must be >= 1, got {restarts}")
     folder = out or session.with_name(session.stem + "_compare")
-    targets = [folder / name for name in ("compare.md", "compare.json", "rmse_vs_markers.png", "layouts.png")]
+    targets = [folder / name for name in ("compare.md", "compare.json", "rmse_vs_markers.png", "layouts.png",
+                                            "report.html")]
     from .cluster import OUT_HINT
 
     for target in targets:
@@ -90,9 +92,10 @@ def compare(
     compare_plot(rows, targets[2], title=f"{session.name}: held-out RMSE")
     neutral = neutral_pose(traj.positions)
     layout_gallery(rows, neutral, max_displacement(traj.positions, neutral), targets[3])
+    report = write_compare_report(targets[4], traj, rows, test=perf, summary=table, protocol=protocol)
     for row in rows:
         if row.error is not None:
             typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)
     if not quiet:
         typer.echo(table, nl=False)
-        typer.echo(f"wrote {folder}/")
+        typer.echo(f"wrote {folder}/ ({report})")

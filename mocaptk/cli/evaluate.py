@@ -10,6 +10,7 @@ import typer
 from ..errors import InputFileError, OptionError
 from .app import app
 from .options import Quiet, Rate, Units
+from .report import write_evaluation_report
 
 
 def evaluation_table(result: dict) -> str:
@@ -59,7 +60,8 @@ def evaluate(
     folds: int = typer.Option(5, "--folds", help="Folds for --split blocks."),
     seeds: int = typer.Option(10, "--seeds", help="Random layouts to average (mean ± sd)."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength, relative to the mean input variance."),
-    out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout)."),
+    out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout); "
+                             "the HTML report goes beside it (evaluation.html)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
@@ -79,6 +81,7 @@ def evaluate(
     from .cluster import OUT_HINT
 
     out_path = claim_output(out or layout.with_name("evaluation.json"), force=force, hint=OUT_HINT)
+    claim_output(out_path.with_suffix(".html"), force=force, hint=OUT_HINT)
     lay = read_layout(layout)
     traj, test_positions, source = session_arrays(
         session, test=test, stabilized=bool(lay.parameters.get("stabilized")), rate=rate, units=units,
@@ -98,6 +101,9 @@ def evaluate(
                                  n_random=seeds, ridge=ridge)
     result.update({"format": "mocaptk.evaluation", "version": 1, "units": "mm", "source": source,
                    "layout": layout.name, "test": test.name if test else None})
+    report = write_evaluation_report(out_path.with_suffix(".html"), lay, traj, [index[m] for m in measured], result,
+                                     test=test_positions, takes=take_list, split=split, folds=folds,
+                                     ridge=ridge, summary=evaluation_table(result))
     write_json(out_path, result, force=True)
     mirrored = len(lay.clusters) - len(measured)
     if mirrored:  # after everything that can fail: a note never precedes an error
@@ -105,4 +111,4 @@ def evaluate(
               f"evaluated the {len(measured)} measured ones", file=sys.stderr)
     if not quiet:
         typer.echo(evaluation_table(result), nl=False)
-        typer.echo(f"wrote {out_path}")
+        typer.echo(f"wrote {out_path}\nwrote {report}")

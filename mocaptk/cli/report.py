@@ -28,3 +28,51 @@ def write_cluster_report(result, build, path: Path, *, summary: str) -> Path:
     written, size = write_report(path, data)
     write_text(path.with_name("summary.txt"), summary + report_line(path, size, data["clips"]) + "\n")
     return written
+
+
+def write_evaluation_report(path: Path, layout, session, layout_idx, result: dict, *, test, takes,
+                            split: str, folds: int, ridge: float, summary: str) -> str:
+    """``mocaptk evaluate``'s report beside its JSON: the layout's per-marker held-out RMSE on
+    the face (same protocol as the result), the method table, session + performance replay.
+    Returns the line stating its size."""
+    from ..clustering.evaluation import heldout_errors, holdout_splits
+    from ..retarget.report import evaluation_report, per_marker_rmse, write_report
+
+    splits = [] if test is not None else holdout_splits(session.n_frames, takes, split=split, folds=folds)
+    errors = heldout_errors(session.positions, layout_idx, splits, test=test, ridge=ridge)
+    title = (f"mocaptk evaluate: {layout.source.get('path', '')} · {len(layout_idx)}-marker layout"
+             + (" · held-out performance" if test is not None else f" · held-out {split}"))
+    data = evaluation_report(layout, session, rmse=per_marker_rmse(errors), result=result,
+                             performance=test, summary=summary, title=title)
+    written, size = write_report(path, data)
+    return report_line(written, size, data["clips"])
+
+
+def write_compare_report(path: Path, session, rows, *, test, summary: str, protocol: str) -> str:
+    """``mocaptk compare``'s report: each method x count's per-marker held-out RMSE with its layout
+    on the face (with ``test``: fitted on the session, scored on it, as the table; without: the
+    whole-session layout kept fixed across the held-out takes/blocks). Returns the size line."""
+    from ..clustering.evaluation import heldout_errors, holdout_splits
+    from ..retarget.report import compare_report, per_marker_rmse, write_report
+
+    if test is not None:
+        splits, note = [], "Per-marker maps: fitted on the session, scored on the held-out performance."
+    else:
+        scheme = "takes" if len(session.takes) >= 2 else "blocks"
+        splits = holdout_splits(session.n_frames, session.takes, split=scheme, folds=5)
+        note = (f"Per-marker maps: the whole-session layout kept fixed across held-out {scheme} "
+                "(the table re-chooses it per fold, so its numbers are a little higher).")
+    entries = []
+    for row in rows:
+        entry = {"method": row.method, "count": row.count, "rmse_mm": row.rmse_mm, "p95_mm": row.p95_mm,
+                 "seconds": row.seconds, "error": row.error}
+        if row.error is None:
+            errors = heldout_errors(session.positions, row.layout, splits,
+                                    test=None if test is None else test.positions)
+            entry.update(rmse=per_marker_rmse(errors), layout=[session.labels[i] for i in row.layout])
+        entries.append(entry)
+    data = compare_report(session, rows=entries, performance=None if test is None else test.positions,
+                          summary=summary, title=f"mocaptk compare: {protocol}",
+                          note=note + " Click a row to show its layout and error.")
+    written, size = write_report(path, data)
+    return report_line(written, size, data["clips"])

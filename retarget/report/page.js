@@ -21,7 +21,7 @@
     return Object.assign({}, c, {track: new Int16Array(bytes.buffer)});  // little-endian (x86, ARM)
   });
 
-  const state = {clip: 0, frame: 0, colour: errors.length && !clusters.length ? 0 : -1,
+  const state = {clip: 0, frame: 0, colour: errors.length ? 0 : -1,
                  show: {face: true, dense: true, links: true, numbers: true, mirrored: true},
                  regions: {}, playing: false};
   data.regions.forEach(function (r) { state.regions[r] = true; });
@@ -87,9 +87,12 @@
 
   function fmt(v, digits) { return v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toFixed(digits); }
 
+  // A marker's error in the current map; a mirrored marker shows its source's (it is not captured).
   function errorOf(i) {
     if (state.colour < 0) return null;
-    const v = errors[state.colour].values[i];
+    const values = errors[state.colour].values;
+    let v = values[i];
+    if ((v === null || v === undefined) && M.mirror_of[i] >= 0) v = values[M.mirror_of[i]];
     return v === null || v === undefined ? null : v;
   }
 
@@ -121,7 +124,8 @@
     }
     if (M.mirror_of[i] >= 0) lines.push("mirrored from " + M.labels[M.mirror_of[i]]);
     const e = errorOf(i);
-    if (state.colour >= 0) lines.push(errors[state.colour].name + ": " + (e === null ? "not measured" : fmt(e, 2) + " mm"));
+    if (state.colour >= 0) lines.push(errors[state.colour].name + ": " + (e === null ? "not measured" : fmt(e, 2) + " mm") +
+                                      (M.mirror_of[i] >= 0 && e !== null ? " (its source marker's)" : ""));
     return lines.join("<br>");
   }
 
@@ -158,9 +162,8 @@
                   lighting: {ambient: 0.55, diffuse: 0.6, specular: 0.05, roughness: 0.9},
                   lightposition: {x: 0, y: 200, z: 1000}};
     if (state.colour >= 0) {
-      const values = errors[state.colour].values;
-      face.intensity = mesh.nearest_marker.map(function (m) { const v = values[m]; return v === null ? 0 : v; });
-      face.colorscale = SCALE; face.cmin = 0; face.cmax = errorMax;
+      face.intensity = mesh.nearest_marker.map(function (m) { const v = errorOf(m); return v === null ? 0 : v; });
+      face.colorscale = SCALE; face.reversescale = true; face.cmin = 0; face.cmax = errorMax;
     } else {
       face.vertexcolor = mesh.colours;
     }
@@ -190,9 +193,9 @@
       customdata: dense, text: dense.map(hoverDense), hovertemplate: "%{text}<extra></extra>",
       visible: state.show.dense, marker: {size: 2.4, line: {width: 0}}};
     if (state.colour >= 0) {
-      const values = errors[state.colour].values;
-      denseTrace.marker.color = dense.map(function (i) { const v = values[i]; return v === null ? NaN : v; });
-      denseTrace.marker.colorscale = SCALE; denseTrace.marker.cmin = 0; denseTrace.marker.cmax = errorMax;
+      denseTrace.marker.color = dense.map(function (i) { const v = errorOf(i); return v === null ? NaN : v; });
+      denseTrace.marker.colorscale = SCALE; denseTrace.marker.reversescale = true;
+      denseTrace.marker.cmin = 0; denseTrace.marker.cmax = errorMax;
       denseTrace.marker.showscale = true;
       denseTrace.marker.colorbar = {title: {text: "mm"}, len: 0.5, thickness: 12, x: 0.02};
     } else {
@@ -217,12 +220,25 @@
     return out;
   }
 
+  // Fixed axis ranges (the view never rescales during replay) and a box scaled like the data.
+  function sceneBox() {
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    mesh.vertices.concat(M.neutral).forEach(function (p) {
+      for (let a = 0; a < 3; a++) if (isFinite(p[a])) { lo[a] = Math.min(lo[a], p[a]); hi[a] = Math.max(hi[a], p[a]); }
+    });
+    const pad = 15, span = [0, 1, 2].map(function (a) { return hi[a] - lo[a] + 2 * pad; });
+    const big = Math.max(span[0], span[1], span[2]);
+    const axis = function (a) { return {visible: false, range: [lo[a] - pad, hi[a] + pad], autorange: false}; };
+    return {x: axis(0), y: axis(1), z: axis(2), ratio: {x: span[0] / big, y: span[1] / big, z: span[2] / big}};
+  }
+  const box = sceneBox();
+
   const plotLayout = {
     margin: {l: 0, r: 0, t: 0, b: 0}, showlegend: false, paper_bgcolor: "#ffffff", uirevision: "keep",
     hoverlabel: {align: "left", bgcolor: "#ffffff", font: {size: 12}},
-    scene: {aspectmode: "data", dragmode: "orbit", bgcolor: "#ffffff",
-            xaxis: {visible: false}, yaxis: {visible: false}, zaxis: {visible: false},
-            camera: {eye: {x: 0, y: 0.1, z: 1.85}, up: {x: 0, y: 1, z: 0}, center: {x: 0, y: 0, z: 0}}}
+    scene: {aspectmode: "manual", aspectratio: box.ratio, dragmode: "orbit", bgcolor: "#ffffff",
+            xaxis: box.x, yaxis: box.y, zaxis: box.z,
+            camera: {eye: {x: 0, y: 0.08, z: 1.25}, up: {x: 0, y: 1, z: 0}, center: {x: 0, y: 0, z: 0}}}
   };
   const config = {displaylogo: false, responsive: true, modeBarButtonsToRemove: ["toImage"]};
 

@@ -12,23 +12,109 @@ from mocaptk.trajectories import Trajectories
 from ..build import DenseCloud, RigBuild, dense_cloud
 from .scene import replay_clips, scene_data
 
-__all__ = ["cluster_report", "session_clips"]
+__all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse", "session_clips"]
 
 
-def session_clips(cloud: DenseCloud, rate_hz: float, *,
-                  performance: Trajectories | None = None) -> list[dict]:
-    """Replay clips of the cloud's session and, where given, a held-out ``performance`` (its
-    markers matched by label, rotated into the cloud's rig frame)."""
+def session_clips(cloud: DenseCloud, rate_hz: float, *, labels: Sequence[str] = (),
+                  performance: np.ndarray | None = None) -> list[dict]:
+    """Replay clips of the cloud's session and, where given, a held-out ``performance``
+    (F, M, 3) mm in the session frame with markers ``labels`` (matched to the cloud by label)."""
     captured = int(np.sum(cloud.captured))
     clips = [("session", cloud.trajectories[:, :captured])]
     if performance is not None:
-        lookup = {label: i for i, label in enumerate(performance.labels)}
-        perf = np.full((performance.n_frames, captured, 3), np.nan)
-        for i, label in enumerate(cloud.labels[:captured]):
-            if label in lookup:
-                perf[:, i] = performance.positions[:, lookup[label]]
-        clips.append(("held-out performance", perf @ cloud.rotation.T))
+        clips.append(("held-out performance", _in_cloud(cloud, labels, performance) @ cloud.rotation.T))
     return replay_clips(clips, rate_hz, cloud.neutral[:captured])
+
+
+def _in_cloud(cloud: DenseCloud, labels: Sequence[str], values: np.ndarray) -> np.ndarray:
+    """``values`` (..., M, ...) over ``labels`` → the cloud's captured markers (NaN where absent)."""
+    lookup = {label: i for i, label in enumerate(labels)}
+    captured = int(np.sum(cloud.captured))
+    out = np.full((values.shape[0], captured) + values.shape[2:], np.nan)
+    for i, label in enumerate(cloud.labels[:captured]):
+        if label in lookup:
+            out[:, i] = values[:, lookup[label]]
+    return out
+
+
+def per_marker_rmse(errors: np.ndarray) -> np.ndarray:
+    """RMSE (M,) mm over frames of held-out errors (F, M) (NaN: never tested)."""
+    squared = np.asarray(errors, float) ** 2
+    counts = np.isfinite(squared).sum(axis=0)
+    total = np.nansum(squared, axis=0)
+    return np.sqrt(np.divide(total, counts, out=np.full(total.shape, np.nan), where=counts > 0))
+
+
+def error_map(cloud: DenseCloud, labels: Sequence[str], rmse: np.ndarray, *, name: str,
+              layout: Sequence[str] | None = None) -> dict:
+    """One colour map of the page: per-marker RMSE (M,) over ``labels`` on the cloud's markers
+    (mirrored ones unmeasured), with its own ``layout`` labels (None: the page's clusters)."""
+    values = np.full(len(cloud.labels), np.nan)
+    values[: int(np.sum(cloud.captured))] = _in_cloud(cloud, labels, np.asarray(rmse)[None])[0]
+    return {"name": name, "values": np.round(values, 3),
+            "layout": None if layout is None else [int(i) for i in cloud.index(layout)]}
+
+
+def evaluation_report(layout: Layout, session: Trajectories, *, rmse: np.ndarray, result: dict,
+                      performance: np.ndarray | None, summary: str, title: str) -> dict:
+    """Page data of ``mocaptk evaluate``: the layout's clusters on the dense marker surface,
+    coloured by each marker's held-out RMSE ``rmse`` (M,) mm, the method table, the session
+    and the held-out ``performance`` (session frame, session markers) replays."""
+    cloud = dense_cloud(layout, session)
+    data = scene_data(cloud, layout=layout)
+    name = str(layout.parameters.get("method", "layout"))
+    data["errors"] = [error_map(cloud, session.labels, rmse, name=f"held-out RMSE, {name}")]
+    rows, picks = [], []
+    for method, s in result["methods"].items():
+        rows.append([method, s["count"], _mm(s, "rmse_mm"), _mm(s, "p95_mm")])
+        picks.append(0 if method == name else None)
+    protocol = result.get("protocol", {})
+    data.update(kind="evaluate", title=title, summary=summary,
+                clips=session_clips(cloud, session.rate, labels=session.labels, performance=performance),
+                tables=[{"title": "Held-out reconstruction error (mm)", "rows": rows, "picks": picks,
+                         "columns": ["method", "markers", "RMSE", "p95"],
+                         "note": f"test: {protocol.get('test', '')}; random: mean ± sd of "
+                                 f"{protocol.get('random_seeds', '')} layouts. Click the layout's row "
+                                 "to colour the face by its per-marker RMSE."}])
+    return data
+
+
+def compare_report(session: Trajectories, *, rows: Sequence[dict], performance: np.ndarray | None,
+                   summary: str, title: str, note: str) -> dict:
+    """Page data of ``mocaptk compare``: one colour map per method x count, each with its own
+    layout (``rows``: dicts with ``method``, ``count``, ``rmse_mm``, ``p95_mm``, ``seconds``,
+    ``layout`` (labels) and ``rmse`` (M,) mm per session marker, or ``error``), the table, the
+    session and held-out ``performance`` replays. Regions come from the label prefixes."""
+    from mocaptk.clustering.neutral import max_displacement, neutral_pose
+    from mocaptk.clustering.regions import regions_from_prefixes
+    from mocaptk.clustering.symmetry import estimate_sagittal_plane, is_half_capture
+
+    neutral = neutral_pose(session.positions)
+    plane = estimate_sagittal_plane(session.labels, neutral, max_displacement(session.positions, neutral),
+                                    half=is_half_capture(session.labels))  # orients the front view
+    cloud = dense_cloud(Layout(source={}, parameters={}, regions=(), clusters=(),
+                               extra={"sagittal_plane": {"point": plane.point, "normal": plane.normal}}),
+                        session)
+    data = scene_data(cloud, regions=regions_from_prefixes(cloud.labels))
+    table, picks, maps = [], [], []
+    for row in rows:
+        table.append([row["method"], row["count"], *(["–", "–", "–"] if row.get("error") else
+                     [f"{row['rmse_mm']:.3f}", f"{row['p95_mm']:.3f}", f"{row['seconds']:.2f}"])])
+        picks.append(None if row.get("error") else len(maps))
+        if not row.get("error"):
+            maps.append(error_map(cloud, session.labels, row["rmse"], name=f"{row['method']} × {row['count']}",
+                                  layout=row["layout"]))
+    data.update(kind="compare", title=title, summary=summary, errors=maps,
+                clips=session_clips(cloud, session.rate, labels=session.labels, performance=performance),
+                tables=[{"title": "Held-out reconstruction error (mm), time (s per layout)",
+                         "columns": ["method", "markers", "RMSE", "p95", "s"], "rows": table,
+                         "picks": picks, "note": note}])
+    return data
+
+
+def _mm(summary: dict, key: str) -> str:
+    sd = summary.get(key.replace("_mm", "_sd_mm"))
+    return f"{summary[key]:.3f}" + (f" ± {sd:.3f}" if sd is not None else "")
 
 
 def cluster_report(layout: Layout, session: Trajectories, *, build: RigBuild | None,
