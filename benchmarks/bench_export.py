@@ -7,7 +7,12 @@ vertex. Times are the best of ``--repeat`` runs. Baselines, same rig, same run:
 PyPI bpy 5.0.1, see docs/rig-format.md), Blender's own FBX and glTF exporters on the scene
 Blender imports from our rig.fbx (import not timed).
 
-    python benchmarks/bench_export.py [--repeat 3] [--blender-python .tools/bpyvenv/bin/python]
+Animation (``--frames``, default 72,000 = 20 min at 60 Hz; 0 skips it): the same face with 86
+joints, smooth synthetic joint motion with 0.05 % of the marker-frames missing (runs of 1-30
+frames) and a moving head; times the bake (gap filling included) and each writer with the
+animation, against ``np.savez`` of the raw tracks (floor); prints file sizes and bytes per frame.
+
+    python benchmarks/bench_export.py [--repeat 3] [--frames 72000] [--blender-python .tools/bpyvenv/bin/python]
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mocaptk.retarget import Rig, write_rig_fbx, write_rig_glb, write_rig_json
+from mocaptk.retarget.export_fbx import rig_fbx_bytes
 
 _BLENDER_EXPORT = """
 import json, sys, time
@@ -42,8 +48,8 @@ print("RESULT" + json.dumps(best))
 """
 
 
-def benchmark_rig() -> tuple[Rig, str]:
-    """The face (or grid) rig with 60 joints and 4 Gaussian influences per vertex."""
+def benchmark_rig(joints: int = 60) -> tuple[Rig, str]:
+    """The face (or grid) rig with ``joints`` joints and 4 Gaussian influences per vertex."""
     try:
         from mocaptk.acquisition.face_model import load_face_model
         model = load_face_model()
@@ -59,7 +65,7 @@ def benchmark_rig() -> tuple[Rig, str]:
         candidates, name = vertices, "grid patch"
     chosen = [int(np.argmax(candidates[:, 1]))]
     distance = np.linalg.norm(candidates - candidates[chosen[0]], axis=1)
-    for _ in range(59):
+    for _ in range(joints - 1):
         chosen.append(int(np.argmax(distance)))
         distance = np.minimum(distance, np.linalg.norm(candidates - candidates[chosen[-1]], axis=1))
     markers = candidates[chosen]
@@ -68,9 +74,10 @@ def benchmark_rig() -> tuple[Rig, str]:
     value = np.take_along_axis(falloff + 1e-12, index, axis=1)
     value /= value.sum(axis=1, keepdims=True)
     sides = ["L" if x > 5 else "R" if x < -5 else "C" for x in markers[:, 0]]
-    rig = Rig.from_markers(vertices, faces, marker_labels=[f"M{i:02d}" for i in range(60)],
+    rig = Rig.from_markers(vertices, faces, marker_labels=[f"M{i:02d}" for i in range(joints)],
                            marker_positions=markers, marker_sides=sides,
-                           marker_regions=["face"] * 60, weight_index=index, weight_value=value)
+                           marker_regions=["face"] * joints, weight_index=index,
+                           weight_value=value)
     return rig, name
 
 
@@ -83,9 +90,66 @@ def best_time(action, repeat: int) -> float:
     return best
 
 
+def benchmark_motion(rig: Rig, frames: int, *, seed: int = 0):
+    """(F, J-1, 3) joint positions with gaps, head rotations (F, 3, 3), translations (F, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames) / 60.0
+    joints = rig.joint_count - 1
+    phase = rng.uniform(0, 2 * np.pi, (1, joints, 3))
+    speed = rng.uniform(0.2, 2.0, (1, joints, 3))
+    positions = rig.joint_positions[None, 1:] + 3.0 * np.sin(speed * t[:, None, None] + phase)
+    for _ in range(int(frames * joints * 0.0005 / 15)):  # gaps of 1-30 frames, 0.05 %
+        j, start = rng.integers(joints), rng.integers(1, frames - 31)
+        positions[start:start + rng.integers(1, 31), j] = np.nan
+    angles = np.column_stack([0.2 * np.sin(0.3 * t), 0.3 * np.sin(0.2 * t), 0.1 * np.sin(0.5 * t)])
+    shift = np.column_stack([40 * np.sin(0.1 * t), 10 * np.sin(0.3 * t), 20 * np.sin(0.2 * t)])
+    return positions, Rotation.from_euler("xyz", angles).as_matrix(), shift
+
+
+def animation_benchmark(frames: int) -> None:
+    """Bake + write a long capture on an 86-joint face rig; times, sizes, bytes per frame."""
+    from mocaptk.retarget.bake import bake_animation
+
+    rig, name = benchmark_rig(joints=86)
+    positions, rotations, shift = benchmark_motion(rig, frames)
+    print(f"\nanimation: {frames} frames x {rig.joint_count - 1} joints (+ face_root) on the {name}, "
+          f"{int(np.isnan(positions[..., 0]).sum())} missing marker-frames")
+    start = time.perf_counter()
+    anim = bake_animation(rig, positions, rate=60.0, head_rotations=rotations,
+                          head_translations=shift)
+    bake = time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as folder:
+        out = Path(folder)
+        start = time.perf_counter()
+        np.savez(out / "floor.npz", translations=anim.translations, rotations=anim.root_rotations)
+        floor = time.perf_counter() - start
+        rows = [("bake_animation (gap fill + head pose)", bake, None)]
+        for fmt, writer in (("json", write_rig_json), ("fbx", write_rig_fbx),
+                            ("glb", write_rig_glb)):
+            start = time.perf_counter()
+            writer(rig, out / f"rig.{fmt}", animation=anim)
+            size = (out / f"rig.{fmt}").stat().st_size
+            if fmt == "json":
+                size += (out / "rig_animation.npz").stat().st_size
+            rows.append((f"write_rig_{fmt} with animation", time.perf_counter() - start, size))
+        rig_only = len(rig_fbx_bytes(rig))
+    print(f"{'step':40s} {'seconds':>9s} {'x np.savez':>11s} {'size MB':>9s} {'bytes/frame':>12s}")
+    print(f"{'np.savez of the tracks (floor)':40s} {floor:9.2f} {1.0:11.1f}")
+    for label, seconds, size in rows:
+        extra = "" if size is None else f" {size / 1e6:9.1f} {size / frames:12.0f}"
+        print(f"{label:40s} {seconds:9.2f} {seconds / floor:11.1f}{extra}")
+    fbx_size = next(size for label, _, size in rows if "fbx" in label)
+    print(f"FBX animation alone: {(fbx_size - rig_only) / frames:.0f} bytes/frame "
+          f"({(fbx_size - rig_only) / frames / rig.joint_count:.1f} per joint-frame)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=3, help="runs per writer (best is kept)")
+    parser.add_argument("--frames", type=int, default=72_000,
+                        help="frames of the animation benchmark (0: skip it)")
     parser.add_argument("--blender-python", type=Path, default=None,
                         help="Python with bpy 5.0.1 for the Blender exporter baselines")
     args = parser.parse_args()
@@ -115,6 +179,8 @@ def main() -> None:
               f"{seconds / floor:11.1f} {versus}")
     for fmt, seconds in blender.items():
         print(f"{'Blender export_scene.' + fmt:32s} {seconds:9.3f} {'':>8s} {seconds / floor:11.1f}")
+    if args.frames > 0:
+        animation_benchmark(args.frames)
 
 
 if __name__ == "__main__":

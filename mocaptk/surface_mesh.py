@@ -35,8 +35,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
 __all__ = [
-    "MeshQuality", "SurfaceMesh", "boundary_edges", "face_normals", "front_direction",
-    "marker_spacing",
+    "MeshQuality", "SurfaceMesh", "boundary_edges", "cut_openings", "face_normals",
+    "front_direction", "marker_spacing",
     "marker_surface_mesh", "mesh_edges", "mesh_quality", "triangle_angles", "vertex_normals",
 ]
 
@@ -205,6 +205,70 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     faces = _orient_outward(vertices, faces, front)
     order = np.lexsort(faces.T[::-1])
     return vertices, faces[order]
+
+
+#: An edge whose length (99th percentile over the session) exceeds this x its neutral length
+#: spans an opening: on the sample, edges across the lips stretch 2.1-3.7x, every other edge at
+#: most 1.65x (docs/rig-weights.md).
+OPENING_STRETCH = 2.0
+
+
+def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarray, *,
+                 max_stretch: float = OPENING_STRETCH) -> tuple[np.ndarray, np.ndarray]:
+    """Remove the triangles that span an opening of the face (the lips), found from the motion.
+
+    An edge between two markers that stretches more than ``max_stretch`` x its neutral length
+    (99th percentile of its length over the frames where both are seen) joins the two sides of
+    an opening: an upper and a lower lip marker part when the jaw drops, skin neighbours do not.
+    Every triangle holding such an edge is removed, except that a marker keeps its least
+    stretched triangle so it stays on the surface; bow-ties are then repaired.
+
+    Parameters
+    ----------
+    faces : (T, 3) int
+        Triangles over the markers (vertex i = marker i).
+    trajectories : (F, M, 3) float mm
+        The markers' motion, NaN gaps allowed.
+    neutral : (M, 3) float mm
+    max_stretch : float
+
+    Returns
+    -------
+    faces : (T', 3) int64
+        The kept triangles (same order).
+    cut_edges : (C, 2) int64
+        The edges found to span an opening.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    edges, _ = mesh_edges(faces)
+    if len(edges) == 0:
+        return faces, edges
+    traj = np.asarray(trajectories, dtype=float)
+    rest = np.linalg.norm(neutral[edges[:, 0]] - neutral[edges[:, 1]], axis=1)
+    length = np.linalg.norm(traj[:, edges[:, 0]] - traj[:, edges[:, 1]], axis=2)
+    seen = np.isfinite(length).any(axis=0)
+    stretch = np.ones(len(edges))
+    with np.errstate(invalid="ignore"):
+        stretch[seen] = np.nanpercentile(length[:, seen], 99, axis=0) / np.maximum(rest[seen], 1e-9)
+    cut = stretch > max_stretch
+    if not cut.any():
+        return faces, edges[:0]
+    n = int(faces.max()) + 1
+    key = {int(a) * n + int(b): i for i, (a, b) in enumerate(edges)}
+    corners = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1),
+                      axis=2)
+    index = np.vectorize(lambda a, b: key[int(a) * n + int(b)])(corners[..., 0], corners[..., 1])
+    face_stretch = stretch[index].max(axis=1)
+    drop = cut[index].any(axis=1)
+    kept = np.zeros(n, bool)
+    kept[faces[~drop].ravel()] = True
+    for v in np.unique(faces[drop].ravel()):  # never peel a marker off the surface
+        if not kept[v]:
+            around = np.flatnonzero(drop & (faces == v).any(axis=1))
+            best = around[np.argmin(face_stretch[around])]
+            drop[best] = False
+            kept[faces[best]] = True
+    return _repair_bowties(faces[~drop], n), edges[cut]
 
 
 def front_direction(points: np.ndarray) -> np.ndarray:

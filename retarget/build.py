@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from mocaptk.errors import OptionError
-from mocaptk.surface_mesh import (SurfaceMesh, front_direction, marker_spacing, marker_surface_mesh,
-                                  mesh_quality)
+from mocaptk.surface_mesh import (SurfaceMesh, cut_openings, front_direction, marker_spacing,
+                                  marker_surface_mesh, mesh_quality)
 from mocaptk.trajectories import Trajectories
 
 from ..clustering.layout import Layout
@@ -36,12 +36,14 @@ from ..clustering.regions import face_frame
 from ..clustering.symmetry import SagittalPlane, mirror_label
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, skin_vertices, skinning_error
+from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .guide import GuideMarker, guide_markers, write_guide_pdf
-from .influence import anchor_vertices, edge_graph, main_influence_regions
+from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .rig import Rig
 from .weights import cap_weights, region_masks, shape_by_regions, thin_shell_weights
 
-__all__ = ["DenseCloud", "RigBuild", "RigOptions", "build_rig", "dense_cloud", "ground_truth_error",
+__all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
+           "dense_cloud", "ground_truth_error",
            "guide_rows", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "write_rig_outputs"]
 
@@ -111,6 +113,75 @@ class RigBuild:
     alignment: Alignment | None
     check: SkinningError
     report: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Capture:
+    """A capture to bake onto a rig: ``relative`` head-relative (stabilized like the layout's
+    session; session frame), ``raw`` the same capture as recorded (None: no head motion, e.g. a
+    head-mounted capture), ``name`` its clip name (file stem)."""
+
+    name: str
+    relative: Trajectories
+    raw: Trajectories | None = None
+
+
+def bake_capture(build: RigBuild, capture: Capture) -> RigAnimation:
+    """The motion of ``capture``'s layout markers baked onto the build's rig (gaps filled and
+    reported, head pose on the root; see :mod:`~mocaptk.retarget.bake`).
+
+    A mirrored layout marker missing from the capture moves as the mirror image of its source
+    (like the rig's own session). Markers other than the layout's are ignored.
+
+    Raises
+    ------
+    OptionError
+        The capture lacks layout markers.
+    """
+    relative = capture.relative
+    lookup = {label: i for i, label in enumerate(relative.labels)}
+    own, mirrored, missing = [], [], []
+    for c in build.layout.clusters:
+        if c.representative in lookup:
+            own.append(lookup[c.representative])
+            mirrored.append(False)
+        elif c.mirrored_from in lookup:
+            own.append(lookup[c.mirrored_from])
+            mirrored.append(True)
+        else:
+            missing.append(c.representative)
+    if missing:
+        raise OptionError(f"{capture.name}: lacks {len(missing)} layout markers: "
+                          + ", ".join(missing[:6]) + (" ..." if len(missing) > 6 else ""))
+    positions = relative.positions[:, own]
+    flip = np.flatnonzero(mirrored)
+    if len(flip):
+        positions[:, flip] = _sagittal_plane(build.layout).mirror(positions[:, flip])
+    rotation = build.cloud.rotation
+    head_rot = head_trans = None
+    if capture.raw is not None:
+        raw = capture.raw.select(list(relative.labels)).positions
+        pose_rot, pose_trans = head_pose_between(raw, relative.positions)
+        head_rot = np.einsum("ij,fjk,lk->fil", rotation, pose_rot, rotation)  # Q R Q^T
+        head_trans = pose_trans @ rotation.T
+    return bake_animation(build.rig, positions @ rotation.T, rate=relative.rate,
+                          head_rotations=head_rot, head_translations=head_trans,
+                          takes=relative.takes, name=capture.name)
+
+
+def held_out_check(build: RigBuild, capture: Capture) -> dict[str, Any] | None:
+    """The marker-driven skinning check on another capture of the same dense markers (a
+    held-out performance): overall, per region and its worst case; None when the capture lacks
+    the session's dense markers (a production capture with the layout only)."""
+    try:
+        cloud = dense_cloud(build.layout, capture.relative, rotation=build.cloud.rotation)
+        missing = set(build.cloud.labels) - set(cloud.labels)
+    except OptionError:
+        return None
+    if missing:
+        return None
+    check = marker_driven_error(build, cloud)
+    return {"capture": capture.name, **check.as_dict(), **skinning_by_region(build, cloud)}
 
 
 def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray, *,
@@ -201,11 +272,21 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     members = [cloud.index(c.members) for c in layout.clusters]
     spacing = marker_spacing(cloud.neutral)
     alignment = None
+    cut = np.zeros((0, 2), dtype=np.int64)  # marker pairs across an opening (default mesh)
     if mesh is None:
         say("triangulating the marker surface")
-        vertices, faces = marker_surface_mesh(cloud.neutral)
+        # coincident markers (a duplicated label, a mislabel) share one vertex
+        unique, first, dense_vertices = np.unique(cloud.neutral, axis=0, return_index=True,
+                                                  return_inverse=True)
+        order = np.argsort(first)  # keep the markers' order for the vertices
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        vertices, faces = marker_surface_mesh(unique[order])
+        firsts = first[order]
+        faces, cut = cut_openings(faces, cloud.trajectories[:, firsts], cloud.neutral[firsts])
+        cut = firsts[cut]
         vertices, faces = _subdivide(vertices, faces, options.subdivisions)
-        dense_vertices = np.arange(len(cloud.labels), dtype=np.int64)
+        dense_vertices = rank[np.ravel(dense_vertices)].astype(np.int64)
         mesh_kind = "marker surface"
     else:
         say("aligning the mesh")
@@ -218,6 +299,9 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         faces = np.asarray(mesh.faces, dtype=np.int64)
         dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
                                             proximity=SurfaceProximity(vertices, faces))
+        # a coarse mesh can put two layout markers on one vertex: give each its own
+        dense_vertices[rep_idx] = distinct_vertices(vertices, cloud.neutral[rep_idx],
+                                                    dense_vertices[rep_idx])
         mesh_kind = "user mesh"
     joint_vertices = dense_vertices[rep_idx]
     say("computing weights")
@@ -246,7 +330,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
-                 "subdivisions": options.subdivisions if mesh is None else 0},
+                 "subdivisions": options.subdivisions if mesh is None else 0,
+                 "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut]},
         "alignment": None if alignment is None else {
             "method": alignment.method, "scale": alignment.transform.scale,
             "rms_residual_mm": alignment.rms_mm, "max_residual_mm": alignment.max_mm},
@@ -259,7 +344,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         "mirrored_dense_markers": int((~cloud.captured).sum()),
         "marker_spacing_mm": spacing,
         "frame_rotation": cloud.rotation,
-        "skinning_check": check.as_dict(),
+        "skinning_check": {**check.as_dict(), **skinning_by_region(build)},
     }
     return RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment, check,
                     report)
@@ -276,11 +361,60 @@ def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
     marker is missing are skipped. A dense marker's prediction is its bind position moved by
     its vertex's skinned displacement.
     """
+    predicted, target, _, _ = _marker_prediction(build, cloud, truth)
+    return skinning_error(predicted, target)
+
+
+def skinning_by_region(build: RigBuild, cloud: DenseCloud | None = None) -> dict[str, Any]:
+    """The marker-driven check of :func:`marker_driven_error` per region, and its worst case.
+
+    Returns ``{"regions": {region: {"rmse_mm", "max_mm", "markers"}}, "worst_markers": [...]``
+    (the 5 dense markers with the largest RMSE: label, region, rmse, max, frame of the max)
+    ``, "max": {"marker", "region", "frame", "error_mm", "layout_distance_mm"}}``: where the
+    largest error happens, and how far that marker is from the nearest layout marker.
+    """
+    cloud = build.cloud if cloud is None else cloud
+    predicted, target, labels, frames = _marker_prediction(build, cloud, None)
+    dist = np.linalg.norm(predicted - target, axis=2)  # (F_used, N)
+    region_of = {m: r.name for r in build.layout.regions for m in r.markers}
+    region_of.update({m: c.region for c in build.layout.clusters for m in c.members})
+    names = [region_of.get(label, "") for label in labels]
+    regions = {}
+    for region in sorted(set(names)):
+        cols = [i for i, n in enumerate(names) if n == region]
+        d = dist[:, cols]
+        ok = np.isfinite(d)
+        if ok.any():
+            regions[region or "none"] = {"rmse_mm": float(np.sqrt(np.mean(d[ok] ** 2))),
+                                         "max_mm": float(d[ok].max()), "markers": len(cols)}
+    with np.errstate(invalid="ignore"):
+        per_marker = np.sqrt(np.nanmean(dist ** 2, axis=0))
+    filled = np.where(np.isfinite(dist), dist, -1.0)
+    worst = []
+    for i in np.argsort(-np.nan_to_num(per_marker, nan=-1.0))[:5]:
+        row = int(np.argmax(filled[:, i]))
+        worst.append({"marker": labels[i], "region": names[i], "rmse_mm": float(per_marker[i]),
+                      "max_mm": float(filled[row, i]), "frame": int(frames[row])})
+    row, col = np.unravel_index(int(np.argmax(filled)), filled.shape)
+    layout_positions = build.cloud.neutral[build.cloud.index(build.layout.labels)]
+    marker_neutral = build.cloud.neutral[build.cloud.index([labels[col]])][0]
+    return {"regions": regions, "worst_markers": worst,
+            "max": {"marker": labels[col], "region": names[col], "frame": int(frames[row]),
+                    "error_mm": float(filled[row, col]),
+                    "layout_distance_mm": float(np.linalg.norm(layout_positions - marker_neutral,
+                                                               axis=1).min())}}
+
+
+def _marker_prediction(build: RigBuild, cloud: DenseCloud | None,
+                       truth: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    """Skinned (predicted) and true positions (F_used, N, 3) mm of the captured dense markers,
+    their labels (N,) and the frames used (F_used,) (frames with every layout marker seen)."""
     cloud = build.cloud if cloud is None else cloud
     rig = build.rig
     captured = np.flatnonzero(cloud.captured)
+    labels = [cloud.labels[i] for i in captured]
     bind_joints = build.cloud.neutral[build.cloud.index(build.layout.labels)]
-    bind_dense = build.cloud.index([cloud.labels[i] for i in captured])
+    bind_dense = build.cloud.index(labels)
     joints = cloud.trajectories[:, cloud.index(build.layout.labels)] - bind_joints
     usable = np.isfinite(joints).all(axis=(1, 2))
     disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
@@ -290,7 +424,7 @@ def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
     predicted = skin_vertices(rest, rig.weight_index[rows], rig.weight_value[rows], disp)
     predicted += (build.cloud.neutral[bind_dense] - rest)[None]
     target = cloud.trajectories[:, captured] if truth is None else np.asarray(truth)
-    return skinning_error(predicted, target[usable])
+    return predicted, target[usable], labels, np.flatnonzero(usable)
 
 
 def ground_truth_error(build: RigBuild, session: Trajectories, truth_positions: np.ndarray,
@@ -351,11 +485,15 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
                       mesh_path: str | os.PathLike[str] | None = None,
                       landmarks: dict[str, int] | None = None,
                       options: RigOptions = RigOptions(), formats: Sequence[str] = FORMATS,
-                      title: str = "", force: bool = False,
+                      title: str = "", force: bool = False, captures: Sequence[Capture] = (),
                       progress: Callable[[str], None] | None = None) -> tuple[RigBuild, dict[str, Path]]:
     """Build the rig and write ``rig.json``/``rig.fbx``/``rig.glb`` (as ``formats`` asks),
     ``guide.pdf``, ``guide_front.png``, ``guide_profile.png`` and ``rig_report.json`` into
-    ``out_dir``. Existing files are refused unless ``force``."""
+    ``out_dir``. Existing files are refused unless ``force``.
+
+    ``captures`` are baked onto the rig one after the other (their takes become clips) and
+    keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
+    lists the takes and every filled gap."""
     from mocaptk.atomic import check_writable
     from mocaptk.jsonio import write_json
 
@@ -370,6 +508,8 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         raise OptionError(f"unknown rig format(s) {', '.join(unknown)} (choose from json, fbx, glb)")
     out = Path(out_dir)
     names = {f: out / f"rig.{f}" for f in formats}
+    if captures and "json" in formats:
+        names["animation"] = out / "rig_animation.npz"
     names.update(guide=out / "guide.pdf", front=out / "guide_front.png",
                  profile=out / "guide_profile.png", report=out / "rig_report.json")
     for target in names.values():
@@ -378,10 +518,17 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     build = build_rig(layout, session, mesh=mesh, landmarks=landmarks, options=options,
                       progress=progress)
     say = progress or (lambda _: None)
+    animation = None
+    if captures:
+        say("baking the animation")
+        animation = concatenate_animations([bake_capture(build, c) for c in captures])
+        build.report["animation"] = animation.report()
+        held_out = [held_out_check(build, c) for c in captures[1:]]
+        build.report["held_out"] = [h for h in held_out if h is not None]
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
     for fmt in formats:
         say(f"writing rig.{fmt}")
-        writers[fmt](build.rig, names[fmt], force=True)
+        writers[fmt](build.rig, names[fmt], animation=animation, force=True)
     say("rendering the guide")
     clusters = build.layout.clusters
     joints = np.asarray(build.rig.joint_positions)[1:]

@@ -1,8 +1,14 @@
-"""Write a :class:`Rig` as binary FBX 7.4 (pure Python): skinned mesh, LimbNode joints, BindPose.
+"""Write a :class:`Rig` as binary FBX 7.4 (pure Python): skinned mesh, LimbNode joints, BindPose,
+and optionally its baked animation.
 
 Conventions (see docs/rig-format.md): centimetres (UnitScaleFactor 1), Y up, +Z front, +X right
 axis; geometry written in place with identity object transforms; joints at their bind positions
-with identity rotation; one Skin deformer with one Cluster per joint.
+with identity rotation; one Skin deformer with one Cluster per joint; each joint's marker label,
+side and region as user properties (``marker``/``side``/``region``). An animation
+(:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one AnimationStack per take with one
+layer, linear keys on every joint's ``Lcl Translation`` and on ``face_root``'s ``Lcl Rotation``
+(Euler XYZ degrees, unwrapped), at the capture's frame rate (``TimeMode``: the standard rate
+when there is one, else custom with ``CustomFrameRate``).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import numpy as np
 from mocaptk import __version__
 from mocaptk.atomic import write_bytes
 
+from .bake import RigAnimation
 from .fbx_binary import CREATION_TIME, FILE_ID, Int64, Node, Property, encode_fbx
 from .rig import Rig
 
@@ -25,28 +32,69 @@ MESH_NAME = "face_mesh"
 # Fixed object ids: files are deterministic and ids stay readable in a dump.
 _GEOMETRY_ID, _MESH_MODEL_ID, _SKIN_ID, _POSE_ID, _DOCUMENT_ID = 1000, 1001, 1002, 1003, 1004
 _JOINT_MODEL_BASE, _ATTRIBUTE_BASE, _CLUSTER_BASE = 100_000, 200_000, 300_000
+_ANIMATION_BASE = 1_000_000  # stacks, layers, curve nodes and curves: counted up from here
+#: FBX time units per second (KTime).
+KTIME_PER_SECOND = 46_186_158_000
+#: FBX TimeMode of the standard frame rates (FbxTime::EMode); others use 14 (custom).
+TIME_MODES = {120.0: 1, 100.0: 2, 60.0: 3, 50.0: 4, 48.0: 5, 30.0: 6, 25.0: 10, 24.0: 11,
+              1000.0: 12, 96.0: 15, 72.0: 16}
+_CUSTOM_TIME_MODE = 14
+# Linear interpolation, as the FBX SDK writes it (eInterpolationLinear | tangent flags), and the
+# SDK's default tangent data (weights 1/3, encoded as four 32-bit words).
+_LINEAR_KEY_FLAGS = 24836
+# Property templates the FBX SDK needs to see animation (a curve node's channels live under the
+# compound "d"; without it the SDK finds no curves).
+_TEMPLATES: dict[str, tuple[str, list[tuple]]] = {
+    "AnimationStack": ("FbxAnimStack", [
+        ("Description", "KString", "", "", ""),
+        *((key, "KTime", "Time", "", Int64(0))
+          for key in ("LocalStart", "LocalStop", "ReferenceStart", "ReferenceStop"))]),
+    "AnimationLayer": ("FbxAnimLayer", [
+        ("Weight", "Number", "", "A", 100.0), ("Mute", "bool", "", "", 0),
+        ("Solo", "bool", "", "", 0), ("Lock", "bool", "", "", 0),
+        ("Color", "ColorRGB", "Color", "", 0.8, 0.8, 0.8), ("BlendMode", "enum", "", "", 0),
+        ("RotationAccumulationMode", "enum", "", "", 0),
+        ("ScaleAccumulationMode", "enum", "", "", 0),
+        ("BlendModeBypass", "ULongLong", "", "", Int64(0))]),
+    "AnimationCurveNode": ("FbxAnimCurveNode", [("d", "Compound", "", "")]),
+}
+_KEY_DATA = np.array([0, 0, 255790911, 0], dtype=np.int32).view(np.float32)
 
 
-def write_rig_fbx(rig: Rig, path: str | os.PathLike[str], *, force: bool = True) -> Path:
-    """Atomically write ``rig`` as a binary FBX 7.4 file at ``path``; returns the path."""
-    return write_bytes(path, rig_fbx_bytes(rig), force=force)
+def write_rig_fbx(rig: Rig, path: str | os.PathLike[str], *, animation: RigAnimation | None = None,
+                  force: bool = True) -> Path:
+    """Atomically write ``rig`` (and ``animation``) as a binary FBX 7.4 file; returns the path."""
+    return write_bytes(path, rig_fbx_bytes(rig, animation=animation), force=force)
 
 
-def rig_fbx_bytes(rig: Rig) -> bytes:
-    """The binary FBX 7.4 file for ``rig`` (deterministic)."""
+def rig_fbx_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
+    """The binary FBX 7.4 file for ``rig`` and its optional ``animation`` (deterministic)."""
+    if animation is not None and animation.joint_names != rig.joint_names:
+        raise ValueError("the animation was baked for another rig (joint names differ)")
+    anim = _Animation(rig, animation) if animation is not None else None
+    objects, links = _objects(rig), _links(rig)
+    if anim is not None:
+        objects.children += anim.objects
+        links += anim.links
     return encode_fbx([
         _header_extension(),
         Node("FileId", [FILE_ID]),
         Node("CreationTime", [CREATION_TIME]),
         Node("Creator", [_creator()]),
-        _global_settings(),
-        _documents(),
+        _global_settings(animation),
+        _documents(anim.stack_names[0] if anim else ""),
         Node("References"),
-        _definitions(rig),
-        _objects(rig),
-        _connections(rig),
-        Node("Takes", [], [Node("Current", [""])]),
+        _definitions(rig, anim),
+        objects,
+        Node("Connections", [], [Node("C", [kind, Int64(child), Int64(parent), *prop])
+                                 for kind, child, parent, *prop in links]),
+        _takes(anim),
     ])
+
+
+def ktime(frames: np.ndarray, rate: float) -> np.ndarray:
+    """FBX times (int64 KTime) of frame numbers at ``rate`` frames per second."""
+    return np.round(np.asarray(frames, dtype=np.float64) * (KTIME_PER_SECOND / rate)).astype(np.int64)
 
 
 def translation_matrix(translation: np.ndarray) -> np.ndarray:
@@ -75,7 +123,10 @@ def _header_extension() -> Node:
     ])
 
 
-def _global_settings() -> Node:
+def _global_settings(animation: RigAnimation | None) -> Node:
+    rate = 24.0 if animation is None else animation.rate
+    mode = TIME_MODES.get(rate, _CUSTOM_TIME_MODE)
+    stop = ktime(np.array([animation.frame_count - 1 if animation else 24]), rate)[0]
     props = Node("Properties70", [], [
         _p("UpAxis", "int", "Integer", "", 1), _p("UpAxisSign", "int", "Integer", "", 1),
         _p("FrontAxis", "int", "Integer", "", 2), _p("FrontAxisSign", "int", "Integer", "", 1),
@@ -86,33 +137,40 @@ def _global_settings() -> Node:
         _p("OriginalUnitScaleFactor", "double", "Number", "", 1.0),
         _p("AmbientColor", "ColorRGB", "Color", "", 0.0, 0.0, 0.0),
         _p("DefaultCamera", "KString", "", "", "Producer Perspective"),
-        _p("TimeMode", "enum", "", "", 11),
+        _p("TimeMode", "enum", "", "", mode),
         _p("TimeSpanStart", "KTime", "Time", "", Int64(0)),
-        _p("TimeSpanStop", "KTime", "Time", "", Int64(46186158000)),
-        _p("CustomFrameRate", "double", "Number", "", -1.0),
+        _p("TimeSpanStop", "KTime", "Time", "", Int64(int(stop))),
+        _p("CustomFrameRate", "double", "Number", "", rate),
     ])
     return Node("GlobalSettings", [], [Node("Version", [1000]), props])
 
 
-def _documents() -> Node:
+def _documents(active_stack: str) -> Node:
     document = Node("Document", [Int64(_DOCUMENT_ID), "", "Scene"], [
         Node("Properties70", [], [
             _p("SourceObject", "object", "", ""),
-            _p("ActiveAnimStackName", "KString", "", "", ""),
+            _p("ActiveAnimStackName", "KString", "", "", active_stack),
         ]),
         Node("RootNode", [Int64(0)]),
     ])
     return Node("Documents", [], [Node("Count", [1]), document])
 
 
-def _definitions(rig: Rig) -> Node:
+def _definitions(rig: Rig, anim: _Animation | None) -> Node:
     joints = rig.joint_count
     counts = [("GlobalSettings", 1), ("Geometry", 1), ("Model", 1 + joints),
               ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1)]
+    if anim is not None:
+        counts += list(anim.counts.items())
     node = Node("Definitions", [], [Node("Version", [100]),
                                     Node("Count", [sum(c for _, c in counts)])])
     for kind, count in counts:
-        node.children.append(Node("ObjectType", [kind], [Node("Count", [count])]))
+        entry = Node("ObjectType", [kind], [Node("Count", [count])])
+        if kind in _TEMPLATES:
+            template, props = _TEMPLATES[kind]
+            entry.children.append(Node("PropertyTemplate", [template],
+                                       [Node("Properties70", [], [_p(*p) for p in props])]))
+        node.children.append(entry)
     return node
 
 
@@ -122,13 +180,16 @@ def _objects(rig: Rig) -> Node:
     for joint, name in enumerate(rig.joint_names):
         parent = int(rig.joint_parents[joint])
         local = world_cm[joint] - (world_cm[parent] if parent >= 0 else 0.0)
+        kind = _skeleton_kind(rig, joint)
+        flags = ["Null", "Skeleton", "Root"] if kind == "Root" else ["Skeleton"]
         objects.children.append(Node(
-            "NodeAttribute", [Int64(_ATTRIBUTE_BASE + joint), f"{name}\x00\x01NodeAttribute",
-                              "LimbNode"],
+            "NodeAttribute", [Int64(_ATTRIBUTE_BASE + joint), f"{name}\x00\x01NodeAttribute", kind],
             [Node("Properties70", [], [_p("Size", "double", "Number", "", 1.0)]),
-             Node("TypeFlags", ["Skeleton"])]))
-        objects.children.append(_model(_JOINT_MODEL_BASE + joint, name, "LimbNode",
-                                       translation=local))
+             Node("TypeFlags", flags)]))
+        user = {"marker": rig.joint_markers[joint], "side": rig.joint_sides[joint],
+                "region": rig.joint_regions[joint]}
+        objects.children.append(_model(_JOINT_MODEL_BASE + joint, name, kind,
+                                       translation=local, user=user))
     objects.children.append(Node(
         "Deformer", [Int64(_SKIN_ID), f"{MESH_NAME}\x00\x01Deformer", "Skin"],
         [Node("Version", [101]), Node("Link_DeformAcuracy", [50.0]),
@@ -158,6 +219,19 @@ def _objects(rig: Rig) -> Node:
     return objects
 
 
+def _skeleton_kind(rig: Rig, joint: int) -> str:
+    """``Root`` for a root joint no vertex is weighted to, else ``LimbNode``.
+
+    A skeleton Root becomes Blender's armature object (its motion: object animation) and its
+    children leaf bones of 1 cm; as a LimbNode with 80 children spread over the face, Blender
+    would make every bone as long as their mean distance (6 cm on a 14 cm face). A root with
+    influences must stay a bone to deform the mesh.
+    """
+    if rig.joint_parents[joint] >= 0 or len(rig.joint_influences(joint)[0]):
+        return "LimbNode"
+    return "Root"
+
+
 def _geometry(rig: Rig) -> Node:
     polygon_index = rig.faces.astype(np.int32).copy()
     polygon_index[:, 2] = ~polygon_index[:, 2]  # a polygon's last corner is stored as -(i+1)
@@ -180,8 +254,9 @@ def _geometry(rig: Rig) -> Node:
     ])
 
 
-def _model(model_id: int, name: str, kind: str, *,
-           translation: np.ndarray | None = None) -> Node:
+def _model(model_id: int, name: str, kind: str, *, translation: np.ndarray | None = None,
+           user: dict[str, str] | None = None) -> Node:
+    """A Model; ``user``: string user properties (flag ``U``: custom properties in DCC tools)."""
     t = np.zeros(3) if translation is None else translation
     props = Node("Properties70", [], [
         _p("Lcl Translation", "Lcl Translation", "", "A", *(float(v) for v in t)),
@@ -189,6 +264,7 @@ def _model(model_id: int, name: str, kind: str, *,
         _p("Lcl Scaling", "Lcl Scaling", "", "A", 1.0, 1.0, 1.0),
         _p("DefaultAttributeIndex", "int", "Integer", "", 0),
         _p("InheritType", "enum", "", "", 1),
+        *(_p(key, "KString", "", "U", value) for key, value in sorted((user or {}).items())),
     ])
     return Node("Model", [Int64(model_id), f"{name}\x00\x01Model", kind], [
         Node("Version", [232]), props, Node("MultiLayer", [0]), Node("MultiTake", [0]),
@@ -196,7 +272,8 @@ def _model(model_id: int, name: str, kind: str, *,
     ])
 
 
-def _connections(rig: Rig) -> Node:
+def _links(rig: Rig) -> list[tuple]:
+    """Object-object connections ``("OO", child id, parent id)`` of the rig."""
     links = [(_MESH_MODEL_ID, 0), (_GEOMETRY_ID, _MESH_MODEL_ID), (_SKIN_ID, _GEOMETRY_ID)]
     for joint in range(rig.joint_count):
         parent = int(rig.joint_parents[joint])
@@ -205,5 +282,90 @@ def _connections(rig: Rig) -> Node:
         links.append((_ATTRIBUTE_BASE + joint, model))
         links.append((_CLUSTER_BASE + joint, _SKIN_ID))
         links.append((model, _CLUSTER_BASE + joint))
-    return Node("Connections", [], [Node("C", ["OO", Int64(child), Int64(parent)])
-                                    for child, parent in links])
+    return [("OO", child, parent) for child, parent in links]
+
+
+def _takes(anim: _Animation | None) -> Node:
+    takes = Node("Takes", [], [Node("Current", [anim.stack_names[0] if anim else ""])])
+    for name, (start, stop) in zip(anim.stack_names if anim else (), anim.spans if anim else ()):
+        takes.children.append(Node("Take", [name], [
+            Node("FileName", [f"{name}.tak"]),
+            Node("LocalTime", [Int64(start), Int64(stop)]),
+            Node("ReferenceTime", [Int64(start), Int64(stop)])]))
+    return takes
+
+
+class _Animation:
+    """The FBX objects and connections of a :class:`RigAnimation`: per take an AnimationStack
+    with one AnimationLayer, per joint a ``T`` curve node (3 curves, cm), and an ``R`` curve
+    node (Euler XYZ degrees) on the root."""
+
+    def __init__(self, rig: Rig, animation: RigAnimation) -> None:
+        from scipy.spatial.transform import Rotation
+
+        self.objects: list[Node] = []
+        self.links: list[tuple] = []
+        self.stack_names: list[str] = []
+        self.spans: list[tuple[int, int]] = []
+        self.counts = {"AnimationStack": 0, "AnimationLayer": 0, "AnimationCurveNode": 0,
+                       "AnimationCurve": 0}
+        self._next_id = _ANIMATION_BASE
+        translation = animation.translations * MM_TO_CM
+        # 'xyz' (extrinsic) = FBX eEulerXYZ: X applied first; unwrapped so keys never jump 360°
+        euler = np.degrees(np.unwrap(Rotation.from_quat(animation.root_rotations).as_euler("xyz"),
+                                     axis=0))
+        root = rig.root
+        for take in animation.takes:
+            frames = np.arange(take.start, take.end)
+            times = ktime(frames, animation.rate)
+            name = _safe_take_name(take.name, self.stack_names)
+            self.stack_names.append(name)
+            self.spans.append((int(times[0]), int(times[-1])))
+            stack = self._add("AnimationStack", name, "AnimStack", [Node("Properties70", [], [
+                _p(key, "KTime", "Time", "", Int64(int(t)))
+                for key, t in (("LocalStart", times[0]), ("LocalStop", times[-1]),
+                               ("ReferenceStart", times[0]), ("ReferenceStop", times[-1]))])])
+            layer = self._add("AnimationLayer", "BaseLayer", "AnimLayer", [])
+            self.links.append(("OO", layer, stack))
+            for joint in range(rig.joint_count):
+                model = _JOINT_MODEL_BASE + joint
+                self._curve_node(layer, model, "T", "Lcl Translation", times,
+                                 translation[take.start:take.end, joint])
+                if joint == root:
+                    self._curve_node(layer, model, "R", "Lcl Rotation", times,
+                                     euler[take.start:take.end])
+
+    def _add(self, kind: str, name: str, fbx_class: str, children: list[Node]) -> int:
+        object_id = self._next_id
+        self._next_id += 1
+        self.counts[kind] += 1
+        self.objects.append(Node(kind, [Int64(object_id), f"{name}\x00\x01{fbx_class}", ""],
+                                 children, block=True))
+        return object_id
+
+    def _curve_node(self, layer: int, model: int, short: str, prop: str, times: np.ndarray,
+                    values: np.ndarray) -> None:
+        """Curve node ``short`` (T/R) animating ``prop`` of ``model`` with ``values`` (K, 3)."""
+        node = self._add("AnimationCurveNode", short, "AnimCurveNode", [Node("Properties70", [], [
+            _p(f"d|{axis}", "Number", "", "A", float(values[0, k]))
+            for k, axis in enumerate("XYZ")])])
+        self.links += [("OO", node, layer), ("OP", node, model, prop)]
+        for k, axis in enumerate("XYZ"):
+            curve = self._add("AnimationCurve", "", "AnimCurve", [
+                Node("Default", [float(values[0, k])]),
+                Node("KeyVer", [4008]),
+                Node("KeyTime", [times]),
+                Node("KeyValueFloat", [values[:, k].astype(np.float32)]),
+                Node("KeyAttrFlags", [np.array([_LINEAR_KEY_FLAGS], dtype=np.int32)]),
+                Node("KeyAttrDataFloat", [_KEY_DATA]),
+                Node("KeyAttrRefCount", [np.array([len(times)], dtype=np.int32)])])
+            self.links.append(("OP", curve, node, f"d|{axis}"))
+
+
+def _safe_take_name(name: str, taken: list[str]) -> str:
+    """A unique, printable stack name (FBX names cannot hold the \\x00\\x01 separator)."""
+    base = "".join(c if c.isprintable() else "_" for c in name) or "take"
+    unique, n = base, 2
+    while unique in taken:
+        unique, n = f"{base}_{n}", n + 1
+    return unique

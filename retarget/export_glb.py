@@ -2,7 +2,12 @@
 
 Conventions (see docs/rig-format.md): metres, Y up, +Z forward; the mesh node sits at the scene
 root with no transform; joints are nodes with translation-only local transforms; four influences
-per ``JOINTS_n``/``WEIGHTS_n`` pair (a second pair when the rig has 5-8 influences).
+per ``JOINTS_n``/``WEIGHTS_n`` pair (a second pair when the rig has 5-8 influences); each
+joint node carries its marker label, side and region in ``extras``. An animation
+(:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one glTF animation per take: LINEAR
+samplers on every joint's translation and on the root's rotation, times in seconds from the
+start of the capture (glTF has no frame rate: it is in the scene's ``extras``; set Blender's
+scene rate before importing, or its importer maps the seconds to 24 fps frames).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import numpy as np
 from mocaptk import __version__
 from mocaptk.atomic import write_bytes
 
+from .bake import RigAnimation
 from .rig import Rig
 
 #: Millimetres to glTF metres.
@@ -27,15 +33,18 @@ _TYPE = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
 _TRIANGLES = 4
 
 
-def write_rig_glb(rig: Rig, path: str | os.PathLike[str], *, force: bool = True) -> Path:
-    """Atomically write ``rig`` as a binary glTF 2.0 file at ``path``; returns the path."""
-    return write_bytes(path, rig_glb_bytes(rig), force=force)
+def write_rig_glb(rig: Rig, path: str | os.PathLike[str], *, animation: RigAnimation | None = None,
+                  force: bool = True) -> Path:
+    """Atomically write ``rig`` (and ``animation``) as a binary glTF 2.0 file; returns the path."""
+    return write_bytes(path, rig_glb_bytes(rig, animation=animation), force=force)
 
 
-def rig_glb_bytes(rig: Rig) -> bytes:
-    """The .glb file for ``rig`` (deterministic)."""
+def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
+    """The .glb file for ``rig`` and its optional ``animation`` (deterministic)."""
     import pygltflib  # ~0.2 s to import: only when writing glTF
 
+    if animation is not None and animation.joint_names != rig.joint_names:
+        raise ValueError("the animation was baked for another rig (joint names differ)")
     if rig.joint_count > 65535:
         raise ValueError("glTF JOINTS_n as unsigned short holds at most 65535 joints")
     builder = _BufferBuilder()
@@ -68,22 +77,55 @@ def rig_glb_bytes(rig: Rig) -> bytes:
         local = positions_m[joint] - (positions_m[parent] if parent >= 0 else 0.0)
         children = [1 + int(c) for c in np.flatnonzero(rig.joint_parents == joint)]
         nodes.append(pygltflib.Node(name=name, translation=[float(v) for v in local],
-                                    children=children or None))
+                                    children=children or None,
+                                    extras={k: v for k, v in (
+                                        ("marker", rig.joint_markers[joint]),
+                                        ("side", rig.joint_sides[joint]),
+                                        ("region", rig.joint_regions[joint])) if v}))
+    animations = [] if animation is None else _animations(builder, animation, rig.root)
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator=f"mocaptk {__version__}"),
         scene=0,
-        scenes=[pygltflib.Scene(name="rig", nodes=[0, 1 + rig.root])],
+        scenes=[pygltflib.Scene(name="rig", nodes=[0, 1 + rig.root], extras=(
+            {"frames_per_second": animation.rate} if animation is not None else None))],
         nodes=nodes,
         meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
             attributes=attributes, indices=indices, mode=_TRIANGLES)])],
         skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
                               joints=[1 + j for j in range(rig.joint_count)])],
+        animations=[pygltflib.Animation(**a) for a in animations],
         accessors=[pygltflib.Accessor(**a) for a in builder.accessors],
         bufferViews=[pygltflib.BufferView(**v) for v in builder.views],
         buffers=[pygltflib.Buffer(byteLength=len(builder.blob))],
     )
     gltf.set_binary_blob(bytes(builder.blob))
     return b"".join(gltf.save_to_bytes())
+
+
+def _animations(builder: _BufferBuilder, animation: RigAnimation, root: int) -> list[dict]:
+    """pygltflib.Animation keyword arguments, one per take (node i + 1 = joint i)."""
+    import pygltflib
+
+    out = []
+    translations = (animation.translations * MM_TO_M).astype(np.float32)
+    rotations = animation.root_rotations.astype(np.float32)
+    for take in animation.takes:
+        frames = slice(take.start, take.end)
+        times = builder.add((np.arange(take.start, take.end) / animation.rate).astype(np.float32),
+                            bounds=True)
+        samplers, channels = [], []
+        tracks = [(joint, "translation", translations[frames, joint])
+                  for joint in range(len(animation.joint_names))]
+        tracks.insert(root + 1, (root, "rotation", rotations[frames]))
+        for joint, path, values in tracks:
+            channels.append(pygltflib.AnimationChannel(
+                sampler=len(samplers), target=pygltflib.AnimationChannelTarget(node=1 + joint,
+                                                                                path=path)))
+            samplers.append(pygltflib.AnimationSampler(
+                input=times, output=builder.add(np.ascontiguousarray(values)),
+                interpolation="LINEAR"))
+        out.append({"name": take.name, "samplers": samplers, "channels": channels})
+    return out
 
 
 class _BufferBuilder:

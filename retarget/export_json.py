@@ -1,19 +1,27 @@
 """Write and read a :class:`Rig` as deterministic JSON (``format: "mocaptk.rig"``).
 
 Schema in docs/rig-format.md. Positions are millimetres rounded to 1e-6 mm, weights to 1e-9.
+A baked animation goes to a sibling ``.npz`` (:func:`write_rig_animation`) that rig.json names
+under ``animation`` with its SHA-256, frame rate, takes and filled gaps.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mocaptk.atomic import write_bytes
 from mocaptk.errors import InputFileError
 from mocaptk.jsonio import read_json, to_plain, write_json
+from mocaptk.trajectories import Take
 
+from .bake import RigAnimation
 from .rig import MESH_DIGITS, Rig, RigError, mesh_sha256
 
 FORMAT = "mocaptk.rig"
@@ -44,9 +52,58 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
     }
 
 
-def write_rig_json(rig: Rig, path: str | os.PathLike[str], *, force: bool = True) -> Path:
-    """Atomically write ``rig`` as deterministic JSON at ``path``; returns the path."""
-    return write_json(path, rig_to_dict(rig), digits=WEIGHT_DIGITS, force=force)
+def write_rig_json(rig: Rig, path: str | os.PathLike[str], *, animation: RigAnimation | None = None,
+                   force: bool = True) -> Path:
+    """Atomically write ``rig`` as deterministic JSON at ``path``; returns the path.
+
+    With ``animation``, its tracks go to ``<stem>_animation.npz`` beside ``path`` first
+    (:func:`write_rig_animation`), and rig.json names that file.
+    """
+    doc = rig_to_dict(rig)
+    if animation is not None:
+        target = Path(path)
+        tracks = target.with_name(f"{target.stem}_animation.npz")
+        data = rig_animation_bytes(animation)
+        write_bytes(tracks, data, force=force)
+        doc["animation"] = {"file": tracks.name, "sha256": hashlib.sha256(data).hexdigest(),
+                            **animation.report()}
+    return write_json(path, doc, digits=WEIGHT_DIGITS, force=force)
+
+
+def rig_animation_bytes(animation: RigAnimation) -> bytes:
+    """The ``.npz`` of an animation (deterministic: fixed zip dates, stored uncompressed).
+
+    Arrays: ``translations`` (F, J, 3) float32 mm (local, rig frame), ``root_rotations`` (F, 4)
+    float32 quaternions (x, y, z, w), ``joint_names`` (J,), ``rate`` (), ``take_names`` (T,),
+    ``take_frames`` (T, 2) int64 ``[start, end)``.
+    """
+    arrays = {"joint_names": np.array(animation.joint_names),
+              "rate": np.array(animation.rate),
+              "root_rotations": animation.root_rotations.astype(np.float32),
+              "take_frames": np.array([[t.start, t.end] for t in animation.takes], dtype=np.int64),
+              "take_names": np.array([t.name for t in animation.takes]),
+              "translations": animation.translations.astype(np.float32)}
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_STORED) as archive:
+        for name, array in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, array, allow_pickle=False)
+            archive.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)),
+                             member.getvalue())
+    return out.getvalue()
+
+
+def read_rig_animation(path: str | os.PathLike[str]) -> RigAnimation:
+    """Read the ``.npz`` written beside a rig.json (gaps are in rig.json, not here)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            takes = tuple(Take(str(n), int(a), int(b))
+                          for n, (a, b) in zip(data["take_names"], data["take_frames"]))
+            return RigAnimation(tuple(str(n) for n in data["joint_names"]), float(data["rate"]),
+                                data["translations"].astype(np.float64),
+                                data["root_rotations"].astype(np.float64), takes, ())
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise InputFileError(path, f"not a rig animation ({exc})") from None
 
 
 def read_rig_json(path: str | os.PathLike[str]) -> Rig:

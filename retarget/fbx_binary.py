@@ -44,12 +44,14 @@ class Node:
 
     Property types: ``bool`` -> ``C``, ``int`` -> ``I`` (int32), :class:`Int64` -> ``L``,
     ``float`` -> ``D``, ``str`` -> ``S``, ``bytes`` -> ``R``, numpy arrays of float32/float64/
-    int32/int64/bool -> ``f``/``d``/``i``/``l``/``b``.
+    int32/int64/bool -> ``f``/``d``/``i``/``l``/``b``. ``block``: write the child list even when
+    empty (``{}`` in ASCII FBX; the FBX SDK ignores an AnimationLayer without one).
     """
 
     name: str
     props: Sequence[Property] = ()
     children: list[Node] = field(default_factory=list)
+    block: bool = False
 
 
 def encode_fbx(nodes: Sequence[Node]) -> bytes:
@@ -75,7 +77,7 @@ def _encode_node(node: Node, start: int) -> bytes:
     for child in node.children:
         encoded = _encode_node(child, offset + len(body))
         body += encoded
-    if node.children or not node.props:
+    if node.children or node.block or not node.props:
         body += _NULL_RECORD
     end = start + 13 + len(name) + len(props) + len(body)
     if end >= 2**32:

@@ -17,7 +17,8 @@ from mocaptk.surface_mesh import mesh_edges
 
 from .align import SurfaceProximity
 
-__all__ = ["anchor_vertices", "edge_graph", "geodesic_distance", "main_influence_regions"]
+__all__ = ["anchor_vertices", "distinct_vertices", "edge_graph", "geodesic_distance",
+           "main_influence_regions"]
 
 
 def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
@@ -42,6 +43,35 @@ def anchor_vertices(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
     corners = np.asarray(faces)[tri]  # (N, 3)
     gap = np.linalg.norm(np.asarray(vertices)[corners] - closest[:, None, :], axis=2)
     return corners[np.arange(len(corners)), np.argmin(gap, axis=1)], dist
+
+
+def distinct_vertices(vertices: np.ndarray, points: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """One vertex per point (N,) int64, all different: ``anchors`` where unshared, else (for all
+    but the point nearest to a shared vertex) the nearest vertex no other point holds.
+
+    Points at the very same position keep their shared vertex (they are one surface point).
+    """
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, dtype=float)
+    points = np.asarray(points, dtype=float)
+    out = np.asarray(anchors, dtype=np.int64).copy()
+    gap = np.linalg.norm(vertices[out] - points, axis=1)
+    taken: dict[int, int] = {}
+    tree = None
+    for i in np.argsort(gap, kind="stable"):
+        holder = taken.get(int(out[i]))
+        if holder is None or np.array_equal(points[holder], points[i]):
+            taken.setdefault(int(out[i]), int(i))
+            continue
+        tree = tree or cKDTree(vertices)
+        k = min(len(vertices), len(points) + 1)
+        _, near = tree.query(points[i], k=k)
+        free = [int(v) for v in np.atleast_1d(near) if int(v) not in taken]
+        if free:
+            out[i] = free[0]
+            taken[free[0]] = int(i)
+    return out
 
 
 def geodesic_distance(graph: sp.csr_matrix, sources: np.ndarray, *,

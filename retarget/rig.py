@@ -16,7 +16,7 @@ import numpy as np
 from mocaptk.jsonio import to_plain
 from mocaptk.surface_mesh import vertex_normals
 
-#: Side tags a joint name starts with (character's left = +X when the face looks down +Z).
+#: Side tags a joint name ends with (character's left = +X when the face looks down +Z).
 SIDES = ("L", "R", "C")
 #: Name of the joint that parents every marker joint.
 ROOT_NAME = "face_root"
@@ -27,6 +27,11 @@ WEIGHT_SUM_TOL = 1e-6
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 _BAD_CHARS_RE = re.compile(r"[^A-Za-z0-9_]+")
+# a side token on a marker label: suffix "_L", prefix "L_", camel-case prefix "LBrow"
+_SIDE_TOKEN_RES = (re.compile(r"^(?P<stem>.+)_(?P<side>[LRCMlrcm])$"),
+                   re.compile(r"^(?P<side>[LRCMlrcm])_(?P<stem>.+)$"),
+                   re.compile(r"^(?P<side>[LRC])(?P<stem>[A-Z][a-z].*)$"))
+_SIDE_ALIASES = {"L": "L", "R": "R", "C": "C", "M": "C"}
 
 
 class RigError(ValueError):
@@ -44,8 +49,8 @@ class Rig:
     faces : (T, 3) int64
         Triangles, indices into ``vertices``.
     joint_names : sequence of str, length J
-        Unique names matching ``[A-Za-z0-9_]+``; every joint except the root starts with
-        ``L_``, ``R_`` or ``C_`` matching ``joint_sides``.
+        Unique names matching ``[A-Za-z0-9_]+``; every joint except the root ends with
+        ``_L``, ``_R`` or ``_C`` matching ``joint_sides`` (mirror tools pair them).
     joint_parents : (J,) int64
         Parent joint index, ``-1`` for the single root; parents come before children.
     joint_positions : (J, 3) float64
@@ -231,11 +236,13 @@ def mesh_sha256(vertices: list[list[float]], faces: list[list[int]]) -> str:
 
 
 def joint_names_from_markers(labels: Sequence[str], sides: Sequence[str]) -> tuple[str, ...]:
-    """Joint names ``<side>_<label>`` from marker labels and sides, unique and ``[A-Za-z0-9_]``.
+    """Joint names ``<label>_<side>`` from marker labels and sides, unique and ``[A-Za-z0-9_]``.
 
-    Subject prefixes (``Subject:``) are dropped, other characters become ``_``, an existing side
-    tag on the label is not repeated (``L_brow`` stays ``L_brow``), and duplicates get ``_2``,
-    ``_3``... suffixes.
+    One side token, as a suffix, so Blender's ``flip_name`` and Maya's mirror tools pair
+    ``BROW_21_L`` with ``BROW_21_R`` (midline: ``_C``). Subject prefixes (``Subject:``) are
+    dropped, other characters become ``_``, a side token already on the label that matches the
+    side is not repeated (``MOUTH_03_L``, ``L_brow``, ``LBrowOuter`` give ``MOUTH_03_L``,
+    ``brow_L``, ``BrowOuter_L``), and duplicates get ``_2``, ``_3``... before the side.
     """
     if len(labels) != len(sides):
         raise RigError(f"{len(labels)} marker labels but {len(sides)} sides")
@@ -245,16 +252,24 @@ def joint_names_from_markers(labels: Sequence[str], sides: Sequence[str]) -> tup
         if side not in SIDES:
             raise RigError(f"marker {label!r}: side must be one of {SIDES}, got {side!r}")
         stem = _BAD_CHARS_RE.sub("_", str(label).rsplit(":", 1)[-1]).strip("_") or "marker"
-        if stem[:2].upper() in ("L_", "R_", "C_") and stem[0].upper() == side:
-            stem = stem[2:] or "marker"
-        name = base = f"{side}_{stem}"
-        suffix = 2
+        stem = _strip_side(stem, side)
+        name, suffix = f"{stem}_{side}", 2
         while name in taken:
-            name = f"{base}_{suffix}"
+            name = f"{stem}_{suffix}_{side}"
             suffix += 1
         taken.add(name)
         names.append(name)
     return tuple(names)
+
+
+def _strip_side(stem: str, side: str) -> str:
+    """``stem`` without a side token matching ``side`` (suffix ``_L``, prefix ``L_``, camel
+    ``LBrow``; midline ``C`` or ``M``); unchanged if the token is another side's."""
+    for pattern in _SIDE_TOKEN_RES:
+        match = pattern.match(stem)
+        if match and _SIDE_ALIASES.get(match["side"].upper()) == side:
+            return match["stem"]
+    return stem
 
 
 def _array(value: object, dtype: type, what: str, shape: tuple[int | None, ...]) -> np.ndarray:
@@ -292,5 +307,5 @@ def _check_names(names: tuple[str, ...], sides: tuple[str, ...], parents: np.nda
         if side not in SIDES:
             raise RigError(f"joint {name!r}: side must be one of {SIDES}, got {side!r}")
     for name, side, parent in zip(names, sides, parents):
-        if parent >= 0 and not name.startswith(f"{side}_"):
-            raise RigError(f"joint {name!r} must start with its side tag {side}_")
+        if parent >= 0 and not name.endswith(f"_{side}"):
+            raise RigError(f"joint {name!r} must end with its side tag _{side}")

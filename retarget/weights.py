@@ -33,13 +33,17 @@ def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: 
     """Interpolating weights (V, J) of the joints pinned at ``joint_vertices`` (J,).
 
     Solved per connected mesh part (``graph``: the mesh edge graph); a part holding no joint
-    follows its Euclidean-nearest joint rigidly (weight 1).
+    follows its Euclidean-nearest joint rigidly (weight 1). Joints pinned at the same vertex
+    (coincident markers) split that vertex's weight equally.
     """
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     joint_vertices = np.asarray(joint_vertices, dtype=np.int64)
-    if len(np.unique(joint_vertices)) != len(joint_vertices):
-        raise OptionError("two layout markers land on the same mesh vertex; use a finer mesh")
+    pins, shared = np.unique(joint_vertices, return_inverse=True)
+    if len(pins) < len(joint_vertices):  # coincident markers share their vertex's weight
+        unique = thin_shell_weights(vertices, faces, pins, graph=graph, ks=ks, kb=kb)
+        count = np.bincount(np.ravel(shared))
+        return unique[:, np.ravel(shared)] / count[np.ravel(shared)]
     n, n_joints = len(vertices), len(joint_vertices)
     weights = np.zeros((n, n_joints))
     _, part = connected_components(graph, directed=False)

@@ -1,4 +1,4 @@
-"""Check a mocaptk rig FBX in Blender: import it and compare with the rig.json written beside it.
+"""Check a mocaptk rig FBX (or GLB) in Blender: import it and compare with the rig.json beside it.
 
 Runs in a separate Python 3.11 venv with PyPI ``bpy`` 5.0.1 (GPL, ~1.2 GB, pins numpy<2);
 mocaptk itself is not needed there. Setup and use (see docs/rig-format.md):
@@ -9,7 +9,11 @@ mocaptk itself is not needed there. Setup and use (see docs/rig-format.md):
 Prints one JSON report and exits 0 when every check passes, 1 otherwise. Checks: joint names
 and hierarchy, bone heads (bind positions), vertex positions, per-vertex weights (vertex groups),
 the rest-pose skinned mesh equals the mesh (bind matrices consistent), and moving one joint moves
-each vertex by its weight times the joint's displacement.
+each vertex by its weight times the joint's displacement. When rig.json names an animation
+(rig_animation.npz): one action per take with the take's frame range, the scene at the
+capture's frame rate, and at 5 frames the armature-deformed mesh against the rig's own skinning
+of the baked tracks; the world joint positions at those frames are reported (``joint_world_mm``)
+for the caller to compare with the raw capture.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import sys
 
 import bpy
 import numpy as np
-from mathutils import Matrix, Vector
+from mathutils import Matrix, Quaternion, Vector
 
 WEIGHT_TOL = 1e-6
 # Blender is Z-up: its importer turns the file's Y-up axes into Blender's (x, -z, y).
@@ -42,8 +46,15 @@ def main() -> int:
 
 def check(fbx_path: str, rig: dict) -> dict:
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    bpy.ops.import_scene.fbx(filepath=fbx_path)
-    meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
+    tracks = _tracks(rig, fbx_path)
+    if fbx_path.lower().endswith((".glb", ".gltf")):
+        if tracks is not None:  # glTF keys seconds: import at the capture's rate
+            bpy.context.scene.render.fps = int(round(float(tracks["rate"])))
+        bpy.ops.import_scene.gltf(filepath=fbx_path)
+    else:
+        bpy.ops.import_scene.fbx(filepath=fbx_path)
+    # skinned meshes only (the glTF importer adds an unskinned bone-shape icosphere)
+    meshes = [o for o in bpy.context.scene.objects if o.type == "MESH" and o.vertex_groups]
     armatures = [o for o in bpy.context.scene.objects if o.type == "ARMATURE"]
     if len(meshes) != 1 or len(armatures) != 1:
         return {"ok": False, "error": f"expected 1 mesh + 1 armature, got {len(meshes)} + "
@@ -53,11 +64,26 @@ def check(fbx_path: str, rig: dict) -> dict:
 
     names = [j["name"] for j in rig["joints"]]
     bones = arm_obj.data.bones
-    missing = [n for n in names if n not in bones]
-    parents_ok = all((bones[j["name"]].parent.name if bones[j["name"]].parent else None)
+    if arm_obj.animation_data is not None:  # the static checks below need the rest pose
+        arm_obj.animation_data.action = None
+        for bone in arm_obj.pose.bones:
+            bone.matrix_basis = Matrix.Identity(4)
+        if arm_obj.name in names and arm_obj.name not in bones:  # the root: back to its bind
+            rest = mesh_obj.matrix_world.copy()
+            bind_root = np.array(rig["joints"][names.index(arm_obj.name)]["bind_position"])
+            rest.translation = Vector(BLENDER_TO_RIG.T @ bind_root / to_mm)
+            arm_obj.matrix_world = rest
+        bpy.context.view_layer.update()
+    # an unweighted root is written as the skeleton's Root: Blender makes it the armature object
+    root_object = arm_obj.name if arm_obj.name in names and arm_obj.name not in bones else None
+    missing = [n for n in names if n not in bones and n != root_object]
+    parents_ok = all((bones[j["name"]].parent.name if bones[j["name"]].parent else root_object)
                      == j["parent"] for j in rig["joints"] if j["name"] in bones)
     heads = np.array([list(arm_obj.matrix_world @ bones[n].head_local) if n in bones
+                      else list(arm_obj.matrix_world.translation) if n == root_object
                       else [np.nan] * 3 for n in names]) @ BLENDER_TO_RIG.T * to_mm
+    bone_length_mm = max((arm_obj.matrix_world.to_scale()[0] * b.length * to_mm for b in bones),
+                         default=0.0)
     bind = np.array([j["bind_position"] for j in rig["joints"]])
     head_error = float(np.nanmax(np.abs(heads - bind))) if not missing else float("inf")
 
@@ -107,12 +133,101 @@ def check(fbx_path: str, rig: dict) -> dict:
         "max_weight_error": weight_error,
         "max_rest_pose_skinning_error_mm": rest_error,
         "moved_joint": names[leaf], "max_moved_joint_error_mm": pose_error,
+        "max_bone_length_mm": bone_length_mm, "root_is_armature_object": root_object is not None,
     }
-    report["ok"] = bool(not missing and parents_ok and same_count
+    if tracks is not None:
+        report.update(_check_animation(rig, tracks, mesh_obj, arm_obj, names, expected, to_mm))
+    report["ok"] = bool(report.get("animation_ok", True) and not missing and parents_ok and same_count
                         and head_error <= POSITION_TOL_MM and vertex_error <= POSITION_TOL_MM
                         and weight_error <= WEIGHT_TOL and rest_error <= POSITION_TOL_MM
                         and pose_error <= POSITION_TOL_MM)
     return report
+
+
+def _tracks(rig: dict, path: str) -> dict | None:
+    """The baked tracks rig.json names (arrays of rig_animation.npz), or None."""
+    import os
+
+    animation = rig.get("animation")
+    if not animation:
+        return None
+    with np.load(os.path.join(os.path.dirname(os.path.abspath(path)), animation["file"])) as data:
+        return {key: data[key] for key in data.files}
+
+
+ANIMATION_TOL_MM = 0.01
+FRAMES_CHECKED = 5
+
+
+def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str],
+                     weights: np.ndarray, to_mm: float) -> dict:
+    """Actions, frame rate, and the deformed mesh at a few frames against the baked tracks."""
+    scene = bpy.context.scene
+    rate = float(tracks["rate"])
+    takes = [(str(n), int(a), int(b)) for n, (a, b) in zip(tracks["take_names"],
+                                                           tracks["take_frames"])]
+    actions = {a.name: a for a in bpy.data.actions}
+
+    def action_of(take: str):
+        found = [a for name, a in actions.items() if name == take or f"|{take}|" in name]
+        return found[0] if found else None
+
+    ranges = {}
+    for name, start, end in takes:
+        action = action_of(name)
+        ranges[name] = None if action is None else [float(v) for v in action.frame_range]
+    offset = None  # Blender frame of capture frame 0 (the FBX importer starts at 1)
+    first = ranges.get(takes[0][0])
+    if first is not None:
+        offset = first[0] - takes[0][1]
+    ranges_ok = all(r is not None and abs(r[0] - offset - a) < 1e-3
+                    and abs(r[1] - offset - (b - 1)) < 1e-3
+                    for (n, a, b), r in zip(takes, ranges.values())) if offset is not None else False
+
+    vertices = np.array(rig["mesh"]["vertices"])
+    bind = np.array([j["bind_position"] for j in rig["joints"]])
+    translations = tracks["translations"].astype(float)
+    quaternions = tracks["root_rotations"].astype(float)
+    total = len(translations)
+    frames = np.unique(np.linspace(0, total - 1, FRAMES_CHECKED).round().astype(int))
+    mesh_errors, joints_world = [], []
+    for frame in frames:
+        take = next(t for t in takes if t[1] <= frame < t[2])
+        action = action_of(take[0])
+        if action is None or offset is None:
+            mesh_errors.append(float("inf"))
+            continue
+        arm_obj.animation_data.action = action
+        if hasattr(arm_obj.animation_data, "action_suitable_slots") and \
+                arm_obj.animation_data.action_slot is None and arm_obj.animation_data.action_suitable_slots:
+            arm_obj.animation_data.action_slot = arm_obj.animation_data.action_suitable_slots[0]
+        for bone in arm_obj.pose.bones:  # the keys, not the earlier test pose
+            bone.matrix_basis = Matrix.Identity(4)
+        scene.frame_set(int(round(frame + offset)))
+        bpy.context.view_layer.update()
+        got = _world_vertices(mesh_obj, evaluated=True) * to_mm
+        x, y, z, w = quaternions[frame]
+        rotation = np.array(Quaternion((w, x, y, z)).to_matrix())
+        local = translations[frame]
+        offsets = local[1:] - (bind[1:] - bind[0])  # each joint's displacement from its bind
+        moved = vertices - bind[0] + weights[:, 1:] @ offsets
+        want = moved @ rotation.T + local[0]
+        mesh_errors.append(float(np.abs(got - want).max()) if got.shape == want.shape
+                           else float("inf"))
+        world = []
+        for name in names:
+            if name in arm_obj.pose.bones:
+                head = arm_obj.matrix_world @ arm_obj.pose.bones[name].head
+            else:  # the root as the armature object
+                head = arm_obj.matrix_world.translation
+            world.append(list(np.array(head) @ BLENDER_TO_RIG.T * to_mm))
+        joints_world.append(world)
+    fps = scene.render.fps / scene.render.fps_base
+    ok = (ranges_ok and abs(fps - rate) < 1e-6 and len(actions) >= len(takes)
+          and max(mesh_errors) <= ANIMATION_TOL_MM)
+    return {"animation_ok": bool(ok), "actions": sorted(actions), "action_frame_ranges": ranges,
+            "scene_fps": fps, "frames_checked": [int(f) for f in frames],
+            "max_animated_mesh_error_mm": max(mesh_errors), "joint_world_mm": joints_world}
 
 
 def _world_vertices(obj: bpy.types.Object, *, evaluated: bool) -> np.ndarray:

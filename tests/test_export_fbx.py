@@ -20,7 +20,7 @@ from mocaptk.retarget import write_rig_fbx, write_rig_json
 WEIGHT_TOL = 1e-6
 
 
-@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "C_Chin"))],
+@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "Chin_C"))],
                 ids=["k4", "k6", "k4_unused_joints"])
 def exported(request, tmp_path_factory):
     """(rig, rig.fbx path) for 4 and 6 influences per vertex, and with joints that have no
@@ -56,11 +56,17 @@ def test_structure_the_fbx_sdk_needs(exported):
 
     objects = root.first("Objects")
     models = objects.find("Model")
-    assert [m.props[2] for m in models] == ["Mesh"] + ["LimbNode"] * joints
-    for model in models:
+    # a root no vertex is weighted to is the skeleton's Root (Blender: the armature object)
+    root_kind = "LimbNode" if len(rig.joint_influences(0)[0]) else "Root"
+    assert [m.props[2] for m in models] == ["Mesh", root_kind] + ["LimbNode"] * (joints - 1)
+    for joint, model in enumerate(models[1:]):
         props = _props70(model)
         assert props["DefaultAttributeIndex"] == [0] and props["InheritType"] == [1]
-    assert all(a.first("TypeFlags").props == ["Skeleton"] for a in objects.find("NodeAttribute"))
+        assert (props["marker"], props["side"], props["region"]) == (
+            [rig.joint_markers[joint]], [rig.joint_sides[joint]], [rig.joint_regions[joint]])
+    flags = [a.first("TypeFlags").props for a in objects.find("NodeAttribute")]
+    assert flags[0] == (["Skeleton"] if root_kind == "LimbNode" else ["Null", "Skeleton", "Root"])
+    assert all(f == ["Skeleton"] for f in flags[1:])
     geometry = objects.first("Geometry")
     np.testing.assert_allclose(geometry.first("Vertices").props[0].reshape(-1, 3),
                                rig.vertices * 0.1)

@@ -13,7 +13,7 @@ from mocaptk.errors import OutputError
 from mocaptk.retarget import write_rig_glb
 
 
-@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "C_Chin"))],
+@pytest.fixture(scope="module", params=[(4, ()), (6, ()), (4, ("face_root", "Chin_C"))],
                 ids=["k4", "k6", "k4_unused_joints"])
 def exported(request, tmp_path_factory):
     k, silent = request.param

@@ -27,7 +27,7 @@ def test_document_fields(rig, tmp_path):
     root = doc["joints"][0]
     assert (root["name"], root["parent"], root["side"]) == ("face_root", None, "C")
     brow = doc["joints"][1]
-    assert brow == {"name": "L_LBrow", "parent": "face_root", "side": "L", "region": "brow",
+    assert brow == {"name": "Brow_L", "parent": "face_root", "side": "L", "region": "brow",
                     "marker": "LBrow", "bind_position": rig.joint_positions[1].tolist()}
     assert doc["weights"]["max_influences"] == 4
     assert len(doc["weights"]["joint_index"]) == rig.vertex_count

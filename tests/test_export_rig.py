@@ -57,12 +57,12 @@ def _weights_row0(index, value):
 @pytest.mark.parametrize("fields, message", [
     (_with(vertices=np.zeros((5, 2))), "vertices must have shape"),
     (_with(faces=np.array([[0, 1, 999]])), "faces index vertices outside"),
-    (_with(joint_names=("face_root", "L_LBrow", "L_LBrow", "C_Nose", "L_LMouth", "R_RMouth",
-                        "C_Chin")), "not unique"),
-    (_with(joint_names=("face_root", "L_L-Brow", "R_RBrow", "C_Nose", "L_LMouth", "R_RMouth",
-                        "C_Chin")), "outside \\[A-Za-z0-9_\\]"),
-    (_with(joint_names=("face_root", "LBrow", "R_RBrow", "C_Nose", "L_LMouth", "R_RMouth",
-                        "C_Chin")), "side tag L_"),
+    (_with(joint_names=("face_root", "Brow_L", "Brow_L", "Nose_C", "Mouth_L", "Mouth_R",
+                        "Chin_C")), "not unique"),
+    (_with(joint_names=("face_root", "Brow-L", "Brow_R", "Nose_C", "Mouth_L", "Mouth_R",
+                        "Chin_C")), "outside \\[A-Za-z0-9_\\]"),
+    (_with(joint_names=("face_root", "L_Brow", "Brow_R", "Nose_C", "Mouth_L", "Mouth_R",
+                        "Chin_C")), "side tag _L"),
     (_with(joint_sides=("C", "X", "R", "C", "L", "R", "C")), "side must be one of"),
     (_with(joint_parents=np.array([-1, -1, 0, 0, 0, 0, 0])), "exactly one root"),
     (_with(joint_parents=np.array([-1, 2, 0, 0, 0, 0, 0])), "parent must come before"),
@@ -81,13 +81,26 @@ def test_invalid_rigs_are_refused(fields, message):
 
 def test_joint_names_from_markers():
     names = joint_names_from_markers(
-        ["Subj:LBrowIn", "mouth corner", "mouth-corner", "L_cheek", "nose.tip"],
-        ["L", "R", "R", "L", "C"])
-    assert names == ("L_LBrowIn", "R_mouth_corner", "R_mouth_corner_2", "L_cheek", "C_nose_tip")
+        ["Subj:LBrowIn", "mouth corner", "mouth-corner", "L_cheek", "nose.tip", "MOUTH_03_L",
+         "NOSE_01_M", "LIP_01", "LBrowOuter"],
+        ["L", "R", "R", "L", "C", "L", "C", "L", "R"])
+    assert names == ("BrowIn_L", "mouth_corner_R", "mouth_corner_2_R", "cheek_L", "nose_tip_C",
+                     "MOUTH_03_L", "NOSE_01_C", "LIP_01_L", "LBrowOuter_R")
+    assert joint_names_from_markers(["LBrowOuter"], ["L"]) == ("BrowOuter_L",)
     with pytest.raises(RigError, match="side must be one of"):
         joint_names_from_markers(["a"], ["left"])
     with pytest.raises(RigError, match="2 marker labels but 1 sides"):
         joint_names_from_markers(["a", "b"], ["L"])
+
+
+def test_joint_names_mirror_like_blender_flip_name():
+    """Blender's bpy.utils.flip_name swaps a trailing _L/_R (and keeps _C): every L joint of a
+    mirrored layout maps to an existing R joint (the rule re-stated: flip the final letter)."""
+    labels = ["FOREHEAD_BROW_21_L", "FOREHEAD_BROW_21_R", "MOUTH_05_C", "LBrow", "RBrow"]
+    names = joint_names_from_markers(labels, ["L", "R", "C", "L", "R"])
+    assert names == ("FOREHEAD_BROW_21_L", "FOREHEAD_BROW_21_R", "MOUTH_05_C", "Brow_L", "Brow_R")
+    flip = {"L": "R", "R": "L", "C": "C"}
+    assert all(n[:-1] + flip[n[-1]] in names for n in names)
 
 
 def test_from_markers_puts_root_first_and_shifts_indices():
@@ -99,8 +112,8 @@ def test_from_markers_puts_root_first_and_shifts_indices():
         marker_regions=list(base.joint_regions[1:]),
         weight_index=np.zeros((base.vertex_count, 1), dtype=int) + 2,
         weight_value=np.ones((base.vertex_count, 1)))
-    assert rig.joint_names == ("face_root", "L_LBrow", "R_RBrow", "C_Nose", "L_LMouth",
-                               "R_RMouth", "C_Chin")
+    assert rig.joint_names == ("face_root", "Brow_L", "Brow_R", "Nose_C", "Mouth_L",
+                               "Mouth_R", "Chin_C")
     assert rig.joint_parents.tolist() == [-1, 0, 0, 0, 0, 0, 0]
     np.testing.assert_allclose(rig.joint_positions[0], markers.mean(axis=0))
     assert set(rig.weight_index.ravel()) == {3}  # marker 2 (Nose) is joint 3

@@ -108,6 +108,8 @@ def cluster(
     max_influences: int = typer.Option(4, "--max-influences", help="Rig joints per vertex (1-8)."),
     formats: str = typer.Option("json,fbx,glb", "--formats", help="Rig files to write (json,fbx,glb) "
                                 "with guide.pdf; 'none' skips the rig and the guide."),
+    animate: list[Path] = typer.Option(None, "--animate", help="A performance to bake onto the "
+                                       "rig after the session's own motion (as in mocaptk rig)."),
 ) -> None:
     """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra).
 
@@ -123,7 +125,7 @@ def cluster(
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
-    from .rig import cluster_rig_outputs, rig_options
+    from .rig import animation_summary, cluster_rig_outputs, rig_options
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     from ..clustering.methods import method_names
@@ -146,11 +148,13 @@ def cluster(
     with staged_folder(out_dir, force=force) as folder:
         write_cluster_outputs(result, folder)
         build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
-                                    formats=formats, quiet=quiet)
+                                    formats=formats, quiet=quiet, session=traj,
+                                    animate=animate or [])
         write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
     if not quiet:
         typer.echo(summary_text(result), nl=False)
         if build is not None:  # after the summary's header, not before it
             typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
                        f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
+            typer.echo(animation_summary(build.report["animation"]))
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

@@ -44,6 +44,31 @@ def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: boo
                       pure_thin_shell=pure_thin_shell, subdivisions=subdivisions)
 
 
+def animation_captures(layout, session, relative, performances, *, no_stabilize: bool = False):
+    """The captures ``rig``/``cluster`` bake: the session itself (``session`` as read,
+    ``relative`` as the layout was computed on it) and each ``--animate`` file, stabilized on
+    the layout's rigid set when the layout's session was (the bake ignores markers other than
+    the layout's; the dense ones give the held-out skinning check)."""
+    from ..clustering.pipeline import load_session, stabilize
+    from ..retarget.build import Capture
+    from .evaluate import layout_rigid_set
+
+    stabilized = bool(layout.parameters.get("stabilized")) and not no_stabilize
+    captures = [Capture(Path(str(session.metadata.get("source") or "session")).stem, relative,
+                        session if stabilized else None)]
+    for path in performances:
+        perf, _ = load_session(path)
+        present = set(perf.labels)
+        missing = [c.representative for c in layout.clusters
+                   if c.representative not in present and c.mirrored_from not in present]
+        if missing:
+            raise InputFileError(path, f"lacks {len(missing)} layout markers: "
+                                       f"{', '.join(missing[:5])}")
+        steady = stabilize(perf, rigid=layout_rigid_set(layout))[0] if stabilized else perf
+        captures.append(Capture(path.stem, steady, perf if stabilized else None))
+    return captures
+
+
 @app.command()
 def rig(
     layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
@@ -65,6 +90,9 @@ def rig(
                                          "thin-shell weights by the influence regions."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the default marker "
                                      "surface this many times (0-3)."),
+    animate: list[Path] = typer.Option(None, "--animate", help="A performance (C3D/CSV/TRC with "
+                                       "the layout's labels; other markers are ignored) to bake "
+                                       "onto the rig after the session's own motion; repeatable."),
     out: Path = typer.Option(None, "--out", help="Output folder (default: the layout's folder)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove rigid head "
                                       "motion even if the layout was made on stabilized data."),
@@ -83,6 +111,7 @@ def rig(
     chosen = parse_formats(formats)
     lay = read_layout(layout)
     traj, source = load_session(session)
+    raw = traj
     expected = lay.source.get("sha256")
     if expected and expected != source["sha256"]:
         print(f"mocaptk: warning: {session} is not the file the layout was computed from "
@@ -90,12 +119,13 @@ def rig(
     if lay.parameters.get("stabilized") and not no_stabilize:
         traj, _ = stabilize(traj, rigid=layout_rigid_set(lay))
     pairs = read_landmarks(landmarks) if landmarks else None
+    captures = animation_captures(lay, raw, traj, animate or [], no_stabilize=no_stabilize)
     console = Console(stderr=True, quiet=quiet)
     with console.status("building the rig") as status:
         build, written = write_rig_outputs(
             lay, traj, out or layout.parent, mesh_path=mesh, landmarks=pairs, options=options,
             formats=chosen, title=f"{layout.name} + {session.name}", force=force,
-            progress=lambda text: status.update(text))
+            captures=captures, progress=lambda text: status.update(text))
     if not quiet:
         check = build.check
         typer.echo(f"rig: {build.rig.joint_count - 1} joints under {build.rig.joint_names[0]}, "
@@ -106,12 +136,38 @@ def rig(
                        f"{build.alignment.rms_mm:.2f} mm, max {build.alignment.max_mm:.2f} mm")
         typer.echo(f"marker-driven skinning check: RMSE {check.rmse_mm:.2f} mm, 95th percentile "
                    f"{check.p95_mm:.2f} mm ({check.vertices} dense markers, {check.frames} frames)")
+        typer.echo(region_summary(build.report["skinning_check"], "the session"))
+        for held in build.report.get("held_out", []):
+            typer.echo(f"held-out {held['capture']}: RMSE {held['rmse_mm']:.2f} mm, max "
+                       f"{held['max_mm']:.2f} mm")
+            typer.echo(region_summary(held, held["capture"]))
+        if "animation" in build.report:
+            typer.echo(animation_summary(build.report["animation"]))
         for path in written.values():
             typer.echo(f"wrote {path}")
 
 
+def region_summary(check: dict, what: str) -> str:
+    """Per-region RMSE lines and where the largest error is (which marker, which frame)."""
+    lines = [f"  {region:<16} RMSE {r['rmse_mm']:.2f} mm, max {r['max_mm']:.2f} mm "
+             f"({r['markers']} markers)" for region, r in check["regions"].items()]
+    worst = check["max"]
+    lines.append(f"  largest error on {what}: {worst['error_mm']:.1f} mm at {worst['marker']} "
+                 f"({worst['region']}), frame {worst['frame']}; "
+                 f"{worst['layout_distance_mm']:.1f} mm from the nearest layout marker")
+    return "\n".join(lines)
+
+
+def animation_summary(report: dict) -> str:
+    """One line: clips, frames, rate and how many marker-frames were filled."""
+    takes = report["takes"]
+    return (f"animation: {len(takes)} clips, {report['frames']} frames at {report['rate_hz']:g} Hz; "
+            f"{report['filled_marker_frames']} marker-frames gap-filled before keying "
+            f"({len(report['gaps'])} gaps, listed in rig_report.json)")
+
+
 def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influences: int,
-                        formats: str, quiet: bool):
+                        formats: str, quiet: bool, session=None, animate=()):
     """What ``mocaptk cluster`` adds to its output folder: rig files + guide (``formats`` may be
     ``none`` to skip both). ``result`` is the clustering pipeline's ``ClusterResult``.
     Returns the :class:`~mocaptk.retarget.build.RigBuild` (None when skipped)."""
@@ -122,12 +178,17 @@ def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influenc
     chosen = parse_formats(formats)
     if chosen == ("none",):
         return None
+    from ..clustering.layout import read_layout
+
+    # the layout as written (rounded), so `mocaptk rig` on layout.json builds the same rig
+    layout = read_layout(folder / "layout.json")
+    captures = animation_captures(layout, session or result.trajectories, result.trajectories,
+                                  animate)
     console = Console(stderr=True, quiet=quiet)
     with console.status("building the rig") as status:
         build, _ = write_rig_outputs(
-            result.layout, result.trajectories, folder, mesh_path=mesh,
+            layout, result.trajectories, folder, mesh_path=mesh,
             options=rig_options(max_influences, None, False, 1), formats=chosen,
-            title=f"{result.layout.source.get('path', '')} factor "
-                  f"{result.layout.parameters.get('factor')}",
-            force=True, progress=lambda text: status.update(text))
+            title=f"{layout.source.get('path', '')} factor {layout.parameters.get('factor')}",
+            force=True, captures=captures, progress=lambda text: status.update(text))
     return build

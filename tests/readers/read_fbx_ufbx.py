@@ -60,8 +60,22 @@ def main(path: str) -> None:
             for bone_pose in held(pose.bone_poses):
                 held(bone_pose)
                 bind_pose[held(bone_pose.bone_node).name] = matrix(held(bone_pose.bone_to_world))
+    stacks = []
+    for stack in held(scene.anim_stacks):
+        held(stack)
+        curves = keys = 0
+        for layer in held(stack.layers):
+            for value in held(held(layer).anim_values):
+                for curve in held(held(value).curves):
+                    if held(curve) is not None:
+                        curves += 1
+                        keys += len(held(curve.keyframes))
+        stacks.append({"name": stack.name, "time_begin": stack.time_begin,
+                       "time_end": stack.time_end, "curves": curves, "keys": keys})
     out = {
         "version": held(scene.metadata).version,
+        "frames_per_second": settings.frames_per_second,
+        "anim_stacks": stacks,
         "unit_meters": settings.unit_meters,
         "axes": [axes.right.name, axes.up.name, axes.front.name],
         "vertices": [[p.x, p.y, p.z] for p in held(mesh.vertices)],

@@ -36,7 +36,7 @@ def sample_rig(*, rows: int = 9, cols: int = 11, k: int = 4,
     dense = np.exp(-0.5 * (distance / 30.0) ** 2)
     outer = np.abs(v.ravel()) > 50.0
     dense = np.column_stack([np.where(outer, 0.3, 0.0), dense])  # column 0: the root
-    names = ("face_root", "L_LBrow", "R_RBrow", "C_Nose", "L_LMouth", "R_RMouth", "C_Chin")
+    names = ("face_root", "Brow_L", "Brow_R", "Nose_C", "Mouth_L", "Mouth_R", "Chin_C")
     dense[:, [names.index(n) for n in silent_joints]] = 0.0
     order = np.argsort(-dense, axis=1, kind="stable")[:, :k]
     value = np.take_along_axis(dense, order, axis=1)

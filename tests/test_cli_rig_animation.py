@@ -1,0 +1,158 @@
+"""`mocaptk cluster`/`rig` bake the capture onto the rig: a head-moving capture plays in every
+format with its head motion on face_root (world joints = raw markers), Blender imports and plays
+FBX and GLB, and `rig` on the written layout reports the same numbers as `cluster`'s own rig.
+Also: coincident markers and a coarse production mesh (MediaPipe) build a rig."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+from readers import installed
+from scipy.spatial.transform import Rotation
+
+from conftest import SAMPLES, shared_path
+
+FRAMES = 600
+
+
+def _run(*args) -> None:
+    from mocaptk.cli import main
+
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        assert exc.code in (0, None), f"mocaptk {' '.join(map(str, args))} exited {exc.code}"
+
+
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory):
+    """The sample performance (10 s) with a known rigid head motion (up to 14°, 30 mm), clustered
+    with its own motion and a second copy (`--animate`) baked onto the rig."""
+    from mocaptk.acquisition.formats import read_trajectories
+
+    folder = tmp_path_factory.mktemp("moving")
+    perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
+    positions = perf.positions[:FRAMES]
+    t = np.arange(FRAMES) / perf.rate
+    rotation = Rotation.from_euler("xyz", np.column_stack([
+        0.25 * np.sin(0.7 * t), 0.2 * np.sin(0.4 * t), 0.1 * np.sin(0.9 * t)])).as_matrix()
+    shift = np.column_stack([30 * np.sin(0.3 * t), 10 * np.sin(0.5 * t), 20 * np.sin(0.2 * t)])
+    centre = np.nanmean(positions[0], axis=0)
+    raw = np.einsum("fij,fmj->fmi", rotation, positions - centre) + centre + shift[:, None]
+    session = folder / "moving.npz"
+    np.savez(session, positions=raw, labels=np.array(perf.labels), rate=perf.rate)
+    (folder / "again.npz").write_bytes(session.read_bytes())
+    out = folder / "out"
+    _run("cluster", session, "--out", out, "--animate", folder / "again.npz", "--quiet")
+    return folder, out, raw, list(perf.labels)
+
+
+def test_cluster_bakes_the_head_motion_onto_face_root(moving):
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.export_json import read_rig_animation
+
+    _, out, raw, labels = moving
+    layout = read_layout(out / "layout.json")
+    assert layout.parameters["stabilized"]
+    report = json.loads((out / "rig_report.json").read_text())
+    animation = report["animation"]
+    assert [(t["name"], t["start"], t["end"]) for t in animation["takes"]] == [
+        ("moving", 0, FRAMES), ("again", FRAMES, 2 * FRAMES)]
+    assert animation["rate_hz"] == 60.0
+    tracks = read_rig_animation(out / "rig_animation.npz")
+    world = tracks.world_positions()
+    rotation = np.array(report["frame_rotation"])
+    errors = []
+    for joint, cluster in enumerate(layout.clusters, start=1):
+        if cluster.mirrored_from is not None:
+            continue  # no raw marker: it moves as its source's mirror image
+        captured = raw[:, labels.index(cluster.representative)] @ rotation.T
+        for take in (slice(0, FRAMES), slice(FRAMES, 2 * FRAMES)):
+            seen = np.isfinite(captured).all(axis=1)
+            errors.append(np.linalg.norm(world[take, joint][seen] - captured[seen], axis=1).max())
+    print(f"world joints vs raw markers: max {max(errors):.2g} mm")
+    assert max(errors) < 0.1
+    # the root moves: head motion is in the scene, not removed
+    assert np.ptp(world[:, 0], axis=0).max() > 30.0
+
+
+def test_rig_on_the_written_layout_reports_the_same_numbers(moving):
+    folder, out, *_ = moving
+    again = folder / "rig_again"
+    _run("rig", out / "layout.json", "--session", folder / "moving.npz", "--out", again,
+         "--formats", "json", "--quiet")
+    ours = json.loads((out / "rig_report.json").read_text())["skinning_check"]
+    theirs = json.loads((again / "rig_report.json").read_text())["skinning_check"]
+    assert ours == theirs
+
+
+@pytest.mark.parametrize("name", ["rig.fbx", "rig.glb"])
+def test_blender_plays_the_baked_animation(moving, name):
+    """Blender imports FBX and GLB: one action per take at 60 fps, the deformed mesh at 5 frames
+    equals the rig's own skinning (< 0.01 mm), world joints equal the raw capture (< 0.1 mm)."""
+    from mocaptk.clustering.layout import read_layout
+
+    _, out, raw, labels = moving
+    python = installed.blender_python()
+    script = installed.REPO / "scripts" / "check_fbx_blender.py"
+    done = subprocess.run([str(python), str(script), str(out / name), str(out / "rig.json")],
+                          capture_output=True, text=True, timeout=600)
+    report = json.loads(done.stdout[done.stdout.index("{"):])
+    world = np.array(report.pop("joint_world_mm"))
+    print("Blender:", json.dumps(report, sort_keys=True))
+    assert done.returncode == 0 and report["ok"], report
+    assert report["scene_fps"] == 60.0 and report["max_animated_mesh_error_mm"] < 0.01
+    if name == "rig.fbx":
+        assert report["max_bone_length_mm"] <= 10.0 + 1e-3
+    layout = read_layout(out / "layout.json")
+    rotation = np.array(json.loads((out / "rig_report.json").read_text())["frame_rotation"])
+    errors = []
+    for row, frame in enumerate(report["frames_checked"]):
+        for joint, cluster in enumerate(layout.clusters, start=1):
+            if cluster.mirrored_from is None:
+                captured = raw[frame % FRAMES, labels.index(cluster.representative)] @ rotation.T
+                if np.isfinite(captured).all():
+                    errors.append(np.linalg.norm(world[row, joint] - captured))
+    assert max(errors) < 0.1
+
+
+def test_coincident_markers_build_a_rig(tmp_path):
+    """Two markers at the same place (pyomeca's STER/STERr) no longer crash the surface step."""
+    trc = shared_path("csv_trc", "pyomeca", "markers.trc")
+    _run("cluster", trc, "--out", tmp_path / "o", "--formats", "json", "--quiet")
+    report = json.loads((tmp_path / "o" / "rig_report.json").read_text())
+    assert np.isfinite(report["skinning_check"]["rmse_mm"])
+
+
+def test_coincident_joint_vertices_share_their_weight():
+    from mocaptk.retarget.influence import edge_graph
+    from mocaptk.retarget.weights import thin_shell_weights
+    from readers.sample_rig import sample_rig
+
+    rig = sample_rig()
+    graph = edge_graph(rig.vertices, rig.faces)
+    single = thin_shell_weights(rig.vertices, rig.faces, np.array([5, 40, 90]), graph=graph)
+    shared = thin_shell_weights(rig.vertices, rig.faces, np.array([5, 40, 40, 90]), graph=graph)
+    np.testing.assert_allclose(shared[:, [0, 3]], single[:, [0, 2]])
+    np.testing.assert_allclose(shared[:, 1], single[:, 1] / 2)
+    np.testing.assert_allclose(shared[:, 1], shared[:, 2])
+
+
+def test_mediapipe_canonical_face_as_the_rig_mesh(moving):
+    """A coarse production mesh (468 vertices): layout markers get distinct vertices."""
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.pipeline import load_session, stabilize
+    from mocaptk.retarget.build import build_rig
+    from mocaptk.retarget.mesh_io import load_mesh
+
+    mesh = load_mesh(shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
+    folder, out, *_ = moving
+    layout = read_layout(out / "layout.json")
+    session, _ = load_session(str(folder / "moving.npz"))
+    session, _ = stabilize(session, rigid=layout.extra["stabilization"]["rigid_labels"])
+    build = build_rig(layout, session, mesh=mesh)
+    assert len(set(build.joint_vertices.tolist())) == len(layout.clusters)
+    assert build.check.rmse_mm < 1.5
