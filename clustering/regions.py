@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..acquisition.text_io import UTF16_PROBLEM, looks_utf16
 from ..errors import InputFileError
 
 #: The six facial regions of the paper, top to bottom.
@@ -31,9 +32,15 @@ def read_regions(path: str | os.PathLike[str], labels: Sequence[str]) -> dict[st
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        data = path.read_bytes()
     except OSError as exc:
         raise InputFileError(path, f"cannot read regions file ({exc.strerror or exc})") from None
+    if looks_utf16(data[:8192]):
+        raise InputFileError(path, UTF16_PROBLEM)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:  # e.g. a CSV saved by Excel in Latin-1 / Windows-1252
+        raise InputFileError(path, f"not UTF-8 text (bad byte at offset {exc.start}): re-save it as UTF-8") from None
     regions: dict[str, list[str]] = {}
     if text.lstrip().startswith("{"):
         try:
@@ -43,6 +50,8 @@ def read_regions(path: str | os.PathLike[str], labels: Sequence[str]) -> dict[st
         for name, members in data.items():
             if not isinstance(members, list) or not all(isinstance(m, str) for m in members):
                 raise InputFileError(path, f"region {name!r} must be a list of marker labels")
+            if not members:
+                raise InputFileError(path, f"region {name!r} lists no markers (remove it, or list its labels)")
             regions[str(name)] = list(members)
     else:
         rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]

@@ -29,15 +29,28 @@ def read_takes(path: str | os.PathLike[str], n_frames: int) -> list[Take]:
     takes = []
     for number, item in enumerate(items, start=1):
         try:
-            take = Take(str(item["name"]), int(item["start"]), int(item["end"]),
-                        None if item.get("region") is None else str(item["region"]))
-        except (KeyError, TypeError, ValueError):
+            name, start, end = str(item["name"]), item["start"], item["end"]
+            region = None if item.get("region") is None else str(item["region"])
+        except (KeyError, TypeError, AttributeError):
             raise InputFileError(path, f"take {number}: needs name, start and end (integers)") from None
+        take = Take(name, _frame_number(start, path=path, number=number, name=name, key="start"),
+                    _frame_number(end, path=path, number=number, name=name, key="end"), region)
         if not 0 <= take.start < take.end <= n_frames:
             raise InputFileError(path, f"take {take.name!r} [{take.start}, {take.end}) is outside the "
                                  f"session's frames 0..{n_frames}")
         takes.append(take)
     return takes
+
+
+def _frame_number(value: object, *, path: Path, number: int, name: str, key: str) -> int:
+    """A take's ``start``/``end``: a whole frame number (``12`` or ``12.0``); fractions, infinities
+    (``1e400``, ``-Infinity``), booleans and strings are refused, never truncated."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputFileError(path, f"take {number} ({name!r}): {key} must be a whole frame number, got {value!r}")
+    if isinstance(value, float) and not (np.isfinite(value) and value.is_integer()):
+        raise InputFileError(path, f"take {number} ({name!r}): {key} {value!r} is not a whole frame number "
+                                   "(takes count 0-based frames, end exclusive)")
+    return int(value)
 
 
 def region_segments(takes: Sequence[Take], regions: Sequence[str],

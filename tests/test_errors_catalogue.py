@@ -71,6 +71,8 @@ def f(tmp_path_factory) -> dict[str, Path]:
         "regions_empty.json": "{}",
         "regions_notlist.json": json.dumps({"nose": "NOSE_01_C"}),
         "regions_row.csv": "NOSE_01_C\n",
+        "regions_nomarkers.json": json.dumps({"eye": []}),
+        "takes_fraction.json": json.dumps({"takes": [{"name": "a", "start": 0.5, "end": 10}]}),
         "takes_outside.json": json.dumps({"takes": [{"name": "a", "start": 0, "end": 100000}]}),
         "takes_fields.json": json.dumps({"takes": [{"name": "a"}]}),
         "layout_other.json": json.dumps({"format": "something-else"}),
@@ -83,6 +85,7 @@ def f(tmp_path_factory) -> dict[str, Path]:
         if text is not None:
             (d / name).write_text(text, encoding="utf-8")
     (d / "latin1.trc").write_bytes("\n".join(trc).replace("\tA\t", "\tÄ\t").encode("latin-1"))
+    (d / "regions_latin1.csv").write_bytes("label,region\nNOSE_01_C,fr\u00e9nt\n".encode("latin-1"))
     (d / "utf16.trc").write_bytes("\n".join(trc).encode("utf-16"))
     (d / "label_long.trc").write_text("\n".join(trc[:3] + [trc[3].replace("\tA\t", "\t" + "A" * 300 + "\t")]
                                                 + trc[4:]))
@@ -209,6 +212,12 @@ CATALOGUE = [
      "no regions defined"),
     ("E-REGIONS-LIST", lambda f: ["cluster", S(f), "--regions", f["regions_notlist.json"], "--out", f["dir"] / "oa"],
      "must be a list of marker labels"),
+    ("E-REGIONS-NOMARKERS", lambda f: ["cluster", S(f), "--regions", f["regions_nomarkers.json"],
+                                       "--out", f["dir"] / "oj"], "region 'eye' lists no markers"),
+    ("E-REGIONS-UTF8", lambda f: ["cluster", S(f), "--regions", f["regions_latin1.csv"], "--out", f["dir"] / "ok"],
+     "not UTF-8 text (bad byte at offset"),
+    ("E-TAKES-FRAME", lambda f: ["cluster", S(f), "--takes", f["takes_fraction.json"], "--out", f["dir"] / "ol"],
+     "take 1 ('a'): start 0.5 is not a whole frame number"),
     ("E-REGIONS-ROW", lambda f: ["cluster", S(f), "--regions", f["regions_row.csv"], "--out", f["dir"] / "ob"],
      "expected 'label,region'"),
     ("E-REGIONS-MISSING", lambda f: ["cluster", S(f), "--regions", f["dir"] / "nope.json", "--out", f["dir"] / "oc"],

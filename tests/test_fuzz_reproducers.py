@@ -178,3 +178,30 @@ def test_out_of_memory_names_the_file(tmp_path):
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2 and len(lines) == 1, run.stderr[-2000:]
     assert lines[0].startswith(f"mocaptk: error: {big}: out of memory while reading it"), lines
+
+
+#: cluster option files (tests/data/fuzz/cluster_options/) -> (option, fragment of the one-line error)
+OPTION_CASES = {
+    "takes_end_1e400.json": ("--takes", "take 1 ('smile'): end inf is not a whole frame number"),  # OverflowError
+    "takes_start_minus_infinity.json": ("--takes", "start -inf is not a whole frame number"),  # OverflowError
+    "takes_fraction.json": ("--takes", "start 0.9 is not a whole frame number"),  # was truncated to 0
+    "regions_latin1.csv": ("--regions", "not UTF-8 text (bad byte at offset 34)"),  # UnicodeDecodeError
+    "regions_empty_list.json": ("--regions", "region 'eye' lists no markers"),  # a 0-marker layout, exit 0
+}
+
+
+@pytest.mark.parametrize("name", sorted(OPTION_CASES))
+def test_cluster_option_reproducers_fail_in_one_line(run_cli, tmp_path, name):
+    option, fragment = OPTION_CASES[name]
+    path = FUZZ / "cluster_options" / name
+    result = run_cli("cluster", REPO / "sample_c3d" / "dense_halfface.c3d", option, path,
+                     "--out", tmp_path / "out", "--formats", "none")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and "Traceback" not in result.stderr, result.stderr[-800:]
+    assert lines[-1] == lines[-1].strip() and lines[-1].startswith(f"mocaptk: error: {path}: "), lines
+    assert fragment in lines[-1], lines[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_cluster_option_reproducers_are_all_checked():
+    assert sorted(p.name for p in (FUZZ / "cluster_options").iterdir()) == sorted(OPTION_CASES)
