@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import shutil
 
 import numpy as np
@@ -95,9 +96,20 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     assert browser.console == []
 
 
-def test_toggles_hide_and_show_markers(sample_report, browser):
+def test_toggles_hide_and_show_markers_and_hover_tells_the_cluster(sample_report, browser):
     page = sample_report / "report.html"
     browser.open(page, ready=READY, timeout=120)
+    layout = json.loads((sample_report / "layout.json").read_text())
+    hover = browser.evaluate("document.getElementById('scene').data"
+                             ".find(d => d.name === 'layout markers').hovertext")
+    for number, (text, cluster) in enumerate(zip(hover, layout["clusters"]), start=1):
+        assert text.startswith(f"<b>#{number} {cluster['representative']}</b>")
+        assert f"region {cluster['region']} · side {cluster['side']}" in text
+        replaced = [m for m in cluster["members"] if m != cluster["representative"]]
+        assert f"replaces {len(replaced)} marker" in text
+        for m in replaced:
+            shown = re.search(rf"{re.escape(m)} \(C (-?[\d.]+)\)", text)
+            assert shown and abs(float(shown.group(1)) - cluster["member_correlation"][m]) <= 0.0051
     count = "document.getElementById('scene').data.find(d => d.name === 'layout markers').x.length"
     everything = browser.evaluate(count)
     toggle = ("(async () => {{ const box = [...document.querySelectorAll('#{box} label')]"
@@ -105,7 +117,6 @@ def test_toggles_hide_and_show_markers(sample_report, browser):
               " box.click(); await mocaptkReport.settled(); }})()")
     browser.evaluate(toggle.format(box="show", name="mirrored half"))
     measured = browser.evaluate(count)
-    layout = json.loads((sample_report / "layout.json").read_text())
     assert measured == sum(c["mirrored_from"] is None for c in layout["clusters"]) < everything
     browser.evaluate(toggle.format(box="regions", name="chin"))
     assert browser.evaluate(count) == sum(c["mirrored_from"] is None and c["region"] != "chin"
