@@ -361,7 +361,7 @@ def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,
 
 
 #: Frames decoded per step of :func:`read_points` (bounds its temporaries to a few MB).
-READ_BLOCK_BYTES = 8 * 2**20
+READ_BLOCK_BYTES = 2**20
 
 
 def read_points(structure: C3DStructure, *, unit_scale: float = 1.0,

@@ -2,7 +2,9 @@
 
 Gaps: pairwise-complete — each pair's correlation uses the frames where both markers are
 present (numpy.corrcoef semantics on those frames). Without gaps the whole matrix is one matrix
-product of the standardized, axis-stacked positions. An axis on which a marker (or a pair's
+product of the standardized, axis-stacked positions; with gaps, one product per axis of the
+zero-filled positions plus sparse corrections over the absent frames (cost grows with the gap
+count, memory stays a few (1,024, M) blocks). An axis on which a marker (or a pair's
 common frames) has a standard deviation <= ``STATIC_SD_MM`` contributes 0 — correlation is
 undefined there — and a pair with fewer than 3 common frames correlates 0.
 """
@@ -83,36 +85,59 @@ def _complete_correlation(centred: np.ndarray, sd: np.ndarray, static_axes: np.n
 
 
 def _pairwise_correlation(centred: np.ndarray, present: np.ndarray, static_axes: np.ndarray) -> np.ndarray:
-    n_markers = centred.shape[1]
-    mask = present.astype(np.float64)
-    n_common = mask.T @ mask  # (M, M) frames where both are present
+    """Pairwise-complete Pearson sums from masked Gram products, in blocks of rows.
+
+    ``centred`` is zero where a marker is absent, so ``x_i . x_j`` already sums over the common
+    frames (one dense product per axis, like the gap-free path); the per-pair sums and counts
+    over common frames are the marker totals minus sparse products with the (few) absent
+    frames, so gaps cost in proportion to their number, not another five dense products.
+    """
+    from scipy import sparse
+
+    n_frames, n_markers = present.shape
+    absent = sparse.csr_matrix(~present, dtype=np.float64)  # (F, M), 0.1-1 % non-zero
+    absent_t = absent.T.tocsr()
+    n_absent = n_frames - present.sum(axis=0).astype(np.float64)
     matrix = np.zeros((n_markers, n_markers))
     min_var = STATIC_SD_MM ** 2
+    axes = []
     for axis in range(3):
-        x = centred[:, :, axis]
+        x = np.ascontiguousarray(centred[:, :, axis])
         xx = x * x
-        moving = ~static_axes[:, axis]
-        for lo in range(0, n_markers, _BLOCK):
-            hi = min(lo + _BLOCK, n_markers)
-            n = n_common[lo:hi]
-            s_i = x[:, lo:hi].T @ mask  # sum of x_i over frames where j is present too
-            s_j = (mask[:, lo:hi].T @ x)  # sum of x_j over frames where i is present too
-            ss_i = xx[:, lo:hi].T @ mask
-            ss_j = mask[:, lo:hi].T @ xx
-            s_ij = x[:, lo:hi].T @ x
-            ok = (n >= 3) & moving[lo:hi, None] & moving[None, :]
+        axes.append((x, xx, x.sum(axis=0), xx.sum(axis=0), ~static_axes[:, axis]))
+    for lo in range(0, n_markers, _BLOCK):  # upper triangle by blocks of rows, then mirrored
+        hi = min(lo + _BLOCK, n_markers)
+        n = n_frames - n_absent[lo:hi, None] - n_absent[None, lo:] \
+            + (absent_t[lo:hi] @ absent[:, lo:]).toarray()  # frames where both are present
+        for x, xx, total, total_sq, moving in axes:
+            # sum of x_i over frames where j is present too = total_i - x_i over j's gaps
+            s_i = total[lo:hi, None] - (absent_t[lo:] @ x[:, lo:hi]).T
+            s_j = total[None, lo:] - absent_t[lo:hi] @ x[:, lo:]
+            ss_i = total_sq[lo:hi, None] - (absent_t[lo:] @ xx[:, lo:hi]).T
+            ss_j = total_sq[None, lo:] - absent_t[lo:hi] @ xx[:, lo:]
+            ok = (n >= 3) & moving[lo:hi, None] & moving[None, lo:]
             inv_n = np.zeros_like(n)
             np.divide(1.0, n, out=inv_n, where=ok)
-            cov = s_ij - s_i * s_j * inv_n
-            var_i = ss_i - s_i * s_i * inv_n
-            var_j = ss_j - s_j * s_j * inv_n
-            ok &= (var_i > min_var * n) & (var_j > min_var * n)
-            denom = np.sqrt(np.where(ok, var_i * var_j, 1.0))
+            mean_i = s_i * inv_n  # in-place arithmetic below: few (block, M) temporaries
+            cov = x[:, lo:hi].T @ x[:, lo:]
+            cov -= mean_i * s_j
+            ss_i -= mean_i * s_i  # variance sums over the common frames
+            s_j *= s_j
+            s_j *= inv_n
+            ss_j -= s_j
+            ok &= (ss_i > min_var * n) & (ss_j > min_var * n)
+            ss_i *= ss_j
+            np.sqrt(ss_i, out=ss_i, where=ok)
             r = np.zeros_like(cov)
-            np.divide(cov, denom, out=r, where=ok)
-            matrix[lo:hi] += np.clip(r, -1.0, 1.0)
-    matrix += matrix.T  # exact symmetry (blocks of BLAS products may differ in the last bit)
-    matrix *= 0.5
+            np.divide(cov, ss_i, out=r, where=ok)
+            np.clip(r, -1.0, 1.0, out=r)
+            matrix[lo:hi, lo:] += r
+    for lo in range(0, n_markers, _BLOCK):  # mirror the upper triangle (exact symmetry)
+        hi = min(lo + _BLOCK, n_markers)
+        matrix[lo:hi, :lo] = matrix[:lo, lo:hi].T
+        block = matrix[lo:hi, lo:hi]
+        lower = np.tril_indices(hi - lo, -1)
+        block[lower] = block.T[lower]
     return matrix
 
 
