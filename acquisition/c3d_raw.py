@@ -361,7 +361,7 @@ def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,
 
 
 #: Frames decoded per step of :func:`read_points` (bounds its temporaries to a few MB).
-READ_BLOCK_BYTES = 2**20
+READ_BLOCK_BYTES = 4 * 2**20
 
 
 def read_points(structure: C3DStructure, *, unit_scale: float = 1.0,
@@ -414,18 +414,19 @@ def _decode_points(block: np.ndarray, s: C3DStructure, unit_scale: float, gaps_a
     """Decode raw point words ``block`` (frames, points, 4) into ``xyz`` and ``residuals``."""
     if s.processor == "dec" and s.float_storage:
         block = _dec(block)
-    fourth = block[..., 3]
+    fourth = block[..., 3].astype(np.float64)
     if s.float_storage:
         xyz[...] = block[..., :3]
-        residual_word = np.where(np.isfinite(fourth), fourth, -1).astype(np.float64)
         if unit_scale != 1.0:
             xyz *= unit_scale
     else:
         np.multiply(block[..., :3], abs(s.scale) * unit_scale, out=xyz)
-        residual_word = fourth.astype(np.float64)
-    invalid = residual_word < 0
-    code = np.clip(np.where(invalid, 0, residual_word), 0, 0xFFFF).astype(np.int64)
-    residuals[...] = np.where(invalid, -1.0, (code & 0xFF) * (abs(s.scale) * unit_scale))
+    valid = fourth >= 0  # NaN / -1: invalid
+    np.copyto(fourth, 0.0, where=~valid)
+    code = np.minimum(fourth, 0xFFFF).astype(np.int64)
+    code &= 0xFF  # low byte: residual in units of |SCALE|; high byte: camera mask
+    np.multiply(code, abs(s.scale) * unit_scale, out=residuals)
+    np.copyto(residuals, -1.0, where=~valid)
     if gaps_as_nan:
         mark_gaps(xyz, residuals)
 
@@ -434,9 +435,12 @@ def mark_gaps(xyz: np.ndarray, residuals: np.ndarray) -> None:
     """In place: NaN in ``xyz`` (F, N, 3) and ``residuals`` (F, N) where the residual is
     negative (invalid point) or a coordinate is not finite."""
     with np.errstate(over="ignore", invalid="ignore"):
-        missing = (residuals < 0) | ~np.isfinite(xyz.sum(axis=-1))
-    xyz[missing] = np.nan
-    residuals[missing] = np.nan
+        total = xyz[..., 0] + xyz[..., 1]
+        total += xyz[..., 2]
+        missing = ~np.isfinite(total)
+    missing |= residuals < 0
+    np.copyto(xyz, np.nan, where=missing[..., None])
+    np.copyto(residuals, np.nan, where=missing)
 
 
 def header_only_labels(n_points: int) -> list[str]:

@@ -33,6 +33,10 @@ AUTO_RIGID_MIN_SPREAD_MM = 10.0
 #: marker noise is white, so the fitted pose keeps the motion and sheds most of the noise (noise in
 #: the pose would move every stabilized marker together and read as correlated facial motion).
 POSE_CUTOFF_HZ = 12.0
+#: Sessions with more markers than this search rigid pairs among this many candidates only,
+#: picked by their distance changes to a few spread probe markers (O(markers x probes)).
+AUTO_RIGID_CANDIDATES = 100
+_PROBES = 12
 _DETECT_FRAMES = 300  # frames sampled to score distance variation
 _MIN_SHARED = 0.5     # a pair counts only if seen together in half the sampled frames that have data
 _REFINE_ROUNDS = 2    # stabilize-and-reselect rounds after the pairwise-distance pick
@@ -97,7 +101,9 @@ def kabsch(reference: np.ndarray, moving: np.ndarray, weights: np.ndarray) -> tu
 def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     """Markers that move as one rigid body, spread over it (on a face: nose bridge, temples, forehead).
 
-    Rule, on up to 300 evenly spaced frames: for every marker pair seen together in at least half
+    Rule, on up to 300 evenly spaced frames (sessions of more than 100 markers: among the 100
+    candidates of :func:`_candidates`, so the cost is O(markers x probes), not all pairs):
+    for every marker pair seen together in at least half
     of those with data, take the 95th percentile of ``|d(f) - median d|`` (its distance changes, mm). Only
     pairs at least ``AUTO_RIGID_SPREAD`` (25 %) of the cloud's diameter apart count — neighbouring
     skin markers keep their distances while moving together, distant ones only if both sit on the
@@ -111,14 +117,14 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
     Raises :class:`InputFileError` naming ``metadata["source"]`` (else :class:`OptionError`) if
     no 3 markers qualify.
     """
-    step = max(1, traj.n_frames // _DETECT_FRAMES)
-    pos = traj.positions[::step]
-    visible = ~np.isnan(pos).any(axis=2)
-    n_frames, n_markers = visible.shape
+    pos, visible = _sample(traj)
+    n_markers = visible.shape[1]
     if n_markers < 3:
         raise OptionError(f"stabilization needs at least 3 markers, the session has {n_markers}")
-    typical, change = _pair_distance_stats(pos, visible)
-    shared = visible.T.astype(float) @ visible.astype(float)
+    candidates = _candidates(pos, visible)
+    typical, change = _pair_distance_stats(pos[:, candidates], visible[:, candidates])
+    sub_visible = visible[:, candidates]
+    shared = sub_visible.T.astype(float) @ sub_visible.astype(float)
     with_data = max(1, int(visible.any(axis=1).sum()))  # frames outside takes may be empty
     usable = (shared >= _MIN_SHARED * with_data) & np.isfinite(change)
     np.fill_diagonal(usable, False)
@@ -135,7 +141,8 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
         worst = score[:, chosen].max(axis=1)  # inf unless far from / co-visible with every chosen
         worst[chosen] = np.inf
         if len(chosen) == 2:
-            worst = np.where(_off_line(pos, visible, chosen) >= AUTO_RIGID_MIN_SPREAD_MM, worst, np.inf)
+            off = _off_line(pos[:, candidates], sub_visible, chosen)
+            worst = np.where(off >= AUTO_RIGID_MIN_SPREAD_MM, worst, np.inf)
         k = int(np.argmin(worst))
         if not np.isfinite(worst[k]):
             if len(chosen) < 3:
@@ -144,10 +151,79 @@ def detect_rigid_markers(traj: Trajectories) -> tuple[str, ...]:
         if worst[k] > tolerance and len(chosen) >= 3:
             break
         chosen.append(k)
+    chosen = [int(candidates[k]) for k in chosen]
     sample = Trajectories(pos, traj.labels, traj.rate)
     for _ in range(_REFINE_ROUNDS):
         chosen = _least_moving_spread_set(sample, chosen, spread_mm=AUTO_RIGID_SPREAD * typical[usable].max())
     return tuple(traj.labels[k] for k in sorted(chosen))
+
+
+def _sample(traj: Trajectories) -> tuple[np.ndarray, np.ndarray]:
+    """Up to :data:`_DETECT_FRAMES` evenly spaced frames (F', M, 3) mm and their visibility."""
+    pos = traj.positions[::max(1, traj.n_frames // _DETECT_FRAMES)]
+    return pos, ~np.isnan(pos).any(axis=2)
+
+
+def _candidates(pos: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Indices of the markers worth a pairwise rigid search: all of them, or for more than
+    :data:`AUTO_RIGID_CANDIDATES`, those keeping their distance best to two or more of
+    :data:`_PROBES` spread probe markers far from them (a skull marker does to the skull probes;
+    a skin marker to none far away). Cost O(markers x probes x frames)."""
+    n_markers = visible.shape[1]
+    if n_markers <= AUTO_RIGID_CANDIDATES:
+        return np.arange(n_markers)
+    centre = np.array([np.median(pos[visible[:, m], m], axis=0) if visible[:, m].any()
+                       else np.full(3, np.nan) for m in range(n_markers)])
+    seen = visible.sum(axis=0)
+    probes = [int(np.argmax(seen))]  # farthest-point sampling among often-seen markers
+    often = seen >= _MIN_SHARED * seen.max()
+    gap = np.where(often, np.linalg.norm(centre - centre[probes[0]], axis=1), -np.inf)
+    while len(probes) < _PROBES and np.isfinite(gap).any() and gap.max() > 0:
+        probes.append(int(np.argmax(gap)))
+        gap = np.minimum(gap, np.where(often, np.linalg.norm(centre - centre[probes[-1]], axis=1),
+                                       -np.inf))
+    typical, change = _pair_distance_stats(pos, visible, columns=np.array(probes))
+    far = typical >= AUTO_RIGID_SPREAD * np.nanmax(np.where(np.isfinite(typical), typical, np.nan))
+    steady = np.sort(np.where(far, change, np.inf), axis=1)[:, min(1, len(probes) - 1)]
+    order = np.argsort(steady, kind="stable")
+    return np.sort(order[:AUTO_RIGID_CANDIDATES])
+
+
+def head_relative_markers(traj: Trajectories, *, tolerance_mm: float) -> tuple[tuple[str, ...], float] | None:
+    """A spread set of 3-6 markers that already stay still (RMS distance from their median
+    position below ``tolerance_mm``, on up to 300 sampled frames), and its RMS motion (mm); or
+    ``None``. Such a session is head-relative already (head-mounted rig, cleaned data): finding
+    and fitting a rigid set on it would only turn skin motion into head motion. O(markers x
+    frames)."""
+    pos, visible = _sample(traj)
+    n_markers = visible.shape[1]
+    counts = visible.sum(axis=0)
+    enough = counts >= _MIN_SHARED * max(1, int(visible.any(axis=1).sum()))
+    if n_markers < 3 or not enough.any():
+        return None
+    centre = np.array([np.median(pos[visible[:, m], m], axis=0) if enough[m]
+                       else np.full(3, np.nan) for m in range(n_markers)])
+    offsets = np.linalg.norm(pos - centre, axis=2)
+    motion = np.sqrt(np.where(visible, offsets ** 2, 0.0).sum(axis=0) / np.maximum(counts, 1))
+    motion[~enough] = np.inf
+    still = [int(m) for m in np.argsort(motion, kind="stable") if motion[m] < tolerance_mm]
+    if len(still) < 3:
+        return None
+    known = centre[enough]
+    diameter = float(np.linalg.norm(known.max(axis=0) - known.min(axis=0)))
+    picked: list[int] = []
+    for m in still:
+        if len(picked) == AUTO_RIGID_MAX:
+            break
+        if all(np.linalg.norm(centre[m] - centre[k]) >= AUTO_RIGID_SPREAD * diameter for k in picked):
+            if len(picked) == 2 and _distance_to_line(centre[m], centre[picked[0]],
+                                                      centre[picked[1]]) < AUTO_RIGID_MIN_SPREAD_MM:
+                continue
+            picked.append(m)
+    if len(picked) < 3:
+        return None
+    rms = float(np.sqrt(np.mean(motion[picked] ** 2)))
+    return tuple(traj.labels[k] for k in sorted(picked)), rms
 
 
 def _undetected(traj: Trajectories, why: str) -> MocaptkError:
@@ -201,17 +277,20 @@ def _distance_to_line(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(rel - rel.dot(axis) * axis))
 
 
-def _pair_distance_stats(pos: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pair_distance_stats(pos: np.ndarray, visible: np.ndarray,
+                         columns: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per marker pair over frames seen together: median distance and 95th percentile of
-    ``|d - median d|`` (both (M, M) mm; inf where never seen together)."""
+    ``|d - median d|`` (both (M, C) mm for the ``columns`` markers, default all; inf where never
+    seen together)."""
     n_frames, n_markers = visible.shape
-    typical = np.full((n_markers, n_markers), np.inf)
-    change = np.full((n_markers, n_markers), np.inf)
-    rows = max(1, 8_000_000 // max(1, n_frames * n_markers))
-    for lo in range(0, n_markers, rows):  # chunks of marker rows keep (F, rows, M) arrays small
+    cols = np.arange(n_markers) if columns is None else columns
+    typical = np.full((n_markers, len(cols)), np.inf)
+    change = np.full((n_markers, len(cols)), np.inf)
+    rows = max(1, 8_000_000 // max(1, n_frames * len(cols)))
+    for lo in range(0, n_markers, rows):  # chunks of marker rows keep (F, rows, C) arrays small
         hi = min(n_markers, lo + rows)
-        both = visible[:, lo:hi, None] & visible[:, None, :]
-        d = np.linalg.norm(pos[:, lo:hi, None] - pos[:, None, :], axis=3)
+        both = visible[:, lo:hi, None] & visible[:, None, cols]
+        d = np.linalg.norm(pos[:, lo:hi, None] - pos[:, None, cols], axis=3)
         d = np.where(both, d, np.inf)
         count = both.sum(axis=0)
         has = count > 0

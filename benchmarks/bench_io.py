@@ -55,10 +55,19 @@ def generate(folder: Path, markers: int, frames: int) -> Path:
                                   first_frame=1), path)
 
 
-def _rss() -> int:
-    """Current resident memory of this process in bytes (Linux)."""
-    with open("/proc/self/statm", encoding="ascii") as handle:
-        return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+def _rss(field: str = "VmRSS") -> int:
+    """Current (``VmRSS``) or peak (``VmHWM``) resident memory of this process in bytes (Linux)."""
+    with open("/proc/self/status", encoding="ascii") as handle:
+        for line in handle:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def _reset_peak() -> None:
+    """Reset this process's peak RSS (it survives exec from the benchmark's big parent)."""
+    with open("/proc/self/clear_refs", "w", encoding="ascii") as handle:
+        handle.write("5")
 
 
 def _cpu() -> float:
@@ -78,6 +87,7 @@ def measure(reader: str, path: Path) -> tuple[float, float, float]:
     import ezc3d  # noqa: F401
 
     func = {"mocaptk": read_c3d, "ezc3d": raw_ezc3d, "py-c3d": py_c3d}[reader]
+    _reset_peak()
     before = _rss()
     wall, cpu = time.perf_counter(), _cpu()
     result = func(path)
@@ -86,7 +96,7 @@ def measure(reader: str, path: Path) -> tuple[float, float, float]:
         if thread is not threading.main_thread():
             thread.join(timeout=120)
     del result
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before
+    peak = _rss("VmHWM") - before
     return wall, _cpu() - cpu, peak / 2**20
 
 

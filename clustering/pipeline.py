@@ -84,10 +84,14 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tupl
     returned unchanged; the report says so.
     """
     try:
-        from ..acquisition.stabilize import stabilize_head
+        from ..acquisition.stabilize import head_relative_markers, stabilize_head
     except ImportError:
         raise OptionError("head stabilization is not available in this installation; "
                           "use --no-stabilize for already head-relative data") from None
+    still = None if rigid is not None else head_relative_markers(traj, tolerance_mm=HEAD_RELATIVE_RMS_MM)
+    if still is not None:  # recognised before the rigid search and the full-length fit
+        return traj, {"rigid_labels": list(still[0]), "applied": False,
+                      "rigid_set_motion_rms_mm": still[1], "rms_residual_mm": None}
     result = stabilize_head(traj, rigid_labels=rigid)
     residual = np.asarray(result.rms_residual_mm, dtype=np.float64)
     residual = residual[np.isfinite(residual)]

@@ -69,3 +69,43 @@ def test_cli_stabilizes_on_the_given_rigid_markers(still_and_moving, run_cli, tm
         bad = run_cli("cluster", session, *args, "--out", tmp_path / "bad", "--formats", "none")
         assert bad.exit_code == 2 and needle in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
         assert not (tmp_path / "bad").exists()
+
+
+def test_head_relative_session_is_recognised_before_the_rigid_search(still_and_moving):
+    """A still head gives a steady spread set at once (no search, no full-length fit); a moving
+    head gives none; the pipeline reports the first as already head-relative."""
+    from mocaptk.acquisition.stabilize import head_relative_markers
+    from mocaptk.clustering.pipeline import HEAD_RELATIVE_RMS_MM, stabilize
+
+    for still, moving in still_and_moving:
+        found = head_relative_markers(still, tolerance_mm=HEAD_RELATIVE_RMS_MM)
+        assert found is not None and 3 <= len(found[0]) <= 6 and found[1] < HEAD_RELATIVE_RMS_MM
+        assert head_relative_markers(moving, tolerance_mm=HEAD_RELATIVE_RMS_MM) is None
+        same, report = stabilize(still)
+        assert same is still and report["applied"] is False
+        assert report["rigid_labels"] == list(found[0])
+
+
+def test_pruned_rigid_search_is_as_rigid_as_the_all_pairs_set(still_and_moving, monkeypatch):
+    """The candidate pruning (here 40 of the markers, by distance changes to 12 probes) picks a
+    set as rigid as the search over all pairs: the fitted rigid body's residual and the
+    stabilized markers' distance to the motion-free capture are as small."""
+    from mocaptk.acquisition import stabilize as stab
+
+    for still, moving in still_and_moving:
+        assert moving.n_markers > 40
+        with monkeypatch.context() as patch:
+            patch.setattr(stab, "AUTO_RIGID_CANDIDATES", 40)
+            pruned = stab.detect_rigid_markers(moving)
+        with monkeypatch.context() as patch:
+            patch.setattr(stab, "AUTO_RIGID_CANDIDATES", 10**6)
+            full = stab.detect_rigid_markers(moving)
+        scores = []
+        for labels in (pruned, full):
+            result = stab.stabilize_head(moving, rigid_labels=labels)
+            shape = result.trajectories.positions - np.nanmean(result.trajectories.positions, axis=0)
+            truth = still.positions - np.nanmean(still.positions, axis=0)
+            scores.append((float(np.nanmedian(result.rms_residual_mm)),
+                           float(np.sqrt(np.nanmean((shape - truth) ** 2)))))
+        assert scores[0][0] <= 1.25 * scores[1][0] + 0.05
+        assert scores[0][1] <= 1.25 * scores[1][1] + 0.05
