@@ -30,26 +30,50 @@ def _save(fig, path: str | os.PathLike[str]) -> Path:
     return Path(path)
 
 
+#: Heatmaps of larger regions are drawn as block means on a grid of at most this many cells a
+#: side (a 10,000-marker region: 512 x 512, not a 10,000 x 10,000 image of 3 GB RGBA).
+HEATMAP_MAX_CELLS = 512
+
+
 def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.ndarray, *, title: str,
                         path: str | os.PathLike[str]) -> Path:
-    """Heatmap of one region's consolidated correlation (−3..3), markers ordered by cluster."""
+    """Heatmap of one region's consolidated correlation (−3..3), markers ordered by cluster
+    (block means for more than :data:`HEATMAP_MAX_CELLS` markers; axes in marker positions)."""
     plt = _pyplot()
     order = np.argsort(clusters, kind="stable")
     n = len(labels)
     size = min(4 + 0.18 * n, 16)
     fig, ax = plt.subplots(figsize=(size + 1.5, size))
-    image = ax.imshow(matrix[np.ix_(order, order)], cmap="RdBu_r", vmin=-3, vmax=3, interpolation="nearest")
+    image = ax.imshow(_ordered_cells(matrix, order, HEATMAP_MAX_CELLS), cmap="RdBu_r", vmin=-3,
+                      vmax=3, interpolation="nearest", extent=(-0.5, n - 0.5, n - 0.5, -0.5))
     if n <= 60:
         ax.set_xticks(range(n), [labels[i] for i in order], rotation=90, fontsize=6)
         ax.set_yticks(range(n), [labels[i] for i in order], fontsize=6)
     bounds = np.flatnonzero(np.diff(clusters[order])) + 0.5
-    for b in bounds:
-        ax.axhline(b, color="k", lw=0.6)
-        ax.axvline(b, color="k", lw=0.6)
+    if len(bounds) <= HEATMAP_MAX_CELLS:  # more cluster lines than cells would be a black square
+        for b in bounds:
+            ax.axhline(b, color="k", lw=0.6)
+            ax.axvline(b, color="k", lw=0.6)
     fig.colorbar(image, ax=ax, label="consolidated correlation Cx+Cy+Cz")
     ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _ordered_cells(matrix: np.ndarray, order: np.ndarray, cells: int) -> np.ndarray:
+    """``matrix[order][:, order]``, or for more than ``cells`` rows its means over a
+    ``cells`` x ``cells`` grid of consecutive blocks (rows read in chunks: no n x n copy)."""
+    n = len(order)
+    if n <= cells:
+        return matrix[np.ix_(order, order)]
+    starts = (np.arange(cells) * n) // cells  # first ordered position of each cell
+    cell_of = np.searchsorted(starts, np.arange(n), side="right") - 1
+    sums = np.zeros((cells, cells))
+    for lo in range(0, n, 1024):
+        rows = matrix[order[lo:lo + 1024]][:, order]
+        np.add.at(sums, cell_of[lo:lo + 1024], np.add.reduceat(rows, starts, axis=1))
+    sizes = np.diff(np.append(starts, n)).astype(float)
+    return sums / sizes[:, None] / sizes[None, :]
 
 
 def _front(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
