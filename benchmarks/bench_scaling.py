@@ -72,6 +72,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two small rows only")
     parser.add_argument("--folder", type=Path, default=Path("/work/scratch/scaling"))
+    parser.add_argument("--only", nargs="*", default=None, metavar="MxF[:formats]",
+                        help="run only these rows, e.g. 200x72000:none 10000x400:default")
     parser.add_argument("--make", nargs=3, help=argparse.SUPPRESS)  # internal: PATH MARKERS FRAMES
     args = parser.parse_args()
     if args.make:
@@ -82,7 +84,10 @@ def main() -> None:
           f"on {os.cpu_count()} CPUs")
     print("| markers | frames | options | outputs | wall s | CPU s | peak GB | goal |")
     print("|---|---|---|---|---|---|---|---|")
-    for markers, frames, options, formats in (QUICK if args.quick else ROWS):
+    rows = QUICK if args.quick else ROWS
+    if args.only is not None:
+        rows = [r for r in ROWS if f"{r[0]}x{r[1]}" in args.only or f"{r[0]}x{r[1]}:{r[3]}" in args.only]
+    for markers, frames, options, formats in rows:
         path = args.folder / f"session_{markers}x{frames}.c3d"
         if not path.exists():
             subprocess.run([sys.executable, __file__, "--make", str(path), str(markers),
