@@ -40,7 +40,8 @@ from .bake import RigAnimation, bake_animation, concatenate_animations, head_pos
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .rig import Rig
-from .weights import cap_weights, region_masks, shape_by_regions, thin_shell_weights
+from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, symmetric_weights,
+                      thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "dense_cloud", "ground_truth_error",
@@ -169,6 +170,19 @@ def bake_capture(build: RigBuild, capture: Capture) -> RigAnimation:
                           takes=relative.takes, name=capture.name)
 
 
+def jaw_open_frame(build: RigBuild, animation: RigAnimation, *, start: int = 0) -> int:
+    """Frame (>= ``start``) of ``animation`` where the jaw is open widest: the chin-region joints
+    (else the lowest third of the joints) lowest below their bind positions, head-relative."""
+    bind = build.rig.joint_positions[1:]
+    regions = np.array(build.rig.joint_regions[1:])
+    chosen = regions == "chin"
+    if not chosen.any():
+        chosen = bind[:, 1] <= np.percentile(bind[:, 1], 33)
+    local = animation.translations[start:, 1:][:, chosen] + build.rig.joint_positions[0]
+    drop = (bind[chosen, 1] - local[..., 1]).mean(axis=1)
+    return int(start + np.argmax(drop))
+
+
 def held_out_check(build: RigBuild, capture: Capture) -> dict[str, Any] | None:
     """The marker-driven skinning check on another capture of the same dense markers (a
     held-out performance): overall, per region and its worst case; None when the capture lacks
@@ -248,6 +262,24 @@ def dense_cloud(layout: Layout, session: Trajectories, *,
                       rotation)
 
 
+def _weight_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
+                   spacing: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertex mirror (V,), joint mirror (J,) over the clusters) for a mirrored layout on a
+    mirror-symmetric mesh (every vertex's image within 5 % of the marker spacing), else None."""
+    clusters = layout.clusters
+    if not any(c.mirrored_from for c in clusters):
+        return None
+    by_label = {c.representative: i for i, c in enumerate(clusters)}
+    joints = np.arange(len(clusters))
+    for i, c in enumerate(clusters):
+        if c.mirrored_from in by_label:
+            joints[i], joints[by_label[c.mirrored_from]] = by_label[c.mirrored_from], i
+    plane = _sagittal_plane(layout)
+    vertex = mirror_maps(vertices, cloud.rotation @ plane.point, cloud.rotation @ plane.normal,
+                         tolerance_mm=0.05 * spacing)
+    return None if vertex is None else (vertex, joints)
+
+
 def _sagittal_plane(layout: Layout) -> SagittalPlane:
     plane = layout.extra.get("sagittal_plane")
     try:
@@ -315,8 +347,13 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                                          falloff_mm=falloff))
     nearest = np.argmin(np.linalg.norm(vertices[:, None] - vertices[joint_vertices][None], axis=2),
                         axis=1)
+    mirror = _weight_mirror(layout, cloud, vertices, spacing)
+    if mirror is not None:
+        weights = symmetric_weights(weights, *mirror)
+        nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
+                           nearest)
     index, value = cap_weights(weights, max_influences=options.max_influences,
-                               min_weight=options.min_weight, fallback=nearest)
+                               min_weight=options.min_weight, fallback=nearest, mirror=mirror)
     joint_positions = cloud.neutral[rep_idx]
     rig = Rig.from_markers(vertices, faces, marker_labels=reps, marker_positions=joint_positions,
                            marker_sides=[c.side for c in layout.clusters],
@@ -339,6 +376,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                     "thin-shell shaped by influence regions",
                     "falloff_mm": None if options.pure_thin_shell else falloff,
                     "ks": options.ks, "kb": options.kb, "max_influences": options.max_influences,
+                    "mirror_symmetric": mirror is not None,
                     "min_weight": options.min_weight},
         "joints": len(reps), "dense_markers": int(cloud.captured.sum()),
         "mirrored_dense_markers": int((~cloud.captured).sum()),
@@ -512,6 +550,9 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         names["animation"] = out / "rig_animation.npz"
     names.update(guide=out / "guide.pdf", front=out / "guide_front.png",
                  profile=out / "guide_profile.png", report=out / "rig_report.json")
+    if captures:
+        names.update({f"render_{pose}_{view}": out / "renders" / f"{pose}_{view}.png"
+                      for pose in ("rest", "jaw_open") for view in ("front", "profile")})
     for target in names.values():
         check_writable(target, force=force)
     mesh = load_mesh(mesh_path) if mesh_path is not None else None
@@ -536,6 +577,21 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     for view in ("front", "profile"):
         render_view(build.rig.vertices, build.rig.faces, build.regions,
                     [c.region for c in clusters], joints, numbers, names[view], view=view)
+    if animation is not None:
+        say("rendering the rig at rest and with the jaw open")
+        frame = jaw_open_frame(build, animation, start=animation.frame_count
+                               - captures[-1].relative.n_frames)
+        build.report["renders"] = {"jaw_open_frame": frame,
+                                   "jaw_open_take": next(t.name for t in animation.takes
+                                                         if t.start <= frame < t.end)}
+        posed_joints = animation.translations[frame, 1:] + build.rig.joint_positions[0]
+        posed = skin_vertices(build.rig.vertices, build.rig.weight_index, build.rig.weight_value,
+                              np.vstack([np.zeros(3), posed_joints - joints])[None])[0]
+        for pose, verts, marks in (("rest", build.rig.vertices, joints),
+                                   ("jaw_open", posed, posed_joints)):
+            for view in ("front", "profile"):
+                render_view(verts, build.rig.faces, build.regions, [c.region for c in clusters],
+                            marks, numbers, names[f"render_{pose}_{view}"], view=view)
     check = build.check
     notes = [f"{len(clusters)} markers; mesh: {build.report['mesh']['kind']} "
              f"({build.rig.vertex_count} vertices); weights: {build.report['weights']['method']}, "

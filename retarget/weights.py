@@ -12,6 +12,10 @@
    is 1 there). ``falloff_mm=None`` keeps the pure thin-shell weights.
 3. **Capping**: top ``max_influences`` per vertex, drop weights < ``min_weight``, renormalize to
    sum 1; a vertex left with nothing gets its fallback joint (nearest joint) at weight 1.
+4. **Symmetry** (mirrored layouts on a mirror-symmetric mesh): the weights are averaged with
+   their mirror image (vertex v ↔ its mirror, L ↔ R joints) before capping, and a midline
+   vertex's capping never splits an L/R pair of equal weights, so mirrored vertices get mirrored
+   weights to rounding (:func:`symmetric_weights`).
 """
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["cap_weights", "region_masks", "shape_by_regions", "thin_shell_weights"]
+__all__ = ["cap_weights", "mirror_maps", "region_masks", "shape_by_regions", "symmetric_weights",
+           "thin_shell_weights"]
 
 
 def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: np.ndarray, *,
@@ -94,8 +99,34 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
 
 
+def mirror_maps(vertices: np.ndarray, plane_point: np.ndarray, plane_normal: np.ndarray, *,
+                tolerance_mm: float) -> np.ndarray | None:
+    """Each vertex's mirror vertex (V,) across the plane, or None when the mesh is not
+    mirror-symmetric (a mirror image farther than ``tolerance_mm`` from every vertex)."""
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(vertices, dtype=float)
+    normal = np.asarray(plane_normal, dtype=float) / np.linalg.norm(plane_normal)
+    image = v - 2.0 * ((v - plane_point) @ normal)[:, None] * normal
+    dist, mirror = cKDTree(v).query(image)
+    if dist.max() > tolerance_mm or np.any(mirror[mirror] != np.arange(len(v))):
+        return None
+    return mirror.astype(np.int64)
+
+
+def symmetric_weights(weights: np.ndarray, vertex_mirror: np.ndarray,
+                      joint_mirror: np.ndarray) -> np.ndarray:
+    """``(W + W[mirror(v), mirror(j)]) / 2`` (V, J): exactly mirror-symmetric weights.
+
+    ``vertex_mirror`` (V,) and ``joint_mirror`` (J,) are involutions (midline items map to
+    themselves)."""
+    w = np.asarray(weights, dtype=float)
+    return 0.5 * (w + w[np.asarray(vertex_mirror)][:, np.asarray(joint_mirror)])
+
+
 def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: float = 1e-3,
-                fallback: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                fallback: np.ndarray | None = None,
+                mirror: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keep each vertex's ``max_influences`` largest weights >= ``min_weight``, sum 1.
 
     Parameters
@@ -103,6 +134,9 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
     weights : (V, J) float
     fallback : (V,) int, optional
         Joint given weight 1 where no weight survives (default: the row's largest weight).
+    mirror : (vertex_mirror (V,), joint_mirror (J,)), optional
+        For symmetric ``weights``: ties between a joint and its mirror are kept or dropped
+        together, and a vertex's result is the mirror image of its mirror vertex's.
 
     Returns
     -------
@@ -114,6 +148,9 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
     if max_influences < 1:
         raise OptionError(f"--max-influences must be >= 1, got {max_influences}")
     w = np.asarray(weights, dtype=float)
+    if mirror is not None:
+        return _cap_mirrored(w, max_influences=max_influences, min_weight=min_weight,
+                             fallback=fallback, mirror=mirror)
     k = min(max_influences, w.shape[1])
     order = np.argsort(-w, axis=1, kind="stable")[:, :k]
     value = np.take_along_axis(w, order, axis=1)
@@ -135,4 +172,30 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
         pad = max_influences - k
         index = np.pad(index, ((0, 0), (0, pad)))
         value = np.pad(value, ((0, 0), (0, pad)))
+    return index, value
+
+
+def _cap_mirrored(w: np.ndarray, *, max_influences: int, min_weight: float,
+                  fallback: np.ndarray | None,
+                  mirror: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cap_weights` of symmetric weights, symmetric: cap one vertex of each mirror pair
+    (rows of midline vertices with equal L/R weights at the cut dropped in pairs), then copy
+    the mirror image onto the other."""
+    vertex_mirror, joint_mirror = (np.asarray(m, dtype=np.int64) for m in mirror)
+    w = w.copy()
+    k = min(max_influences, w.shape[1])
+    midline = np.flatnonzero(vertex_mirror == np.arange(len(w)))
+    for v in midline:  # while a tie straddles the k-th place: drop both members of the pair
+        while True:
+            order = np.argsort(-w[v], kind="stable")
+            if len(order) <= k or w[v, order[k - 1]] <= 0 or \
+                    abs(w[v, order[k - 1]] - w[v, order[k]]) > 1e-12:
+                break
+            w[v, np.abs(w[v] - w[v, order[k - 1]]) <= 1e-12] = 0.0
+    index, value = cap_weights(w, max_influences=max_influences, min_weight=min_weight,
+                               fallback=fallback)
+    copy = vertex_mirror < np.arange(len(w))  # the second vertex of each pair mirrors the first
+    source = vertex_mirror[copy]
+    index[copy] = np.where(value[source] > 0, joint_mirror[index[source]], 0)
+    value[copy] = value[source]
     return index, value

@@ -77,6 +77,10 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
     assert max(errors) < 0.1
     # the root moves: head motion is in the scene, not removed
     assert np.ptp(world[:, 0], axis=0).max() > 30.0
+    # renders at rest and at the last capture's widest jaw opening
+    assert report["renders"]["jaw_open_frame"] >= FRAMES
+    for name in ("rest_front", "rest_profile", "jaw_open_front", "jaw_open_profile"):
+        assert (out / "renders" / f"{name}.png").stat().st_size > 10_000
 
 
 def test_rig_on_the_written_layout_reports_the_same_numbers(moving):

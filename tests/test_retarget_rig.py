@@ -182,3 +182,43 @@ def test_rig_on_the_ict_face_mesh_against_true_vertices(sample, tmp_path):
 
 def _every(session, step):
     return session.replace(positions=session.positions[::step], metadata={})
+
+
+def test_default_mesh_separates_the_lips(sample):
+    """The marker surface is cut where the motion opens it: no triangle spans the lip line, the
+    mouth is its own boundary loop, and no vertex of the upper lip shares an edge with the lower."""
+    from mocaptk.surface_mesh import mesh_edges
+
+    _, _, _, build = sample
+    mesh = build.report["mesh"]
+    cut = {tuple(sorted(pair)) for pair in mesh["opening_edges_cut"]}
+    assert ("MOUTH_05_C", "MOUTH_12_C") in cut and len(cut) >= 6
+    assert all(a.startswith("MOUTH") and b.startswith("MOUTH") for a, b in cut)
+    assert mesh["boundary_loops"] == 2  # the face's border and the mouth
+    labels = build.cloud.labels
+    vertex = {label: int(build.dense_vertices[i]) for i, label in enumerate(labels)}
+    edges = {tuple(sorted(e)) for e in mesh_edges(build.rig.faces)[0].tolist()}
+    assert not any(tuple(sorted((vertex[a], vertex[b]))) in edges for a, b in cut)
+
+
+def test_mirrored_layout_gives_mirrored_weights_and_names(sample):
+    """Mirrored vertices with L/R joints swapped carry the same weights (< 1e-6; before: up to
+    0.27), and every joint's flip_name (swap the trailing _L/_R) is a joint of the rig."""
+    from scipy.spatial import cKDTree
+
+    from mocaptk.retarget.build import _sagittal_plane
+
+    _, _, _, build = sample
+    rig = build.rig
+    assert build.report["weights"]["mirror_symmetric"]
+    plane = _sagittal_plane(build.layout)
+    normal, point = build.cloud.rotation @ plane.normal, build.cloud.rotation @ plane.point
+    image = rig.vertices - 2 * ((rig.vertices - point) @ normal)[:, None] * normal
+    distance, mirror = cKDTree(rig.vertices).query(image)
+    assert distance.max() < 0.05
+    flip = {"L": "R", "R": "L", "C": "C"}
+    names = list(rig.joint_names)
+    assert all(n[:-1] + flip[n[-1]] in names for n in names[1:])
+    swap = [0] + [names.index(n[:-1] + flip[n[-1]]) for n in names[1:]]
+    weights = rig.dense_weights()
+    assert np.abs(weights - weights[mirror][:, swap]).max() < 1e-6
