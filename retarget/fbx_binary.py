@@ -26,6 +26,8 @@ _FOOTER_ID = bytes.fromhex("fabcab09d0c8d466b176fb831cf7267e")
 _FOOTER_MAGIC = bytes.fromhex("f85a8c6adef5d97eece90ce3758f290b")
 #: Arrays whose raw bytes exceed this are zlib-compressed.
 COMPRESS_ABOVE = 128
+#: zlib level: 1 writes long animations 2.3x faster than 6 for 1.3 % more bytes (bench_export).
+COMPRESS_LEVEL = 1
 
 _ARRAY_CODES = {np.dtype("<f4"): b"f", np.dtype("<f8"): b"d", np.dtype("<i4"): b"i",
                 np.dtype("<i8"): b"l", np.dtype("bool"): b"b"}
@@ -112,5 +114,5 @@ def _encode_array(array: np.ndarray) -> bytes:
         raise TypeError(f"no FBX array type for dtype {array.dtype}")
     raw = np.ascontiguousarray(array.ravel(), dtype=dtype).tobytes()
     encoding = 1 if len(raw) > COMPRESS_ABOVE else 0
-    data = zlib.compress(raw, 6) if encoding else raw
+    data = zlib.compress(raw, COMPRESS_LEVEL) if encoding else raw
     return code + struct.pack("<3I", array.size, encoding, len(data)) + data
