@@ -144,6 +144,7 @@
   // Drawn marker position: off the skin by the stored lift (the data positions stay untouched).
   function drawn(pos, i, axis) { return nanToNull(pos[i][axis] + mesh.marker_lift[i][axis]); }
 
+  let annotations = [];  // the layout markers' numbers, set by traces()
   function traces() {
     const pos = markerPositions();
     const layoutEntries = shownLayout().filter(function (e) { return markerVisible(e.marker); });
@@ -205,18 +206,24 @@
       });
     }
     out.push(denseTrace);
-    // layout markers, numbered as in guide.pdf
-    out.push({type: "scatter3d", mode: state.show.numbers ? "markers+text" : "markers", name: "layout markers",
-      x: layoutEntries.map(function (e) { return drawn(pos, e.marker, 0); }),
-      y: layoutEntries.map(function (e) { return drawn(pos, e.marker, 1); }),
-      z: layoutEntries.map(function (e) { return drawn(pos, e.marker, 2); }),
+    // layout markers, numbered as in guide.pdf (numbers are SVG scene annotations: WebGL text
+    // would cost most of the first draw)
+    const lx3 = [], ly3 = [], lz3 = [];
+    layoutEntries.forEach(function (e) {
+      lx3.push(drawn(pos, e.marker, 0)); ly3.push(drawn(pos, e.marker, 1)); lz3.push(drawn(pos, e.marker, 2));
+    });
+    out.push({type: "scatter3d", mode: "markers", name: "layout markers", x: lx3, y: ly3, z: lz3,
       customdata: layoutEntries.map(function (e) { return e.marker; }),
       text: layoutEntries.map(function (e) { return String(e.number); }),
       hovertext: layoutEntries.map(hoverLayout), hovertemplate: "%{hovertext}<extra></extra>",
-      textposition: "top right", textfont: {size: 12, color: "#000000"},
       marker: {size: 4.5, color: layoutEntries.map(function (e) {
         return e.cluster ? e.cluster.colour : "#1f3b73";
-      }), line: {color: "#ffffff", width: 1.5}}});
+      })}});
+    annotations = !state.show.numbers ? [] : layoutEntries.map(function (e, k) {
+      return {x: lx3[k], y: ly3[k], z: lz3[k], text: String(e.number), showarrow: false,
+              xanchor: "left", yanchor: "bottom", xshift: 2, yshift: 1,
+              font: {size: 11, color: "#000000"}, bgcolor: "rgba(255,255,255,0.55)", borderpad: 0};
+    }).filter(function (a) { return a.x !== null && a.y !== null && a.z !== null; });
     return out;
   }
 
@@ -245,7 +252,9 @@
   let drawing = null, pending = false;
   function redraw() {
     if (drawing) { pending = true; return drawing; }
-    drawing = Plotly.react(gd, traces(), plotLayout, config).then(function () {
+    const data = traces();
+    const layout = Object.assign({}, plotLayout, {scene: Object.assign({}, plotLayout.scene, {annotations: annotations})});
+    drawing = Plotly.react(gd, data, layout, config).then(function () {
       drawing = null;
       if (pending) { pending = false; return redraw(); }
     });
