@@ -516,7 +516,8 @@ def guide_rows(build: RigBuild) -> list[GuideMarker]:
     nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
                          [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],
-                         [c.members for c in clusters], nose)
+                         [c.members for c in clusters], nose,
+                         mirrored_from=[c.mirrored_from for c in clusters])
 
 
 def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.PathLike[str], *,
@@ -573,7 +574,8 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     say("rendering the guide")
     clusters = build.layout.clusters
     joints = np.asarray(build.rig.joint_positions)[1:]
-    numbers = list(range(1, len(clusters) + 1))
+    rows = guide_rows(build)
+    numbers = [row.name for row in rows]  # the guide's names (16L / 16R) in every view
     for view in ("front", "profile"):
         render_view(build.rig.vertices, build.rig.faces, build.regions,
                     [c.region for c in clusters], joints, numbers, names[view], view=view)
@@ -601,7 +603,7 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     if build.alignment is not None:
         notes.append(f"mesh alignment ({build.alignment.method}): residual RMS "
                      f"{build.alignment.rms_mm:.2f} mm, max {build.alignment.max_mm:.2f} mm")
-    write_guide_pdf(names["guide"], guide_rows(build), front_png=names["front"],
+    write_guide_pdf(names["guide"], rows, front_png=names["front"],
                     profile_png=names["profile"], outline=build.cloud.neutral,
                     title=title or "mocaptk marker placement guide", notes=notes, force=True)
     write_json(names["report"], {"format": "mocaptk.rig_report", "version": 1, **build.report},

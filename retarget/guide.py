@@ -6,15 +6,18 @@ Pages (A4 portrait; the 1:1 page grows to A3 if the face does not fit):
    coloured by region - with a region legend;
 2. profile view (the character's left side);
 3. the **1:1 page**: marker positions projected on the front (X-Y) plane at true size in mm,
-   numbered, with the midline, the nose tip cross and a 50 mm scale bar to check the print
-   ("must measure 50 mm"), for building a placement mask;
-4+. the marker table: number, label, region, side, position from the nose tip (mm right/left
-   of the midline, above/below the tip, in front/behind) and the dense markers it replaces
-   (its cluster; the count, then as many labels as fit).
+   named, with the midline, the nose tip cross and 50 mm scale bars, horizontal and vertical, to
+   check the print ("must measure 50 mm"), for building a placement mask; labels never overlap
+   (a leader line joins a label moved away from a crowded marker);
+4+. the marker table, pairs together: name, rig joint, label, region, side, position from the
+   nose tip (mm right/left of the midline, above/below the tip, in front/behind) and every dense
+   marker it replaces (its cluster; the count, then the labels, wrapped).
 
-Numbers are the layout order (1 = first cluster), the same in every view, the table and the
-rig's joints. Landmarks: the nose tip = the most forward dense marker; the midline = the
-sagittal plane through the nose tip (x = nose tip's x in the rig frame).
+Names: a marker and its mirror image share a number, told apart by side (``16L`` / ``16R``), so a
+technician places pairs together; other markers have a plain number. Numbers follow the layout
+order; the table gives each marker's rig joint (layout order, 1 = first cluster). Landmarks: the
+nose tip = the most forward dense marker; the midline = the sagittal plane through the nose tip
+(x = nose tip's x in the rig frame).
 """
 
 from __future__ import annotations
@@ -31,12 +34,17 @@ from mocaptk.atomic import atomic_path
 
 from .renders import REGION_COLOURS, region_colour
 
-__all__ = ["GuideMarker", "guide_markers", "write_guide_pdf"]
+__all__ = ["GuideMarker", "guide_markers", "pair_names", "place_labels", "write_guide_pdf"]
 
 A4 = (210.0, 297.0)
 A3 = (297.0, 420.0)
 MARGIN = 12.0
 SCALE_BAR_MM = 50.0
+#: Page height below the face kept for the scale bars and the note (mm).
+BARS_ZONE = 75.0
+#: 1:1 page: marker dot radius and the label font size (pt; a digit is ~1.4 mm wide, 2.6 mm high).
+DOT_MM = 1.5
+LABEL_PT = 7
 #: Creation date written into the PDF, fixed so the same input gives the same bytes.
 _FIXED_DATE = datetime.datetime(2024, 1, 1, tzinfo=datetime.timezone.utc)
 
@@ -44,9 +52,11 @@ _FIXED_DATE = datetime.datetime(2024, 1, 1, tzinfo=datetime.timezone.utc)
 @dataclass(frozen=True)
 class GuideMarker:
     """One row of the guide: ``position`` (3,) mm rig frame; ``from_nose`` (3,) mm
-    (+x = character's left, +y = up, +z = forward) relative to the nose tip."""
+    (+x = character's left, +y = up, +z = forward) relative to the nose tip; ``number`` the
+    layout order (= rig joint), ``name`` what the guide prints (``16L``, ``16R`` or ``7``)."""
 
     number: int
+    name: str
     label: str
     region: str
     side: str
@@ -55,17 +65,92 @@ class GuideMarker:
     replaces: tuple[str, ...]
 
 
+def pair_names(labels: Sequence[str], sides: Sequence[str],
+               mirrored_from: Sequence[str | None]) -> list[str]:
+    """Guide names: a marker and its mirror share a number (first come, first numbered) with its
+    side (``16L`` / ``16R``); a marker without a mirror has a plain number."""
+    index = {label: k for k, label in enumerate(labels)}
+    partner: dict[int, int] = {}
+    for k, source in enumerate(mirrored_from):
+        if source in index:
+            partner[k], partner[index[source]] = index[source], k
+    number: dict[int, int] = {}
+    for k in range(len(labels)):
+        if k not in number:
+            number[k] = len(set(number.values())) + 1
+            if k in partner:
+                number[partner[k]] = number[k]
+    return [f"{number[k]}{sides[k]}" if k in partner else str(number[k]) for k in range(len(labels))]
+
+
 def guide_markers(labels: Sequence[str], regions: Sequence[str], sides: Sequence[str],
                   positions: np.ndarray, members: Sequence[Sequence[str]],
-                  nose_tip: np.ndarray) -> list[GuideMarker]:
-    """Guide rows for the layout markers (positions (J, 3) mm, rig frame)."""
+                  nose_tip: np.ndarray, mirrored_from: Sequence[str | None] | None = None,
+                  ) -> list[GuideMarker]:
+    """Guide rows for the layout markers (positions (J, 3) mm, rig frame); ``mirrored_from``:
+    per marker, the label it mirrors (None: measured), for the pair names."""
+    names = pair_names(labels, sides, mirrored_from or [None] * len(labels))
     out = []
     for k, (label, region, side, pos, group) in enumerate(zip(labels, regions, sides,
                                                               np.asarray(positions), members)):
-        out.append(GuideMarker(k + 1, label, region, side, np.asarray(pos, float),
+        out.append(GuideMarker(k + 1, names[k], label, region, side, np.asarray(pos, float),
                                np.asarray(pos, float) - nose_tip,
                                tuple(m for m in group if m != label)))
     return out
+
+
+def _overlaps(box: np.ndarray, boxes: np.ndarray) -> bool:
+    """Does ``box`` (x0, y0, x1, y1) intersect any of ``boxes`` (N, 4)?"""
+    if not len(boxes):
+        return False
+    return bool(np.any((box[0] < boxes[:, 2]) & (boxes[:, 0] < box[2])
+                       & (box[1] < boxes[:, 3]) & (boxes[:, 1] < box[3])))
+
+
+def place_labels(points: np.ndarray, sizes: np.ndarray, *, dot: float = DOT_MM, gap: float = 0.3,
+                 reach: float = 30.0, bounds: tuple[float, float, float, float] | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes for labels beside marker dots, none overlapping another label or any dot.
+
+    ``points`` (N, 2) mm page coordinates (y down), ``sizes`` (N, 2) label width/height mm. Tries
+    the eight places around each dot, then rings further out (a leader line then joins label and
+    dot), most crowded markers first. Returns boxes (N, 4) ``x0, y0, x1, y1`` and ``leader`` (N,)
+    bool. A label that finds no free place within ``reach`` mm keeps the nearest place (rare).
+    """
+    points = np.asarray(points, float)
+    sizes = np.asarray(sizes, float)
+    dots = np.column_stack([points - dot - gap, points + dot + gap])
+    crowd = (np.linalg.norm(points[:, None] - points[None], axis=2) < 8.0).sum(axis=1)
+    order = np.lexsort((np.arange(len(points)), -crowd))
+    boxes = np.zeros((len(points), 4))
+    leader = np.zeros(len(points), bool)
+    placed: list[np.ndarray] = []
+    for k in order:
+        (x, y), (w, h) = points[k], sizes[k]
+        near = dot + gap
+        candidates = [(x + near, y - near - h), (x + near, y - h / 2), (x + near, y + near),
+                      (x - w / 2, y - near - h), (x - w / 2, y + near), (x - near - w, y - near - h),
+                      (x - near - w, y - h / 2), (x - near - w, y + near)]
+        for radius in np.arange(4.0, reach, 1.5):
+            for angle in np.radians(np.arange(0, 360, 22.5)):
+                cx, cy = x + radius * np.cos(angle), y - radius * np.sin(angle)
+                candidates.append((cx - w / 2, cy - h / 2))
+        others = np.delete(dots, k, axis=0)
+        chosen = None
+        for i, (x0, y0) in enumerate(candidates):
+            box = np.array([x0, y0, x0 + w, y0 + h])
+            if bounds is not None and (x0 < bounds[0] or y0 < bounds[1] or box[2] > bounds[2]
+                                       or box[3] > bounds[3]):
+                continue
+            if not _overlaps(box, others) and not _overlaps(box, np.array(placed).reshape(-1, 4)):
+                chosen, leader[k] = box, i >= 8
+                break
+        if chosen is None:
+            x0, y0 = candidates[0]
+            chosen = np.array([x0, y0, x0 + w, y0 + h])
+        boxes[k] = chosen
+        placed.append(chosen)
+    return boxes, leader
 
 
 def _describe(offset: np.ndarray) -> tuple[str, str, str]:
@@ -158,7 +243,7 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     lo = np.minimum(pts.min(axis=0), ring.min(axis=0))
     hi = np.maximum(pts.max(axis=0), ring.max(axis=0))
     span = hi - lo
-    size = A4 if span[0] + 2 * MARGIN <= A4[0] and span[1] + 2 * MARGIN + 40 <= A4[1] else A3
+    size = A4 if span[0] + 2 * MARGIN + 20 <= A4[0] and span[1] + 2 * MARGIN + 22 + BARS_ZONE <= A4[1] else A3
     pdf.add_page(format=size)
     width, height = size
     _header(pdf, title, f"1:1 scale placement page (print at 100 %, {'A4' if size == A4 else 'A3'})")
@@ -185,41 +270,62 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     pdf.set_font("helvetica", "", 6)
     pdf.set_xy(nx + 1, ny + 0.5)
     pdf.cell(10, 3, "nose tip")
-    for m in markers:
-        x, y = page(m.position[:2])
+    dots = np.array([page(m.position[:2]) for m in markers])
+    pdf.set_font("helvetica", "B", LABEL_PT)
+    text_h = LABEL_PT * 0.3528 * 0.9  # cap height + descent of the digits, mm
+    sizes = np.array([(pdf.get_string_width(m.name) + 0.4, text_h) for m in markers])
+    boxes, leader = place_labels(dots, sizes, bounds=(MARGIN, MARGIN + 16, width - MARGIN,
+                                                      height - MARGIN - BARS_ZONE + 10))
+    pdf.set_line_width(0.15)
+    pdf.set_draw_color(110, 110, 110)
+    for (x, y), box, long in zip(dots, boxes, leader):
+        if long:  # from the dot's rim to the nearest point of its label
+            tx, ty = np.clip(x, box[0], box[2]), np.clip(y, box[1], box[3])
+            d = np.hypot(tx - x, ty - y)
+            pdf.line(x + (tx - x) * DOT_MM / d, y + (ty - y) * DOT_MM / d, tx, ty)
+    for m, (x, y), box in zip(markers, dots, boxes):
         r, g, b = (int(255 * c) for c in region_colour(m.region, tint=-0.2))
         pdf.set_fill_color(r, g, b)
-        pdf.ellipse(x - 1.5, y - 1.5, 3.0, 3.0, style="F")
-        pdf.set_font("helvetica", "B", 7)
-        pdf.set_xy(x + 1.4, y - 3.4)
-        pdf.cell(6, 3, str(m.number))
-    # scale bar
-    bx, by = MARGIN + 5, height - MARGIN - 18
-    pdf.set_draw_color(0, 0, 0)
-    pdf.set_fill_color(0, 0, 0)
-    pdf.set_line_width(0.4)
-    pdf.rect(bx, by, SCALE_BAR_MM, 2.0, style="F")
-    pdf.set_line_width(0.15)  # thin ticks: the bar's printed ends stay at 0 and 50 mm
-    for k in range(6):
-        pdf.line(bx + 10 * k, by - 1.5, bx + 10 * k, by + 3.5)
-    pdf.set_font("helvetica", "B", 9)
-    pdf.set_xy(bx, by + 4)
-    pdf.cell(SCALE_BAR_MM, 5, "must measure 50 mm", align="C")
+        pdf.ellipse(x - DOT_MM, y - DOT_MM, 2 * DOT_MM, 2 * DOT_MM, style="F")
+        pdf.text(box[0] + 0.2, box[3] - 0.35, m.name)  # baseline just above the box's bottom
+    bx, by = MARGIN + 16, height - MARGIN - 18
+    _scale_bars(pdf, bx, by)
     pdf.set_font("helvetica", "", 7)
     pdf.set_xy(bx + SCALE_BAR_MM + 8, by - 2)
     pdf.multi_cell(width - bx - SCALE_BAR_MM - 8 - MARGIN, 3.5, _ascii(
         "Front projection, true size: markers on the sides of the face sit further apart on the "
         "skin than on paper. Dashed: face outline and midline. Character's left is on the "
-        "right, as seen facing the performer. Check the bar before cutting a mask."))
+        "right, as seen facing the performer. A marker and its mirror share a number (16L / 16R). "
+        "Check both bars before cutting a mask."))
+
+
+def _scale_bars(pdf, bx: float, by: float) -> None:
+    """A horizontal 50 mm bar from (bx, by) and a vertical one left of it, each "must measure 50 mm"."""
+    pdf.set_draw_color(0, 0, 0)
+    pdf.set_fill_color(0, 0, 0)
+    pdf.rect(bx, by, SCALE_BAR_MM, 2.0, style="F")
+    vx, vy = bx - 12.0, by - 4.0 - SCALE_BAR_MM  # apart from the horizontal bar: each measures alone
+    pdf.rect(vx, vy, 2.0, SCALE_BAR_MM, style="F")
+    pdf.set_line_width(0.15)  # thin ticks: the bars' printed ends stay at 0 and 50 mm
+    for k in range(6):
+        pdf.line(bx + 10 * k, by - 1.5, bx + 10 * k, by + 3.5)
+        pdf.line(vx - 1.5, vy + 10 * k, vx + 3.5, vy + 10 * k)
+    pdf.set_font("helvetica", "B", 9)
+    pdf.set_xy(bx, by + 4)
+    pdf.cell(SCALE_BAR_MM, 5, "must measure 50 mm", align="C")
+    label_w = pdf.get_string_width("must measure 50 mm")
+    cx, cy = vx + 7.0, vy + SCALE_BAR_MM / 2
+    with pdf.rotation(90, cx, cy):  # reads bottom to top, beside the bar
+        pdf.text(cx - label_w / 2, cy + 1.2, "must measure 50 mm")
 
 
 def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
-    cols = [("#", 7), ("label", 34), ("region", 20), ("side", 7), ("from midline", 17),
-            ("vs nose tip", 18), ("depth", 17),
-            ("replaces: count, dense markers of its cluster", 66)]
-    row_h = 4.6
+    cols = [("#", 8), ("joint", 8), ("label", 31), ("region", 19), ("side", 6), ("from midline", 16),
+            ("vs nose tip", 16), ("depth", 16), ("replaces: count, dense markers of its cluster", 66)]
+    line_h = 3.4
     width, height = A4
-    rows = list(markers)
+    # pairs together (16L, 16R), in number order
+    rows = sorted(markers, key=lambda m: (int(m.name.rstrip("LRC")), m.name))
     first = True
     while rows or first:
         first = False
@@ -230,25 +336,44 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
         x = MARGIN
         for name, w in cols:
             pdf.set_xy(x, y)
-            pdf.cell(w, row_h, name, border="B")
+            pdf.cell(w, 4.6, name, border="B")
             x += w
-        y += row_h + 0.5
+        y += 5.1
         pdf.set_font("helvetica", "", 7)
-        while rows and y + row_h <= height - MARGIN:
-            m = rows.pop(0)
+        while rows:
+            m = rows[0]
             lateral, vertical, depth = _describe(m.from_nose)
-            shown = f"{len(m.replaces)}: " + ", ".join(m.replaces) if m.replaces else ""
-            values = [str(m.number), m.label, m.region, m.side, lateral, vertical, depth,
-                      shown or "-"]
+            shown = f"{len(m.replaces)}: " + ", ".join(m.replaces) if m.replaces else "-"
+            lines = _wrap(pdf, _ascii(shown), cols[-1][1] - 1)
+            row_h = line_h * len(lines) + 1.2
+            if y + row_h > height - MARGIN:
+                break
+            rows.pop(0)
+            values = [m.name, str(m.number), m.label, m.region, m.side, lateral, vertical, depth]
             r, g, b = (int(255 * c) for c in region_colour(m.region, tint=0.75))
             pdf.set_fill_color(r, g, b)
+            pdf.rect(MARGIN, y, sum(w for _, w in cols), row_h, style="F")
             x = MARGIN
             for (_, w), value in zip(cols, values):
-                pdf.set_xy(x, y)
-                text = _fit(pdf, _ascii(value), w - 1)
-                pdf.cell(w, row_h, text, fill=True)
+                pdf.set_xy(x, y + 0.6)
+                pdf.cell(w, line_h, _fit(pdf, _ascii(value), w - 1))
                 x += w
+            for i, line in enumerate(lines):
+                pdf.set_xy(x, y + 0.6 + i * line_h)
+                pdf.cell(cols[-1][1], line_h, line)
             y += row_h
+
+
+def _wrap(pdf, text: str, width: float) -> list[str]:
+    """``text`` broken after commas into lines of at most ``width`` mm in the current font."""
+    lines = [""]
+    for word in text.split(" "):
+        trial = f"{lines[-1]} {word}" if lines[-1] else word
+        if pdf.get_string_width(trial) <= width or not lines[-1]:
+            lines[-1] = trial
+        else:
+            lines.append(word)
+    return lines
 
 
 def _fit(pdf, text: str, width: float) -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import colorsys
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,7 @@ def cluster_shades(regions: list[str]) -> np.ndarray:
 
 
 def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndarray,
-                cluster_regions: list[str], marker_positions: np.ndarray, numbers: list[int],
+                cluster_regions: list[str], marker_positions: np.ndarray, numbers: Sequence[int | str],
                 path: str | os.PathLike[str], *, view: str = "front",
                 size: tuple[int, int] = (1050, 1200), force: bool = True) -> Path:
     """Render one view to a PNG and return its path.
@@ -68,7 +69,9 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndar
     cluster_regions : list of str, length C
         Facial region of each cluster.
     marker_positions : (C, 3) mm
-        Layout markers, same order as the clusters; ``numbers`` their guide numbers.
+        Layout markers, same order as the clusters; ``numbers`` their guide names. The view is
+        framed on the markers (the face), not the whole mesh (a production head has a neck,
+        ears, the back of the head).
     """
     import pyvista as pv
     from vtkmodules.vtkCommonCore import vtkLogger
@@ -88,14 +91,18 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, vertex_cluster: np.ndar
     plotter.set_background("white")
     plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True, ambient=0.35,
                      diffuse=0.7, specular=0.0)
-    centre = np.asarray(vertices).mean(axis=0)
+    markers = np.asarray(marker_positions, float)
+    centre = (markers.min(axis=0) + markers.max(axis=0)) / 2
     extent = float(np.ptp(vertices, axis=0).max())
+    right = np.cross(np.asarray(up, float), np.asarray(direction, float))
+    half_h = np.ptp(markers @ np.asarray(up, float)) / 2
+    half_w = np.ptp(markers @ right) / 2
+    plotter.enable_parallel_projection()
     plotter.camera.focal_point = centre
     plotter.camera.position = centre + np.asarray(direction) * extent * 4.0
     plotter.camera.up = up
-    plotter.enable_parallel_projection()
-    plotter.reset_camera()
-    plotter.camera.zoom(1.15)
+    plotter.camera.parallel_scale = 1.2 * max(half_h, half_w * size[1] / size[0]) + 8.0  # mm margin
+    plotter.reset_camera_clipping_range()
     image = plotter.screenshot(return_img=True)
     pixels = _display_points(plotter, marker_positions, image.shape[0])
     plotter.close()

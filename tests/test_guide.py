@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
 import subprocess
@@ -86,3 +87,91 @@ def test_one_to_one_page_scale_bar_is_50_mm(guide):
         edges = np.flatnonzero(np.diff(padded))
         runs.extend(edges[1::2] - edges[0::2])
     assert max(runs) == pytest.approx(500, abs=3)  # 50 mm at 10 px/mm
+
+
+def test_pair_names_share_a_number_with_the_side():
+    from mocaptk.retarget.guide import pair_names
+
+    labels = ["A_L", "MID_C", "B_L", "A_R", "B_R"]
+    names = pair_names(labels, ["L", "C", "L", "R", "R"], [None, None, None, "A_L", "B_L"])
+    assert names == ["1L", "2", "3L", "1R", "3R"]
+
+
+def label_overlaps(boxes: np.ndarray, dots: np.ndarray, radius: float) -> int:
+    """Pairs of label boxes that overlap, plus labels that cover a marker dot."""
+    n = 0
+    for i in range(len(boxes)):
+        a = boxes[i]
+        for b in boxes[i + 1:]:
+            n += a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+        near = np.clip(dots, a[:2], a[2:])  # nearest point of the box to every dot
+        n += int((np.linalg.norm(near - dots, axis=1) < radius).sum())
+    return n
+
+
+def test_labels_never_overlap_on_the_dense_sample():
+    """The 139 dense markers of the sample (~1 cm apart, far more crowded than a layout): the old
+    fixed offset (up-right of the dot) overlaps; the placer leaves no label on a label or a dot."""
+    from conftest import SAMPLES
+
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.retarget.guide import DOT_MM, place_labels
+
+    traj = read_trajectories(SAMPLES / "dense_halfface.c3d")
+    neutral = traj.positions[0]
+    keep = np.isfinite(neutral).all(axis=1)
+    dots = np.column_stack([neutral[keep, 0], -neutral[keep, 1]])  # page: y down
+    names = [f"{k + 1}{'L' if x > 2 else ''}" for k, x in enumerate(neutral[keep, 0])]
+    sizes = np.array([(1.35 * len(n) + 0.4, 2.2) for n in names])
+    old = np.column_stack([dots + [1.4, -3.4], dots + [1.4, -3.4] + sizes])
+    assert label_overlaps(old, dots, DOT_MM) > 10
+    boxes, leader = place_labels(dots, sizes)
+    assert label_overlaps(boxes, dots, DOT_MM) == 0
+    reach = np.linalg.norm(np.clip(dots, boxes[:, :2], boxes[:, 2:]) - dots, axis=1)
+    assert reach.max() < 30 and leader.sum() < len(dots) / 2  # most labels stay beside their dot
+
+
+def test_one_to_one_page_labels_do_not_overlap_in_the_pdf(guide):
+    folder, pdf, rows = guide
+    if shutil.which("pdftotext") is None:
+        pytest.skip("poppler-utils (pdftotext) not installed")
+    html = subprocess.run(["pdftotext", "-bbox", "-f", "3", "-l", "3", str(pdf), "-"], capture_output=True,
+                          text=True, check=True).stdout
+    names = {r.name for r in rows}
+    words = [(float(a), float(b), float(c), float(d)) for a, b, c, d, w in re.findall(
+        r'xMin="([\d.]+)" yMin="([\d.]+)" xMax="([\d.]+)" yMax="([\d.]+)">([^<]+)<', html) if w in names]
+    assert len(words) == len(rows)
+    boxes = np.array(words)
+    assert label_overlaps(boxes, np.empty((0, 2)), 0.0) == 0
+
+
+def test_one_to_one_page_vertical_scale_bar_is_50_mm(guide):
+    folder, pdf, _ = guide
+    if shutil.which("pdftoppm") is None:
+        pytest.skip("poppler-utils (pdftoppm) not installed")
+    import matplotlib.image as mpimg
+
+    subprocess.run(["pdftoppm", "-png", "-r", "254", "-f", "3", "-l", "3", str(pdf),
+                    str(folder / "vscale")], check=True)
+    image = mpimg.imread(next(folder.glob("vscale-*.png")))[..., :3].mean(axis=2)
+    dark = image < 0.2
+    runs = []
+    for column in dark[:, : dark.shape[1] // 4].T:  # the vertical bar is at the left
+        padded = np.concatenate([[0], column.astype(int), [0]])
+        edges = np.flatnonzero(np.diff(padded))
+        runs.extend(edges[1::2] - edges[0::2])
+    assert max(runs) == pytest.approx(500, abs=3)
+
+
+def test_replaces_column_wraps_instead_of_cutting(tmp_path, guide):
+    folder, _, rows = guide
+    many = tuple(f"DENSE_MARKER_{k:02d}_L" for k in range(40))
+    first = dataclasses.replace(rows[0], replaces=many)
+    pdf = write_guide_pdf(tmp_path / "g.pdf", [first, *rows[1:]], front_png=folder / "front.png",
+                          profile_png=folder / "profile.png", outline=np.array([r.position for r in rows]),
+                          title="wrap")
+    if shutil.which("pdftotext") is None:
+        pytest.skip("poppler-utils (pdftotext) not installed")
+    text = subprocess.run(["pdftotext", "-f", "4", "-l", "4", str(pdf), "-"], capture_output=True,
+                          text=True, check=True).stdout
+    assert "..." not in text and all(label in text for label in many)
