@@ -57,6 +57,7 @@ def test_report_data_matches_the_layout(planted_reports):
     assert data["format"] == "mocaptk.report" and data["version"] == 1 and data["kind"] == "cluster"
     assert [c["label"] for c in data["clusters"]] == layout["layout"]
     assert [c["number"] for c in data["clusters"]] == list(range(1, len(layout["layout"]) + 1))
+    assert all(c["name"].rstrip("LR").isdigit() for c in data["clusters"])  # as in guide.pdf
     labels = data["markers"]["labels"]
     for cluster, source in zip(data["clusters"], layout["clusters"]):
         assert [labels[m] for m in cluster["members"]] == source["members"]

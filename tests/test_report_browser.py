@@ -72,7 +72,11 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     assert len(points) == len(layout["clusters"]) == len(layout["layout"])
     numbers = browser.evaluate("document.getElementById('scene').data"
                                ".find(d => d.name === 'layout markers').text")
-    assert sorted(map(int, numbers)) == list(range(1, len(layout["clusters"]) + 1))
+    from mocaptk.retarget.guide import pair_names  # named as in guide.pdf: 16L / 16R pairs
+
+    names = pair_names(layout["layout"], [c["side"] for c in layout["clusters"]],
+                       [c["mirrored_from"] for c in layout["clusters"]])
+    assert sorted(numbers) == sorted(names) and len(set(numbers)) == len(numbers)
 
     # the time slider moves the markers (read back from plotly's trace data) exactly as recorded:
     # the sample is head-relative (not stabilized), so |p(t) - p(0)| must match the C3D's

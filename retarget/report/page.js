@@ -82,7 +82,7 @@
   function shownLayout() {
     const map = state.colour >= 0 ? errors[state.colour] : null;
     if (map && map.layout) return map.layout.map(function (m, k) { return {marker: m, number: k + 1}; });
-    return clusters.map(function (c) { return {marker: c.marker, number: c.number, cluster: c}; });
+    return clusters.map(function (c) { return {marker: c.marker, number: c.name, cluster: c}; });
   }
 
   function fmt(v, digits) { return v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toFixed(digits); }
@@ -120,7 +120,7 @@
     const k = clusterOfMarker[i];
     if (k >= 0) {
       const c = clusters[k];
-      lines.push("replaced by #" + c.number + " " + c.label + " · member correlation " + fmt(M.correlation[i], 2));
+      lines.push("replaced by #" + c.name + " " + c.label + " · member correlation " + fmt(M.correlation[i], 2));
     }
     if (M.mirror_of[i] >= 0) lines.push("mirrored from " + M.labels[M.mirror_of[i]]);
     const e = errorOf(i);

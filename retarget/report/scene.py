@@ -17,6 +17,7 @@ from mocaptk.clustering.layout import Layout
 from mocaptk.clustering.symmetry import mirror_label
 
 from ..build import DenseCloud, RigBuild
+from ..guide import pair_names
 from ..renders import cluster_shades, region_colour
 
 __all__ = ["MAX_REPLAY_HZ", "REPLAY_BUDGET_BYTES", "hex_colour", "replay_clips", "replay_step",
@@ -92,13 +93,15 @@ def scene_data(cloud: DenseCloud, *, layout: Layout | None = None, build: RigBui
     lookup = {label: i for i, label in enumerate(labels)}
     if layout is not None:
         shades = cluster_shades([c.region for c in layout.clusters])
+        names = pair_names([c.representative for c in layout.clusters], [c.side for c in layout.clusters],
+                           [c.mirrored_from for c in layout.clusters])
         for k, c in enumerate(layout.clusters):
             for m in c.members:
                 region_of.setdefault(m, c.region)
                 if m in lookup:
                     cluster_of[lookup[m]] = k
                     correlation[lookup[m]] = c.member_correlation.get(m)
-            clusters.append({"number": k + 1, "label": c.representative, "region": c.region,
+            clusters.append({"number": k + 1, "name": names[k], "label": c.representative, "region": c.region,
                              "side": c.side, "marker": lookup[c.representative],
                              "members": [lookup[m] for m in c.members if m in lookup],
                              "mirrored_from": c.mirrored_from, "shade": hex_colour(shades[k]),
