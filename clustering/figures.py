@@ -116,7 +116,7 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
     """Front view of the markers coloured by region."""
     plt = _pyplot()
     cmap = plt.get_cmap("tab10")
-    fig, ax = plt.subplots(figsize=(8, 9))
+    fig, ax = plt.subplots(figsize=(8, 9), layout="constrained")  # room for the legend and both labels
     for k, (name, members) in enumerate(regions.items()):
         pts = np.array([neutral[m] for m in members if m in neutral])
         if pts.size:
@@ -127,7 +127,6 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
     ax.set_xlabel("lateral (mm, + = subject's left)")
     ax.set_ylabel("up (mm)")
     ax.set_title("regions (front view)")
-    fig.tight_layout()
     return _save(fig, path)
 
 
