@@ -106,8 +106,12 @@ def test_toggles_hide_and_show_markers_and_hover_tells_the_cluster(sample_report
     layout = json.loads((sample_report / "layout.json").read_text())
     hover = browser.evaluate("document.getElementById('scene').data"
                              ".find(d => d.name === 'layout markers').hovertext")
-    for number, (text, cluster) in enumerate(zip(hover, layout["clusters"]), start=1):
-        assert text.startswith(f"<b>#{number} {cluster['representative']}</b>")
+    from mocaptk.retarget.guide import pair_names  # named as in guide.pdf: 16L / 16R pairs
+
+    names = pair_names(layout["layout"], [c["side"] for c in layout["clusters"]],
+                       [c["mirrored_from"] for c in layout["clusters"]])
+    for name, text, cluster in zip(names, hover, layout["clusters"]):
+        assert text.startswith(f"<b>#{name} {cluster['representative']}</b>")
         assert f"region {cluster['region']} · side {cluster['side']}" in text
         replaced = [m for m in cluster["members"] if m != cluster["representative"]]
         assert f"replaces {len(replaced)} marker" in text
