@@ -10,6 +10,7 @@ import typer
 
 from ..errors import OptionError
 from .app import app
+from .options import Quiet
 
 COMMAND_NAMES = "cluster, evaluate, compare, info"
 
@@ -34,7 +35,7 @@ def batch(
                                           help="Give up on --scheduler if it does not answer within S s."),
     force: bool = typer.Option(False, "--force", help="Redo sessions whose inputs did not change and "
                                "whose outputs are complete (default: skip them)."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress bar and no table on screen."),
+    quiet: Quiet = False,
 ) -> None:
     """Run cluster / evaluate / compare / info on every matching session (Dask; failures isolated).
 
