@@ -31,6 +31,10 @@ MESH_NAME = "face_mesh"
 
 # Fixed object ids: files are deterministic and ids stay readable in a dump.
 _GEOMETRY_ID, _MESH_MODEL_ID, _SKIN_ID, _POSE_ID, _DOCUMENT_ID = 1000, 1001, 1002, 1003, 1004
+_MATERIAL_ID = 1005
+MATERIAL_NAME = "face_skin"
+#: Diffuse colour of the one material (linear RGB; a neutral skin tone).
+SKIN_COLOUR = (0.80, 0.62, 0.52)
 _JOINT_MODEL_BASE, _ATTRIBUTE_BASE, _CLUSTER_BASE = 100_000, 200_000, 300_000
 _ANIMATION_BASE = 1_000_000  # stacks, layers, curve nodes and curves: counted up from here
 #: FBX time units per second (KTime).
@@ -159,7 +163,7 @@ def _documents(active_stack: str) -> Node:
 def _definitions(rig: Rig, anim: _Animation | None) -> Node:
     joints = rig.joint_count
     counts = [("GlobalSettings", 1), ("Geometry", 1), ("Model", 1 + joints),
-              ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1)]
+              ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1), ("Material", 1)]
     if anim is not None:
         counts += list(anim.counts.items())
     node = Node("Definitions", [], [Node("Version", [100]),
@@ -176,7 +180,8 @@ def _definitions(rig: Rig, anim: _Animation | None) -> Node:
 
 def _objects(rig: Rig) -> Node:
     world_cm = rig.joint_positions * MM_TO_CM
-    objects = Node("Objects", [], [_geometry(rig), _model(_MESH_MODEL_ID, MESH_NAME, "Mesh")])
+    objects = Node("Objects", [], [_geometry(rig), _model(_MESH_MODEL_ID, MESH_NAME, "Mesh"),
+                                   _material()])
     for joint, name in enumerate(rig.joint_names):
         parent = int(rig.joint_parents[joint])
         local = world_cm[joint] - (world_cm[parent] if parent >= 0 else 0.0)
@@ -241,17 +246,37 @@ def _geometry(rig: Rig) -> Node:
         Node("ReferenceInformationType", ["Direct"]),
         Node("Normals", [rig.vertex_normals().astype(np.float64)]),
     ])
-    layer = Node("Layer", [0], [
-        Node("Version", [100]),
-        Node("LayerElement", [], [Node("Type", ["LayerElementNormal"]), Node("TypedIndex", [0])]),
+    uv = Node("LayerElementUV", [0], [
+        Node("Version", [101]), Node("Name", ["UVMap"]),
+        Node("MappingInformationType", ["ByVertice"]),
+        Node("ReferenceInformationType", ["Direct"]),
+        Node("UV", [rig.uv().astype(np.float64)]),
     ])
+    material = Node("LayerElementMaterial", [0], [
+        Node("Version", [101]), Node("Name", [""]),
+        Node("MappingInformationType", ["AllSame"]),
+        Node("ReferenceInformationType", ["IndexToDirect"]),
+        Node("Materials", [np.zeros(1, dtype=np.int32)]),
+    ])
+    layer = Node("Layer", [0], [Node("Version", [100])] + [
+        Node("LayerElement", [], [Node("Type", [kind]), Node("TypedIndex", [0])])
+        for kind in ("LayerElementNormal", "LayerElementMaterial", "LayerElementUV")])
     return Node("Geometry", [Int64(_GEOMETRY_ID), f"{MESH_NAME}\x00\x01Geometry", "Mesh"], [
         Node("Properties70"),
         Node("GeometryVersion", [124]),
         Node("Vertices", [rig.vertices.astype(np.float64) * MM_TO_CM]),
         Node("PolygonVertexIndex", [polygon_index]),
-        normals, layer,
+        normals, uv, material, layer,
     ])
+
+
+def _material() -> Node:
+    """The one material of the mesh: Lambert, skin-coloured."""
+    return Node("Material", [Int64(_MATERIAL_ID), f"{MATERIAL_NAME}\x00\x01Material", ""], [
+        Node("Version", [102]), Node("ShadingModel", ["lambert"]), Node("MultiLayer", [0]),
+        Node("Properties70", [], [
+            _p("DiffuseColor", "Color", "", "A", *SKIN_COLOUR),
+            _p("DiffuseFactor", "Number", "", "A", 1.0)])])
 
 
 def _model(model_id: int, name: str, kind: str, *, translation: np.ndarray | None = None,
@@ -274,7 +299,8 @@ def _model(model_id: int, name: str, kind: str, *, translation: np.ndarray | Non
 
 def _links(rig: Rig) -> list[tuple]:
     """Object-object connections ``("OO", child id, parent id)`` of the rig."""
-    links = [(_MESH_MODEL_ID, 0), (_GEOMETRY_ID, _MESH_MODEL_ID), (_SKIN_ID, _GEOMETRY_ID)]
+    links = [(_MESH_MODEL_ID, 0), (_GEOMETRY_ID, _MESH_MODEL_ID), (_SKIN_ID, _GEOMETRY_ID),
+             (_MATERIAL_ID, _MESH_MODEL_ID)]
     for joint in range(rig.joint_count):
         parent = int(rig.joint_parents[joint])
         model = _JOINT_MODEL_BASE + joint

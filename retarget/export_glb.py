@@ -21,6 +21,7 @@ from mocaptk import __version__
 from mocaptk.atomic import write_bytes
 
 from .bake import RigAnimation
+from .export_fbx import SKIN_COLOUR
 from .rig import Rig
 
 #: Millimetres to glTF metres.
@@ -29,7 +30,7 @@ MESH_NAME = "face_mesh"
 # glTF 2.0 enumerations (bufferView targets, accessor component types, primitive mode).
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _COMPONENT = {np.dtype(np.float32): 5126, np.dtype(np.uint16): 5123, np.dtype(np.uint32): 5125}
-_TYPE = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
+_TYPE = {1: "SCALAR", 2: "VEC2", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
 _TRIANGLES = 4
 
 
@@ -51,7 +52,10 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
     vertices = (rig.vertices * MM_TO_M).astype(np.float32)
     attributes = pygltflib.Attributes(
         POSITION=builder.add(vertices, target=_ARRAY_BUFFER, bounds=True),
-        NORMAL=builder.add(rig.vertex_normals().astype(np.float32), target=_ARRAY_BUFFER))
+        NORMAL=builder.add(rig.vertex_normals().astype(np.float32), target=_ARRAY_BUFFER),
+        # glTF's V runs down the image: flip the rig's V-up projection
+        TEXCOORD_0=builder.add((rig.uv() * (1.0, -1.0) + (0.0, 1.0)).astype(np.float32),
+                               target=_ARRAY_BUFFER))
     slots = 4 * -(-rig.max_influences // 4)
     joints = np.zeros((rig.vertex_count, slots), dtype=np.uint16)
     weights = np.zeros((rig.vertex_count, slots), dtype=np.float32)
@@ -90,7 +94,9 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
             {"frames_per_second": animation.rate} if animation is not None else None))],
         nodes=nodes,
         meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
-            attributes=attributes, indices=indices, mode=_TRIANGLES)])],
+            attributes=attributes, indices=indices, mode=_TRIANGLES, material=0)])],
+        materials=[pygltflib.Material(name="face_skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+            baseColorFactor=[*SKIN_COLOUR, 1.0], metallicFactor=0.0, roughnessFactor=0.6))],
         skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
                               joints=[1 + j for j in range(rig.joint_count)])],
         animations=[pygltflib.Animation(**a) for a in animations],

@@ -166,6 +166,15 @@ class Rig:
         normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
         return normals
 
+    def uv(self) -> np.ndarray:
+        """Texture coordinates (V, 2) in [0, 1]: the front (X, Y) projection of the mesh scaled
+        to its bounding square, U towards +X, V up (one chart, no seams: a face seen from the
+        front)."""
+        xy = self.vertices[:, :2]
+        low = xy.min(axis=0)
+        size = max(float(np.ptp(xy, axis=0).max()), 1e-12)
+        return (xy - low) / size
+
     def dense_weights(self) -> np.ndarray:
         """Weights as a dense ``(V, J)`` float64 matrix."""
         dense = np.zeros((self.vertex_count, self.joint_count))

@@ -52,7 +52,7 @@ def test_structure_the_fbx_sdk_needs(exported):
               for o in root.first("Definitions").find("ObjectType")}
     joints = rig.joint_count
     assert counts == {"GlobalSettings": 1, "Geometry": 1, "Model": 1 + joints,
-                      "NodeAttribute": joints, "Deformer": 1 + joints, "Pose": 1}
+                      "NodeAttribute": joints, "Deformer": 1 + joints, "Pose": 1, "Material": 1}
 
     objects = root.first("Objects")
     models = objects.find("Model")
@@ -82,7 +82,12 @@ def test_structure_the_fbx_sdk_needs(exported):
         np.testing.assert_array_equal(cluster.first("Weights").props[0], weights)
     pose = objects.first("Pose")
     assert pose.props[2] == "BindPose" and pose.first("NbPoseNodes").props == [1 + joints]
-    assert len(root.first("Connections").find("C")) == 3 + 4 * joints
+    assert len(root.first("Connections").find("C")) == 4 + 4 * joints
+    # UVs (front projection into [0, 1]) and one material
+    uv = geometry.first("LayerElementUV").first("UV").props[0].reshape(-1, 2)
+    np.testing.assert_allclose(uv, rig.uv())
+    assert uv.min() == 0.0 and uv.max() == 1.0
+    assert [m.props[1].split("\x00")[0] for m in objects.find("Material")] == ["face_skin"]
 
 
 def _dense_from_clusters(rig, clusters: dict) -> np.ndarray:

@@ -40,6 +40,8 @@ def test_read_back(exported):
     attributes = glb.gltf.meshes[0].primitives[0].attributes
     assert (getattr(attributes, "JOINTS_1", None) is not None) == (rig.max_influences > 4)
     assert glb.gltf.nodes[0].name == "face_mesh" and glb.gltf.nodes[0].skin == 0
+    assert attributes.TEXCOORD_0 is not None and glb.gltf.meshes[0].primitives[0].material == 0
+    assert [m.name for m in glb.gltf.materials] == ["face_skin"]
 
 
 def test_khronos_validator_is_clean(exported):
