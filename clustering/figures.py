@@ -76,9 +76,27 @@ def _ordered_cells(matrix: np.ndarray, order: np.ndarray, cells: int) -> np.ndar
     return sums / sizes[:, None] / sizes[None, :]
 
 
+#: Front-view coordinates beyond this (mm) are not drawn: matplotlib's transforms overflow or turn
+#: singular on them (10 km is no face; such a session got its warning before).
+PLOT_LIMIT_MM = 1e7
+
+
 def _front(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(lateral, up) coordinates: a front view of the face."""
-    return points @ frame[:2].T
+    """(lateral, up) coordinates ``(N, 2)``: a front view of the face; NaN (not drawn) for points
+    that are not finite or lie beyond :data:`PLOT_LIMIT_MM`."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        xy = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ np.asarray(frame)[:2].T
+        xy[~(np.abs(xy) < PLOT_LIMIT_MM).all(axis=1)] = np.nan
+    return xy
+
+
+def _legend_text(name: str, *, width: int = 40) -> str:
+    """A name matplotlib draws without warnings: control characters, undecodable bytes (surrogates)
+    and scripts beyond its DejaVu font escaped, not starting with ``_`` (hidden from legends), at
+    most ``width`` characters."""
+    text = "".join(c if c.isprintable() and ord(c) < 0x2000 else f"\\u{ord(c):04x}" for c in name)
+    text = text if len(text) <= width else text[:width - 1] + "..."
+    return f" {text}" if text.startswith("_") or not text else text
 
 
 def layout_picture(layout: Layout, neutral: Mapping[str, np.ndarray], *, frame: np.ndarray,
@@ -121,7 +139,7 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
         pts = np.array([neutral[m] for m in members if m in neutral])
         if pts.size:
             xy = _front(pts, frame)
-            ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{name} ({len(pts)})")
+            ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{_legend_text(name)} ({len(pts)})")
     ax.set_aspect("equal")
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)  # off the markers
     ax.set_xlabel("lateral (mm, + = subject's left)")

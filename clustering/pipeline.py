@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputFileError, OptionError
+from ..errors import InputFileError, OptionError, source_error
 from ..trajectories import Take, Trajectories
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
@@ -105,8 +105,9 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tupl
     return (result.trajectories if applied else traj), report
 
 
-def check_options(options: ClusterOptions, n_frames: int) -> None:
-    """Reject a factor <= 0 and a step outside 1..frames-1 (OptionError)."""
+def check_options(options: ClusterOptions, n_frames: int, *, source: str | None = None) -> None:
+    """Reject a factor <= 0 and a step outside 1..frames-1 (OptionError; naming the session file
+    ``source`` when the step does not fit its frames)."""
     if not options.factor > 0:
         raise OptionError(f"--factor must be > 0, got {options.factor}")
     if options.step < 1:
@@ -114,7 +115,7 @@ def check_options(options: ClusterOptions, n_frames: int) -> None:
     if options.rigid is not None and not options.stabilize:
         raise OptionError(RIGID_WITHOUT_STABILIZING)
     if options.step >= n_frames:
-        raise OptionError(f"--step {options.step} is not smaller than the session's {n_frames} frames")
+        raise source_error(source, f"--step {options.step} is not smaller than the session's {n_frames} frames")
 
 
 def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOptions(),
@@ -132,7 +133,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     progress : callable, optional
         Called with a short description as each region is processed.
     """
-    check_options(options, traj.n_frames)
+    file = traj.metadata.get("source")  # errors about the session's data name it
+    check_options(options, traj.n_frames, source=file)
     notes: list[str] = []
     # unusable markers: never seen
     seen = np.isfinite(traj.positions).all(axis=2).any(axis=0)
@@ -142,7 +144,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
                      + ", ".join(excluded[:8]) + (" ..." if len(excluded) > 8 else ""))
         traj = traj.select([label for label, ok in zip(traj.labels, seen) if ok])
     if traj.n_markers < 2:
-        raise OptionError(f"need at least 2 markers with data, the session has {traj.n_markers}")
+        raise source_error(file, f"need at least 2 markers with data, the session has {traj.n_markers}")
     stabilization: dict[str, Any] = {}
     if options.stabilize:
         if progress:
@@ -183,8 +185,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         idx = np.array([index[m] for m in regions[name]], dtype=np.intp)
         frames = sample_frames(segments[name], options.step)
         if frames.size < MIN_SAMPLES:
-            raise OptionError(f"region {name!r}: only {frames.size} frames sampled with --step "
-                              f"{options.step}; use a smaller step")
+            raise source_error(file, f"region {name!r}: only {frames.size} frames sampled with --step "
+                                     f"{options.step}; use a smaller step")
         region_disp = max_displacement(traj.positions[all_frames(segments[name])][:, idx], neutral[idx])
         corr = consolidated_correlation(traj.positions[frames][:, idx])
         static = [regions[name][i] for i in np.flatnonzero(corr.static)]

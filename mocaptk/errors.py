@@ -49,3 +49,9 @@ def unreadable(path: str | os.PathLike[str], exc: OSError) -> InputFileError:
     else:
         problem = f"cannot read ({exc.strerror or exc})"
     return InputFileError(path, problem)
+
+
+def source_error(source: str | os.PathLike[str] | None, problem: str) -> MocaptkError:
+    """A problem of data read from ``source``: :class:`InputFileError` naming the file, or
+    :class:`OptionError` for data that came from no file (library callers)."""
+    return InputFileError(source, problem) if source else OptionError(problem)

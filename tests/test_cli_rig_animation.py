@@ -125,8 +125,12 @@ def test_blender_plays_the_baked_animation(moving, name):
 
 def test_coincident_markers_build_a_rig(tmp_path):
     """Two markers at the same place (pyomeca's STER/STERr) no longer crash the surface step."""
+    from mocaptk.acquisition.formats import read_trajectories
+
     trc = shared_path("csv_trc", "pyomeca", "markers.trc")
-    _run("cluster", trc, "--out", tmp_path / "o", "--formats", "json", "--quiet")
+    regions = tmp_path / "regions.json"  # a body capture: clustered only with explicit regions
+    regions.write_text(json.dumps({"body": list(read_trajectories(trc, strip_prefixes=True).labels)}))
+    _run("cluster", trc, "--regions", regions, "--out", tmp_path / "o", "--formats", "json", "--quiet")
     report = json.loads((tmp_path / "o" / "rig_report.json").read_text())
     assert np.isfinite(report["skinning_check"]["rmse_mm"])
 

@@ -86,6 +86,8 @@ def f(tmp_path_factory) -> dict[str, Path]:
             (d / name).write_text(text, encoding="utf-8")
     (d / "latin1.trc").write_bytes("\n".join(trc).replace("\tA\t", "\tÄ\t").encode("latin-1"))
     (d / "regions_latin1.csv").write_bytes("label,region\nNOSE_01_C,fr\u00e9nt\n".encode("latin-1"))
+    body = np.array([[0, 0, 0], [0, 1200, 0], [200, 600, 0], [-200, 600, 0]], float)[None] + np.zeros((30, 1, 3))
+    write_trajectories(Trajectories(body, ["LASI", "RKNE", "LANK", "RSHO"], 100.0), d / "body.trc")
     (d / "utf16.trc").write_bytes("\n".join(trc).encode("utf-16"))
     (d / "label_long.trc").write_text("\n".join(trc[:3] + [trc[3].replace("\tA\t", "\t" + "A" * 300 + "\t")]
                                                 + trc[4:]))
@@ -198,6 +200,12 @@ CATALOGUE = [
     # -- cluster / sweep / evaluate inputs and options
     ("E-CLU-FACTOR", lambda f: ["cluster", S(f), "--factor", "0", "--out", f["dir"] / "o1"], "--factor must be > 0"),
     ("E-CLU-STEP", lambda f: ["cluster", S(f), "--step", "0", "--out", f["dir"] / "o2"], "--step must be >= 1"),
+    ("E-CLU-NODATA", lambda f: ["cluster", FUZZ / "cluster_no_data.trc", "--out", f["dir"] / "om"],
+     "{file}: need at least 2 markers with data, the session has 0"),
+    ("E-CLU-SAMPLES", lambda f: ["cluster", FUZZ / "cluster_short_take.csv", "--no-stabilize", "--out", f["dir"] / "on"],
+     "{file}: region 'forehead_brow': only 1 frames sampled with --step 5; use a smaller step"),
+    ("E-CLU-NOT-FACE", lambda f: ["cluster", f["body.trc"], "--out", f["dir"] / "oo"],
+     "{file}: not a face capture: it spans 1.2 m (a face is 100-250 mm); 4 of its 4 labels name body"),
     ("E-CLU-STEP-BIG", lambda f: ["cluster", S(f), "--step", "100000", "--out", f["dir"] / "o3"],
      "is not smaller than the session's"),
     ("E-CLU-METHOD", lambda f: ["cluster", S(f), "--method", "magic", "--out", f["dir"] / "o4"], "unknown --method 'magic'"),

@@ -34,6 +34,7 @@ EXPECT = {
     "trc_wide_row.trc": "a table of 3,000 rows x 1,000,007 columns, but the file holds only",
     "trc_inf_cells.trc": "loaded",  # inf / -1e309 cells were values, not gaps
     "utf16_column.csv": "not UTF-8 text (UTF-16",  # was "binary content that is not C3D"
+    "cluster_no_data.trc": "loaded", "cluster_one_frame.trc": "loaded", "cluster_short_take.csv": "loaded",
 }
 
 
@@ -205,3 +206,20 @@ def test_cluster_option_reproducers_fail_in_one_line(run_cli, tmp_path, name):
 
 def test_cluster_option_reproducers_are_all_checked():
     assert sorted(p.name for p in (FUZZ / "cluster_options").iterdir()) == sorted(OPTION_CASES)
+
+
+#: sessions whose cluster errors did not name the file -> fragment of the one-line error
+SESSION_CASES = {
+    "cluster_no_data.trc": "need at least 2 markers with data, the session has 0",
+    "cluster_one_frame.trc": "--step 5 is not smaller than the session's 1 frames",
+    "cluster_short_take.csv": "region 'forehead_brow': only 1 frames sampled with --step 5; use a smaller step",
+}
+
+
+@pytest.mark.parametrize("name", sorted(SESSION_CASES))
+def test_cluster_errors_about_the_session_name_it(run_cli, tmp_path, name):
+    session = FUZZ / name
+    result = run_cli("cluster", session, "--no-stabilize", "--out", tmp_path / "o", "--formats", "none")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and "Traceback" not in result.stderr, result.stderr[-800:]
+    assert lines[-1] == f"mocaptk: error: {session}: {SESSION_CASES[name]}", lines

@@ -29,6 +29,24 @@ def default_out_dir(session: Path) -> Path:
     return session.with_name(f"{session.stem}_layout")
 
 
+def warn_unless_face(traj, session: Path, *, regions_given: bool) -> None:
+    """Refuse a session that is no face capture (a warning only with ``--regions``); warn when its
+    size says the units are wrong (see clustering/sanity.py)."""
+    from ..clustering.sanity import check_session
+    from ..errors import InputFileError
+
+    check = check_session(traj)
+    if check.not_a_face:
+        problem = (f"not a face capture: {check.not_a_face}; cluster lays out facial markers (regions, "
+                   "sides and guide assume a face): give a facial session, or --regions FILE to cluster "
+                   "these markers anyway")
+        if not regions_given:
+            raise InputFileError(session, problem)
+        print(f"mocaptk: warning: {session}: {problem}", file=sys.stderr)
+    if check.units_warning:
+        print(f"mocaptk: warning: {session}: {check.units_warning}", file=sys.stderr)
+
+
 def summary_text(result) -> str:
     """Short text summary: markers per region (measured + mirrored), total, notes, warnings."""
     from ..clustering.pipeline import stabilization_note
@@ -133,6 +151,7 @@ def cluster(
         from ..errors import OptionError
         raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
     traj, source = load_session(session, rate=rate, units=units)
+    warn_unless_face(traj, session, regions_given=regions is not None)
     options = ClusterOptions(
         factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror, rigid=rigid_labels(rigid),
         regions=read_regions(regions, traj.labels) if regions else None,
