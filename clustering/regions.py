@@ -118,14 +118,26 @@ def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: 
     (highest), ``v`` = |lateral offset from the median lateral position| / face height. Bands:
     u >= 0.75 forehead_brow; 0.55-0.75: nose if v < 0.1, eye if v < 0.35, else cheek;
     0.35-0.55: nose if v < 0.12, else cheek; 0.15-0.35: mouth if v < 0.25, else cheek;
-    u < 0.15 chin. Markers with a NaN neutral position are left out.
+    u < 0.15 chin. Mirror pairs named by the labels (``CL4``/``CR4``, see
+    :func:`~mocaptk.clustering.symmetry.label_pairs`) share their mean (u, v), so regions are
+    symmetric, and the midline lies halfway between them. Markers with a NaN neutral position are
+    left out.
     """
+    from .symmetry import label_pairs
+
     valid = np.isfinite(neutral).all(axis=1)
     frame = face_frame(neutral[valid], displacement[valid])
     local = (neutral[valid] - neutral[valid].mean(axis=0)) @ frame.T
     height = np.ptp(local[:, 1]) or 1.0
     u = (local[:, 1] - local[:, 1].min()) / height
-    v = np.abs(local[:, 0] - np.median(local[:, 0])) / height
+    position = np.cumsum(valid) - 1  # index among the valid markers
+    pairs = [(position[i], position[j]) for i, j in label_pairs(labels) if valid[i] and valid[j]]
+    # midline: halfway between named mirror pairs (else the median); a pair shares its region
+    mid = np.mean([(local[i, 0] + local[j, 0]) / 2 for i, j in pairs]) if pairs else np.median(local[:, 0])
+    v = np.abs(local[:, 0] - mid) / height
+    for i, j in pairs:
+        u[i] = u[j] = (u[i] + u[j]) / 2
+        v[i] = v[j] = (v[i] + v[j]) / 2
     names = np.select(
         [u >= 0.75,
          (u >= 0.55) & (v < 0.1), (u >= 0.55) & (v < 0.35), u >= 0.55,

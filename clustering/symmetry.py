@@ -33,6 +33,21 @@ def mirror_label(label: str) -> str:
     return f"{label}_mirror"
 
 
+def label_pairs(labels: Sequence[str]) -> list[tuple[int, int]]:
+    """Mirror pairs named by the labels: ``(left index, right index)`` for labels equal but for one
+    ``L`` ↔ ``R`` (``CL4``/``CR4``, ``MOUTH_03_L``/``MOUTH_03_R``, ``LEyeOuter``/``REyeOuter``)."""
+    index = {label: i for i, label in enumerate(labels)}
+    pairs = []
+    for i, label in enumerate(labels):
+        for k, char in enumerate(label):
+            if char in "Ll":
+                partner = index.get(label[:k] + ("R" if char == "L" else "r") + label[k + 1:])
+                if partner is not None:
+                    pairs.append((i, partner))
+                    break
+    return pairs
+
+
 def is_half_capture(labels: Sequence[str]) -> bool:
     """True when side tags show one half of the face plus midline markers (L or R, not both, and C)."""
     tags = {side_tag(label) for label in labels}
@@ -122,7 +137,8 @@ def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displace
     """Sagittal plane of a neutral pose ``(M, 3)`` mm.
 
     Through the ``_C``-tagged midline markers when there are at least 2 (normal toward the ``_L``
-    markers, away from the ``_R`` ones); otherwise normal = the face
+    markers, away from the ``_R`` ones); else, for a full face with at least 2 mirror pairs named by
+    the labels (:func:`label_pairs`), the plane bisecting them; otherwise normal = the face
     frame's lateral axis (:func:`face_frame`) through the median lateral position (full face) or,
     for a half face (``half``), through the medial edge: the lateral extreme nearer to the most
     forward marker (the nose tip lies on the midline).
@@ -138,6 +154,12 @@ def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displace
             centre = neutral[tagged].mean(axis=0)
             hint = (neutral[left] - centre).sum(axis=0) - (neutral[right] - centre).sum(axis=0)
         return fit_sagittal_plane(neutral[tagged], hint)
+    pairs = [(i, j) for i, j in label_pairs(labels) if valid[i] and valid[j]]
+    if len(pairs) >= 2 and not half:  # named mirror pairs: the plane bisects them, normal toward L
+        left, right = neutral[[i for i, _ in pairs]], neutral[[j for _, j in pairs]]
+        normal = (left - right).sum(axis=0)
+        if np.linalg.norm(normal) > 0:
+            return SagittalPlane((left + right).mean(axis=0) / 2, normal / np.linalg.norm(normal))
     pts = neutral[valid]
     lateral = pts @ frame[0]
     if half:
