@@ -233,3 +233,20 @@ def test_import_and_help_never_import_dask():
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     assert run.stdout.strip().splitlines()[-1] == "[]", run.stdout[-500:] + run.stderr[-500:]
+
+
+def test_evaluate_batch_reads_the_cluster_batch_layouts(local_run, sessions, tmp_path, run_cli):
+    """--do evaluate into the same DIR: DIR/<stem>/layout.json in, evaluation.json beside it (as the
+    serial command writes it), and one batch.json listing both commands."""
+    out, name = local_run[0], "actor2_s02"
+    run = _batch(sessions / f"{name}.c3d", sessions / "corrupt_text.c3d", "--do", "evaluate", "--seeds", 2,
+                 "--out", out, "--workers", 1)
+    assert run.returncode == 1, run.stderr[-2000:]
+    serial = run_cli("evaluate", sessions / f"{name}.c3d", "--layout", out / name / "layout.json",
+                     "--seeds", "2", "--out", tmp_path / "evaluation.json")
+    assert serial.exit_code == 0, serial.stderr
+    assert (out / name / "evaluation.json").read_bytes() == (tmp_path / "evaluation.json").read_bytes()
+    records = {(r["session"], r["command"]): r for r in json.loads((out / "batch.json").read_text())["sessions"]}
+    assert records[(name, "evaluate")]["status"] == "done" and records[(name, "cluster")]["status"] != "failed"
+    assert records[(name, "evaluate")]["metrics"]["rmse_mm"] > 0
+    assert "no layout for this session" in records[("corrupt_text", "evaluate")]["error"]

@@ -46,11 +46,14 @@ def run_cli(argv: list[str]) -> tuple[int, str, str, str | None]:
     return code, out.getvalue(), err.getvalue(), crash
 
 
-def error_line(stderr: str, code: int) -> str:
-    """The command's one-line error (without the ``mocaptk: error:`` prefix)."""
+def error_line(stderr: str, code: int, stdout: str = "") -> str:
+    """The command's one-line error (without the ``mocaptk: error:`` prefix); ``info --json``
+    reports a file's error inside its JSON document instead."""
     lines = [line for line in stderr.splitlines() if line.startswith(ERROR_PREFIX)]
     if lines:
         return lines[-1][len(ERROR_PREFIX):]
+    with contextlib.suppress(ValueError, TypeError, KeyError, IndexError, AttributeError):
+        return str(next(f["error"] for f in json.loads(stdout)["files"] if "error" in f))
     tail = [line for line in stderr.splitlines() if line.strip()]
     return tail[-1] if tail else f"exit code {code}"
 
@@ -75,7 +78,7 @@ def outputs_intact(outputs: dict[str, str], folder: Path) -> bool:
 def process_session(task: dict[str, Any]) -> dict[str, Any]:
     """Run (or skip) one session; returns its record (see :mod:`mocaptk.batch.summary`)."""
     from .. import __version__
-    from ..errors import MocaptkError, unreadable
+    from ..errors import InputFileError, MocaptkError, unreadable
     from .sessions import COMMANDS, input_files, file_digest, session_argv
     from .summary import session_metrics
 
@@ -85,6 +88,10 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
                               "host": socket.gethostname(), "warnings": [], "outputs": {}}
     try:
         argv = session_argv(command, session, out_dir, task["options"])
+        layout = Path(argv[argv.index("--layout") + 1]) if "--layout" in argv else None
+        if layout is not None and not layout.exists():
+            raise InputFileError(layout, "no layout for this session: run the batch with --do cluster "
+                                         "into the same --out first, or name one as \"layout\" in a sidecar")
         files = input_files(command, argv, session)
         inputs = {}
         for path in files:
@@ -114,7 +121,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
 
         write_text(out_dir / COMMANDS[command].stdout_file, stdout)
     if code != 0:
-        record |= {"status": "failed", "error": error_line(stderr, code)}
+        record |= {"status": "failed", "error": error_line(stderr, code, stdout)}
         if crash:
             record["traceback"] = crash
     else:

@@ -140,8 +140,9 @@ def check_command_line(command: str, options: list[str]) -> None:
     bad value fails once, before any cluster starts, instead of once per session."""
     import typer
 
+    argv = _command_argv(command, Path("session"), Path("out"), options)
     try:
-        click_command(command).make_context(command, ["session", *options])
+        click_command(command).make_context(command, argv[1:])
     except typer.TyperException as exc:
         raise OptionError(f"mocaptk {command}: {exc.format_message()}") from None
 
@@ -209,10 +210,14 @@ def session_argv(command: str, session: Path, out_dir: Path, options: list[str])
 
     ``options`` are the batch line's; the session's sidecars come after them, so they win.
     """
-    spec = COMMANDS[command]
     tokens = list(options)
     for sidecar in sidecars(session):
         tokens += _sidecar_tokens(command, sidecar)
+    return _command_argv(command, session, out_dir, tokens)
+
+
+def _command_argv(command: str, session: Path, out_dir: Path, tokens: list[str]) -> list[str]:
+    spec = COMMANDS[command]
     argv = [command, str(session), *tokens, *spec.fixed]
     if command == "evaluate" and "--layout" not in tokens:  # default: the layout a cluster batch wrote
         argv += ["--layout", str(out_dir / "layout.json")]
