@@ -63,17 +63,27 @@ def _files(folder: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 
 
+def _cmdline(pid: str) -> str:
+    try:
+        return (Path("/proc") / pid / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
+
+
 def _runners_left() -> list[str]:
-    """Command lines of session runner processes still alive (none may survive a batch)."""
-    found = []
+    """Session runners of this venv that lost their Dask worker (none may outlive it); runners of
+    batches running elsewhere (other tests, other worktrees) still have their worker as parent."""
+    orphans = []
     for proc in Path("/proc").iterdir():
-        try:
-            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if "mocaptk.batch.runner" in cmd:
-            found.append(cmd)
-    return found
+        cmd = _cmdline(proc.name) if proc.name.isdigit() else ""
+        if "mocaptk.batch.runner" in cmd and cmd.startswith(sys.executable):
+            try:
+                parent = (proc / "stat").read_text().rsplit(")", 1)[1].split()[1]
+            except (OSError, IndexError):
+                continue
+            if not _cmdline(parent).startswith(sys.executable):
+                orphans.append(cmd)
+    return orphans
 
 
 @pytest.fixture(scope="module")
