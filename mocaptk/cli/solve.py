@@ -1,0 +1,113 @@
+"""``mocaptk solve``: a production capture with the layout's markers only -> the whole face."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..errors import InputFileError, OptionError
+from .app import app
+from .options import Rate, Units
+
+
+def session_path(layout_path: Path, recorded: str | None, given: Path | None) -> Path:
+    """The training session: ``--session``, else the file named in layout.json beside the layout
+    (or in the working folder)."""
+    if given is not None:
+        return given
+    if not recorded:
+        raise InputFileError(layout_path, "records no session file; give --session")
+    for candidate in (layout_path.parent / recorded, Path(recorded)):
+        if candidate.is_file():
+            return candidate
+    raise InputFileError(layout_path, f"its session {recorded} is not beside it nor in the working "
+                         "folder; give --session")
+
+
+@app.command()
+def solve(
+    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
+    capture: Path = typer.Argument(..., help="Production capture holding the layout's markers "
+                                   "(C3D, CSV, TRC); other markers are ignored."),
+    out: Path = typer.Option(..., "--out", help="Output folder."),
+    session: Path = typer.Option(None, "--session", help="Dense session to train on (default: the "
+                                 "one recorded in layout.json, looked up beside it)."),
+    model: Path = typer.Option(None, "--model", help="A model.npz saved by an earlier solve "
+                               "(must come from the layout's session)."),
+    model_kind: str = typer.Option(None, "--model-kind", help="ridge, local-ridge (default, the "
+                                   "best on held-out data), thin-shell, pdm-linear, pdm-biquadratic."),
+    formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
+                                "usd, glb (clips up to 600 frames); dense.c3d is always written."),
+    subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
+                                     "this many times (0-4; 3 gives ~7,700 vertices)."),
+    ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength of the ridge models, relative "
+                                "to the mean input variance."),
+    no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
+                                      "if the layout was made on stabilized data."),
+    rate: Rate = None,
+    units: Units = None,
+    force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress or summary."),
+) -> None:
+    """Solve every dense marker and an animated face mesh from a capture of the layout's markers."""
+    from rich.console import Console
+
+    from ..clustering.layout import read_layout
+    from ..clustering.pipeline import load_session, stabilize
+    from ..clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
+    from ..retarget.solve import FaceSolver, train_solver
+    from ..retarget.solve_outputs import write_solve_outputs
+    from .cluster import staged_folder
+    from .evaluate import layout_rigid_set
+    from .rig import parse_formats
+
+    if model_kind is not None and model_kind not in MODEL_KINDS:
+        raise OptionError(f"unknown --model-kind {model_kind!r} (choose from {', '.join(MODEL_KINDS)})")
+    if model is not None and model_kind is not None:
+        raise OptionError("--model-kind chooses a model to train; a --model file already has its kind")
+    chosen = tuple(f for f in parse_formats(formats) if f != "none")
+    lay = read_layout(layout)
+    rigid = None if no_stabilize else layout_rigid_set(lay)
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("reading") as status:
+        say = lambda text: status.update(text)  # noqa: E731
+        traj, capture_source = load_session(str(capture), rate=rate, units=units)
+        if model is not None:
+            identity = {"sha256": lay.source.get("sha256")} if lay.source.get("sha256") else {}
+            face_model, header = load_model(model, session=identity)
+            solver = FaceSolver.from_header(face_model, header)
+            unknown = [label for label in solver.layout_labels if label not in set(lay.labels)]
+            if unknown:
+                raise InputFileError(model, f"its layout markers are not the layout's: {', '.join(unknown[:5])}")
+        else:
+            path = session_path(layout, lay.source.get("path"), session)
+            say(f"reading the session {path.name}")
+            dense, source = load_session(str(path))
+            if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
+                raise InputFileError(path, f"is not the session {layout.name} was made from (sha256 differs)")
+            if rigid:
+                dense, _ = stabilize(dense, rigid=rigid)
+            say(f"training the {model_kind or DEFAULT_KIND} model")
+            solver = train_solver(lay, dense, source, kind=model_kind or DEFAULT_KIND, ridge=ridge,
+                                  rigid_labels=rigid or ())
+        uncaptured = [label for label in lay.labels if label not in set(solver.layout_labels)]
+        notes = [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
+                 f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
+                 + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
+        with staged_folder(out, force=force) as staging:
+            summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
+                                          subdivisions=subdivisions, stabilize=not no_stabilize,
+                                          save_trained=model is None, notes=notes, progress=say)
+    if not quiet:
+        frames = summary["frames"]
+        typer.echo(f"solved {frames['solved']} of {traj.n_frames} frames with {summary['model']['kind']} "
+                   f"({len(solver.layout_labels)} layout -> {len(solver.labels)} dense markers, mesh "
+                   f"{summary['mesh']['vertices']} vertices); {frames['with_lost_markers']} frames with "
+                   f"lost markers, expected error mean {summary['expected_error_mm']['mean'] or float('nan'):.2f} mm")
+        if frames["unsolved"]:
+            typer.echo(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
+                       "are not solved (see solve_frames.csv)")
+        for note in summary["notes"]:
+            typer.echo(f"note: {note}")
+        typer.echo(f"wrote {out}/ ({', '.join(summary['outputs'])})")
