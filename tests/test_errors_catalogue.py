@@ -119,6 +119,10 @@ def f(tmp_path_factory) -> dict[str, Path]:
     (d / "afile").write_text("x")
     (d / "cmp").mkdir()
     (d / "cmp" / "compare.md").write_text("an earlier comparison")
+    from mocaptk.clustering.reconstruction_models import fit_model, save_model
+
+    save_model(fit_model(session.positions, [0, 1, 2], kind="ridge"), d / "other_model.npz",
+               header={"session": {"sha256": "0" * 64}})
     return {p.name: p for p in d.iterdir()} | {"dir": d}
 
 
@@ -337,6 +341,17 @@ CATALOGUE = [
     ("E-BATCH-SCHEDULER", lambda f: ["batch", S(f), "--do", "info", "--scheduler", "tcp://127.0.0.1:9",
                                      "--connect-timeout", "1", "--out", f["dir"] / "b"],
      "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered within 1 s"),
+    # -- solve
+    ("E-SOLVE-KIND", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s1", "--model-kind",
+                                "spline"], "unknown --model-kind 'spline'"),
+    ("E-SOLVE-LACKS", lambda f: ["solve", f["layout.json"], f["good.c3d"], "--out", f["dir"] / "s2"],
+     "good.c3d: lacks"),
+    ("E-SOLVE-NOT-SESSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s3", "--session",
+                                       f["good.c3d"]], "is not the session layout.json was made from"),
+    ("E-SOLVE-MODEL-FILE", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s4", "--model",
+                                      f["binary.dat"]], "binary.dat: not a mocaptk model file"),
+    ("E-SOLVE-MODEL-SESSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s5", "--model",
+                                         f["other_model.npz"]], "the model was trained on another session"),
 ]
 
 

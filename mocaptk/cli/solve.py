@@ -12,17 +12,18 @@ from .options import Rate, Units
 
 
 def session_path(layout_path: Path, recorded: str | None, given: Path | None) -> Path:
-    """The training session: ``--session``, else the file named in layout.json beside the layout
-    (or in the working folder)."""
+    """The training session: ``--session``, else the file named in layout.json, looked up beside
+    the layout, in the folder above it (``cluster``'s ``--out`` is usually a subfolder) and in the
+    working folder."""
     if given is not None:
         return given
     if not recorded:
         raise InputFileError(layout_path, "records no session file; give --session")
-    for candidate in (layout_path.parent / recorded, Path(recorded)):
+    for candidate in (layout_path.parent / recorded, layout_path.parent.parent / recorded, Path(recorded)):
         if candidate.is_file():
             return candidate
-    raise InputFileError(layout_path, f"its session {recorded} is not beside it nor in the working "
-                         "folder; give --session")
+    raise InputFileError(layout_path, f"its session {recorded} is not beside it, in the folder above "
+                         "nor in the working folder; give --session")
 
 
 @app.command()

@@ -1,0 +1,200 @@
+"""``mocaptk solve`` end to end on the bundled sample: a layout from ``mocaptk cluster``, captures
+holding only the layout's markers, round trip, head motion, mesh files, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import SAMPLES
+from readers import installed
+
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.acquisition.c3d_write import write_c3d
+from mocaptk.acquisition.synth_session import load_ground_truth
+from mocaptk.trajectories import Trajectories
+
+
+def mocaptk(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mocaptk", *map(str, args)], capture_output=True,
+                          text=True, timeout=900)
+
+
+def layout_markers_only(source: Trajectories, layout: dict, path, *, frames=slice(None)) -> Trajectories:
+    """Write a production-like capture: ``source``'s frames holding only the layout's markers."""
+    labels = [label for label in layout["layout"] if label in set(source.labels)]
+    capture = source.select(labels)
+    capture = capture.replace(positions=capture.positions[frames], residuals=None, metadata={"takes": []})
+    write_c3d(capture, path)
+    return capture
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("solve")
+    shutil.copy(SAMPLES / "dense_halfface.c3d", root)
+    done = mocaptk("cluster", root / "dense_halfface.c3d", "--out", root / "layout", "--formats", "none")
+    assert done.returncode == 0, done.stderr
+    layout = json.loads((root / "layout" / "layout.json").read_text())
+    performance = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    layout_markers_only(performance, layout, root / "perf_layout.c3d")
+    session = read_c3d(root / "dense_halfface.c3d")
+    layout_markers_only(session, layout, root / "own_layout.c3d", frames=slice(4523, 5003))  # mouth
+    return root, layout
+
+
+@pytest.fixture(scope="module")
+def solved(workspace):
+    root, _ = workspace
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "perf_layout.c3d", "--out",
+                   root / "out", "--formats", "npz,usd")
+    assert done.returncode == 0, done.stderr
+    return root / "out", done
+
+
+def test_solve_writes_every_dense_marker_of_the_held_out_performance(workspace, solved):
+    root, layout = workspace
+    out, done = solved
+    assert "solved 1200 of 1200 frames with local-ridge" in done.stdout
+    assert "mirrored twins" in done.stdout  # the half-face layout's _R markers take no part
+    dense = read_c3d(out / "dense.c3d")
+    session = read_c3d(root / "dense_halfface.c3d")
+    assert dense.labels == session.labels and dense.rate == 60.0 and dense.n_frames == 1200
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")
+    err = np.linalg.norm(dense.positions - truth.positions, axis=2)
+    assert np.sqrt(np.mean(err ** 2)) < 0.6  # mm, against the noise-free truth
+    summary = json.loads((out / "solve.json").read_text())
+    assert summary["format"] == "mocaptk.solve" and summary["frames"]["unsolved"] == 0
+    assert sorted(summary["outputs"]) == sorted(p.name for p in out.iterdir())
+    frames = (out / "solve_frames.csv").read_text().splitlines()
+    assert len(frames) == 1201 and frames[1].startswith("0,1,")
+
+
+def test_round_trip_reproduces_the_session_within_the_training_error(workspace, tmp_path):
+    root, layout = workspace
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
+                   tmp_path / "own", "--formats", "glb", "--subdivisions", "0")
+    assert done.returncode == 0, done.stderr
+    dense = read_c3d(tmp_path / "own" / "dense.c3d")
+    session = read_c3d(root / "dense_halfface.c3d").positions[4523:5003]
+    err = np.linalg.norm(dense.positions - session, axis=2)
+    rmse = float(np.sqrt(np.nanmean(err ** 2)))
+    trained = json.loads((tmp_path / "own" / "solve.json").read_text())["model"]
+    assert rmse <= 1.25 * trained["expected_error_all_present_mm"], (rmse, trained)
+    report = installed.run_validator(tmp_path / "own" / "mesh.glb")
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "own" / "mesh.glb"))
+    assert len(gltf.meshes[0].primitives[0].targets) == 480 and gltf.animations[0].channels
+
+
+def test_a_saved_model_is_reused_with_the_same_result(workspace, solved, tmp_path):
+    root, _ = workspace
+    out, _ = solved
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "perf_layout.c3d", "--out",
+                   tmp_path / "again", "--model", out / "model.npz", "--formats", "npz")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "again" / "dense.c3d").read_bytes() == (out / "dense.c3d").read_bytes()
+    assert not (tmp_path / "again" / "model.npz").exists()
+
+
+def test_usd_reads_back_with_pxr_and_passes_the_usd_validators(solved):
+    from pxr import Usd, UsdGeom, UsdValidation
+
+    out, _ = solved
+    stage = Usd.Stage.Open(str(out / "mesh.usd"))
+    assert stage.GetTimeCodesPerSecond() == 60.0 and stage.GetEndTimeCode() == 1199
+    assert UsdGeom.GetStageMetersPerUnit(stage) == pytest.approx(0.001)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/face_mesh"))
+    points = mesh.GetPointsAttr()
+    assert len(points.GetTimeSamples()) == 1200
+    frames = np.load(out / "mesh_frames.npy", mmap_mode="r")
+    np.testing.assert_allclose(np.array(points.Get(700)), frames[700], atol=1e-4)
+    registry = UsdValidation.ValidationRegistry()  # what usdchecker runs
+    errors = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators()).Validate(stage)
+    assert not errors, [e.GetMessage() for e in errors]
+
+
+def test_lost_markers_and_empty_frames_are_flagged_per_frame(workspace, tmp_path):
+    root, _ = workspace
+    capture = read_c3d(root / "perf_layout.c3d")
+    pos = capture.positions.copy()
+    pos[100:160, :5] = np.nan  # an occlusion
+    pos[300] = np.nan  # every layout marker lost
+    write_c3d(capture.replace(positions=pos), tmp_path / "lost.c3d")
+    done = mocaptk("solve", root / "layout" / "layout.json", tmp_path / "lost.c3d", "--out",
+                   tmp_path / "o", "--formats", "npz")
+    assert done.returncode == 0, done.stderr
+    assert "1 frames without any layout marker" in done.stdout
+    rows = [line.split(",") for line in (tmp_path / "o" / "solve_frames.csv").read_text().splitlines()[1:]]
+    assert rows[300][1:4] == ["0", "", str(capture.n_markers)]
+    assert rows[120][3] == "5" and float(rows[120][2]) > float(rows[0][2])
+    dense = read_c3d(tmp_path / "o" / "dense.c3d").positions
+    assert np.isnan(dense[300]).all() and np.isfinite(np.delete(dense, 300, axis=0)).all()
+    summary = json.loads((tmp_path / "o" / "solve.json").read_text())
+    assert summary["frames"]["unsolved_frames"] == [300]
+    assert summary["missing_rate"][capture.labels[0]] == pytest.approx(61 / 1200, abs=1e-6)
+
+
+def test_head_motion_is_removed_and_put_back(workspace, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    root, layout = workspace
+    stabilized = dict(layout, parameters=dict(layout["parameters"], stabilized=True))
+    (tmp_path / "layout.json").write_text(json.dumps(stabilized))
+    shutil.copy(root / "dense_halfface.c3d", tmp_path)
+    capture = read_c3d(SAMPLES / "dense_halfface_performance.c3d").frames(0, 300)
+    t = np.linspace(0, 1, capture.n_frames)
+    rot = Rotation.from_rotvec(np.stack([0.2 * np.sin(6 * t), 0.3 * t, 0.1 * np.cos(4 * t)], axis=1))
+    shift = np.stack([30 * t, -10 * t, 5 * np.sin(3 * t)], axis=1)
+    centre = np.nanmean(capture.positions, axis=(0, 1))
+    moved = np.einsum("fij,fmj->fmi", rot.as_matrix(), capture.positions - centre) + centre + shift[:, None]
+    write_c3d(capture.replace(positions=moved), tmp_path / "moving.c3d")
+    write_c3d(capture, tmp_path / "still.c3d")
+    for name in ("moving", "still"):
+        done = mocaptk("solve", tmp_path / "layout.json", tmp_path / f"{name}.c3d", "--out",
+                       tmp_path / name, "--formats", "npz", "--model-kind", "ridge")
+        assert done.returncode == 0, done.stderr
+    summary = json.loads((tmp_path / "moving" / "solve.json").read_text())
+    assert summary["head_motion"]["removed_and_restored"]
+    got = read_c3d(tmp_path / "moving" / "dense.c3d").positions
+    still = read_c3d(tmp_path / "still" / "dense.c3d").positions
+    expected = np.einsum("fij,fmj->fmi", rot.as_matrix(), still - centre) + centre + shift[:, None]
+    err = np.linalg.norm(got - expected, axis=2)
+    assert np.sqrt(np.mean(err ** 2)) < 0.3, np.sqrt(np.mean(err ** 2))  # mm
+
+
+def test_bad_input_is_one_line_and_writes_nothing(workspace, solved, tmp_path):
+    root, layout = workspace
+    out, _ = solved
+    other = dict(layout, source=dict(layout["source"], sha256="0" * 64))
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    checks = [
+        (("solve", tmp_path / "other.json", root / "perf_layout.c3d", "--out", tmp_path / "a",
+          "--model", out / "model.npz"), "the model was trained on another session"),
+        (("solve", root / "layout" / "layout.json", SAMPLES / "dense_halfface_performance.c3d",
+          "--out", tmp_path / "b", "--session", SAMPLES / "dense_halfface_performance.c3d"),
+         "is not the session layout.json was made from"),
+        (("solve", root / "layout" / "layout.json", tmp_path / "few.c3d", "--out", tmp_path / "c"),
+         "lacks 3 of the layout's 48 markers"),
+        (("solve", root / "layout" / "layout.json", tmp_path / "norate.csv", "--out", tmp_path / "d"),
+         "norate.csv"),
+        (("solve", root / "layout" / "layout.json", root / "perf_layout.c3d", "--out", tmp_path / "e",
+          "--model-kind", "spline"), "unknown --model-kind"),
+    ]
+    capture = read_c3d(root / "perf_layout.c3d")
+    write_c3d(capture.select(list(capture.labels[3:])), tmp_path / "few.c3d")
+    header = ",".join(f"{label}_{axis}" for label in capture.labels for axis in "XYZ")
+    rows = "\n".join(",".join(f"{v:.3f}" for v in frame.ravel()) for frame in capture.positions[:5])
+    (tmp_path / "norate.csv").write_text(header + "\n" + rows + "\n")
+    for args, message in checks:
+        done = mocaptk(*args)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith("mocaptk: error: "), done.stderr
+        assert message in lines[0], lines[0]
+        assert not (tmp_path / args[4].name).exists() if args[3] == "--out" else True
