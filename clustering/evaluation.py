@@ -112,7 +112,7 @@ def heldout_errors(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray
     def fit(train: np.ndarray) -> ReconstructionModel | FaceModel:
         if model_kind is None:
             return fit_reconstruction(train, layout_idx, ridge=ridge)
-        return fit_model(train, layout_idx, kind=model_kind, ridge=ridge)
+        return fit_model(train, layout_idx, kind=model_kind, ridge=ridge, expected_error=False)
 
     if test is not None:
         return reconstruction_errors(fit(positions), test)

@@ -20,7 +20,9 @@ Kinds (``MODEL_KINDS``):
   layout markers (neutral pose, Euclidean), from the same training covariance as ``ridge``. A
   global ridge learns cross-region correlations of the training takes (the brow is still while
   the mouth take runs) that a production performance, which mixes regions, does not have; the
-  local model cannot (docs/solve.md measures it).
+  local model cannot (docs/solve.md measures it). A marker whose neighbourhood is lost (its nearest
+  present layout marker more than 2x farther than its nearest layout marker) falls back to the
+  global ridge.
 
 Every prediction carries a per-frame expected error (mm): the model's RMS error over the dense
 markers on (up to 200) training frames with every layout marker present, plus, per missing layout
@@ -63,6 +65,8 @@ MODEL_KINDS = ("ridge", "local-ridge", "thin-shell", "pdm-linear", "pdm-biquadra
 DEFAULT_KIND = "local-ridge"
 #: Layout markers each dense marker is solved from in ``local-ridge``.
 LOCAL_NEIGHBOURS = 4
+#: ... unless its nearest present one is this many times farther than its nearest layout marker.
+LOCAL_REACH = 2.0
 MODEL_FORMAT, MODEL_VERSION = "mocaptk.model", 1
 #: Ridge strength of the detail polynomials, relative to the mean diagonal of their Gram matrix.
 DETAIL_RIDGE = 1e-2
@@ -334,7 +338,7 @@ class RidgeModel(FaceModel):
             gram[np.diag_indices_from(gram)] += lam
             coef = np.linalg.solve(gram, self.cov[cols])
             return coef, self.mean - self.mean[cols] @ coef
-        return self._cache.get_or(pattern.tobytes(), make)
+        return self._cache.get_or(b"global" + pattern.tobytes(), make)
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         return _affine(x, *self.submodel(pattern), self.n_markers)
@@ -364,8 +368,10 @@ class LocalRidgeModel(RidgeModel):
 
     def local_models(self, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per dense marker: its nearest present layout markers (M, k) (positions among the
-        present ones), weights (M, 3k, 3) and offsets (M, 3) of ``pattern`` (L,) bool."""
-        def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        present ones), weights (M, 3k, 3), offsets (M, 3) of ``pattern`` (L,) bool, and (M,) bool
+        whether its nearest present marker is more than ``LOCAL_REACH`` times farther than its
+        nearest layout marker (then the global ridge solves it)."""
+        def make() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             present = self.layout[pattern]
             k = min(self.neighbours, present.size)
             neutral = np.nan_to_num(self.neutral, nan=np.inf)
@@ -378,13 +384,18 @@ class LocalRidgeModel(RidgeModel):
             targets = 3 * np.arange(self.n_markers)[:, None] + np.arange(3)  # (M, 3)
             coef = np.linalg.solve(gram, self.cov[cols[:, :, None], targets[:, None, :]])
             offset = self.mean[targets] - np.einsum("mk,mkc->mc", self.mean[cols], coef)
-            return near, coef, offset
+            full = np.linalg.norm(neutral[:, None] - neutral[self.layout][None], axis=2).min(axis=1)
+            lost = dist.min(axis=1) > LOCAL_REACH * np.maximum(full, 1e-9)
+            return near, coef, offset, lost
         return self._cache.get_or(pattern.tobytes(), make)
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
-        near, coef, offset = self.local_models(pattern)
+        near, coef, offset, lost = self.local_models(pattern)
         inputs = x[:, near].reshape(len(x), self.n_markers, -1)  # (f, M, 3k)
-        return np.einsum("fmk,mkc->fmc", inputs, coef) + offset
+        out = np.einsum("fmk,mkc->fmc", inputs, coef) + offset
+        if lost.any():  # its neighbourhood is gone: the global model reads the whole face
+            out[:, lost] = super()._solve(pattern, x)[:, lost]
+        return out
 
     def _arrays(self) -> dict[str, np.ndarray]:
         return {**super()._arrays(), "neighbours": np.array(self.neighbours)}
@@ -603,7 +614,8 @@ def _fit_polynomials(terms: np.ndarray, residual: np.ndarray) -> np.ndarray:
 
 
 def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind: str = DEFAULT_KIND,
-              ridge: float = DEFAULT_RIDGE, neighbours: int = LOCAL_NEIGHBOURS) -> FaceModel:
+              ridge: float = DEFAULT_RIDGE, neighbours: int = LOCAL_NEIGHBOURS,
+              expected_error: bool = True) -> FaceModel:
     """Fit a reconstruction model of ``kind`` (see ``MODEL_KINDS``) on head-relative training frames.
 
     Parameters
@@ -613,6 +625,8 @@ def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind
     kind : one of ``MODEL_KINDS``
     ridge : ridge strength of the ridge kinds, relative to the mean input variance
     neighbours : layout markers each dense marker is solved from (``local-ridge``)
+    expected_error : measure the expected-error table (L + 1 extra predictions on training
+        frames; held-out scoring does not need it: then the expected error is NaN)
     """
     train = np.asarray(train, dtype=np.float64)
     layout = _layout_indices(layout_idx, train.shape[1])
@@ -627,8 +641,10 @@ def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind
         model = DetailModel.fit(kind, train, layout)
     else:
         raise OptionError(f"unknown model kind {kind!r} (choose from {', '.join(MODEL_KINDS)})")
-    step = -(-train.shape[0] // CHECK_FRAMES)
-    model.measure_expected_error(train[::step])
+    if expected_error:
+        model.measure_expected_error(train[::-(-train.shape[0] // CHECK_FRAMES)])
+    else:
+        model.error_base, model.error_drop = float("nan"), np.full(layout.size, np.nan)
     return model
 
 

@@ -166,12 +166,13 @@ def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray,
 @dataclass(frozen=True)
 class MeshMap:
     """The animated mesh: ``vertices`` (V, 3) mm neutral, ``faces`` (T, 3), ``matrix`` (V, M)
-    sparse: vertex positions = matrix @ dense markers (unseen dense markers have no column
-    weight)."""
+    sparse and ``offset`` (V, 3) mm: vertex positions = matrix @ dense markers + offset (unseen
+    dense markers have no column weight)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     matrix: sp.csr_matrix
+    offset: np.ndarray | None = None
 
     @classmethod
     def marker_surface(cls, neutral: np.ndarray, *, subdivisions: int = 0) -> MeshMap:
@@ -188,11 +189,31 @@ class MeshMap:
             matrix, faces = _midpoint_subdivide(matrix, faces)
         return cls(matrix @ np.nan_to_num(neutral), faces, matrix)
 
+    @classmethod
+    def anchored(cls, vertices: np.ndarray, faces: np.ndarray, anchors: np.ndarray,
+                 neutral: np.ndarray, *, min_weight: float = 1e-4) -> MeshMap:
+        """A given mesh ``vertices`` (V, 3) mm, ``faces`` (T, 3) following the dense markers pinned
+        at vertices ``anchors`` (M,) (neutral ``neutral`` (M, 3) mm) by thin-shell interpolation
+        (Le et al.'s ``W = Â⁻¹B̂``); weights below ``min_weight`` are dropped (sparse, fast)."""
+        from mocaptk.clustering.reconstruction_models import KB, KS, TIKHONOV
+        from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
+
+        op = thin_shell_operator(vertices, faces, ks=KS, kb=KB)
+        op = op + TIKHONOV * float(np.abs(op.diagonal()).mean()) * sp.identity(op.shape[0])
+        weights = interpolation_weights(op, np.asarray(anchors, dtype=np.intp))
+        weights[np.abs(weights) < min_weight] = 0.0
+        matrix = sp.csr_matrix(weights)
+        offset = np.asarray(vertices, dtype=np.float64) - matrix @ np.asarray(neutral, dtype=np.float64)
+        return cls(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), matrix,
+                   offset)
+
     def apply(self, dense: np.ndarray) -> np.ndarray:
         """Vertex positions (f, V, 3) mm from dense markers (f, M, 3) (unsolved frames NaN)."""
         f, m, _ = dense.shape
         flat = np.nan_to_num(dense).transpose(1, 0, 2).reshape(m, f * 3)  # unseen: weight 0
         verts = np.asarray(self.matrix @ flat).reshape(-1, f, 3).transpose(1, 0, 2)
+        if self.offset is not None:
+            verts += self.offset
         verts[~np.isfinite(dense).all(axis=2).any(axis=1)] = np.nan
         return verts
 
