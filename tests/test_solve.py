@@ -198,3 +198,14 @@ def test_bad_input_is_one_line_and_writes_nothing(workspace, solved, tmp_path):
         assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith("mocaptk: error: "), done.stderr
         assert message in lines[0], lines[0]
         assert not (tmp_path / args[4].name).exists() if args[3] == "--out" else True
+
+
+def test_rig_option_bakes_the_solved_capture_onto_the_rig(workspace, tmp_path):
+    import pygltflib
+
+    root, _ = workspace
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
+                   tmp_path / "r", "--formats", "npz", "--rig")
+    assert done.returncode == 0, done.stderr
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "r" / "rig" / "rig.glb"))
+    assert gltf.animations and gltf.accessors[gltf.animations[0].samplers[0].input].count == 480

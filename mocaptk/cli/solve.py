@@ -26,6 +26,21 @@ def session_path(layout_path: Path, recorded: str | None, given: Path | None) ->
                          "nor in the working folder; give --session")
 
 
+def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progress) -> None:
+    """``mocaptk rig --animate``'s rig files in ``staging/rig/``, keyed with the solved dense
+    markers (``staging/dense.c3d``; head-relative copy when head motion was removed)."""
+    from ..acquisition.c3d_read import read_c3d
+    from ..clustering.pipeline import stabilize
+    from ..retarget.build import Capture, write_rig_outputs
+    from .rig import rig_options
+
+    solved = read_c3d(staging / "dense.c3d")
+    relative = stabilize(solved, rigid=rigid)[0] if rigid else solved
+    write_rig_outputs(layout, session, staging / "rig", options=rig_options(4, None, False, 1),
+                      formats=("json", "fbx", "glb"), title=f"solve {name}", force=True,
+                      captures=[Capture(name, relative, solved if rigid else None)], progress=progress)
+
+
 @app.command()
 def solve(
     layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
@@ -46,6 +61,9 @@ def solve(
                                 "to the mean input variance."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
                                       "if the layout was made on stabilized data."),
+    rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
+                             "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
+                             "'mocaptk rig --animate' writes them; needs the session)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
@@ -96,10 +114,16 @@ def solve(
         notes = [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
                  + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
+        if rig and model is not None:
+            raise OptionError("--rig needs the session (it builds the rig on it): leave out --model")
         with staged_folder(out, force=force) as staging:
             summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
                                           subdivisions=subdivisions, stabilize=not no_stabilize,
                                           save_trained=model is None, notes=notes, progress=say)
+            if rig:
+                say("building the rig and baking the solve onto it")
+                bake_solved_rig(lay, dense, staging, capture.stem, rigid=rigid, progress=say)
+                summary["outputs"].append("rig/")
     if not quiet:
         frames = summary["frames"]
         typer.echo(f"solved {frames['solved']} of {traj.n_frames} frames with {summary['model']['kind']} "
