@@ -133,19 +133,21 @@ def accuracy() -> dict:
     return out
 
 
-def robustness() -> dict:
-    """RMSE (mm, sample performance, 40-marker k-means layout) as layout markers are lost:
-    0/1/2/5/20 % at random per frame, and the lower-lip layout markers lost for the whole take."""
+def robustness(kinds: tuple[str, ...] = KINDS, step: int = 1) -> dict:
+    """RMSE (mm, sample performance (every ``step``-th frame), 40-marker k-means layout) as layout
+    markers are lost: 0/1/2/5/20 % at random per frame, and the lower-lip layout markers lost for
+    the whole take."""
     from mocaptk.clustering.reconstruction_models import fit_model
 
     session, test, _ = sample_data()
+    test = test.replace(positions=test.positions[::step], residuals=None, metadata={})
     idx = kmeans(session.positions, 40)
     labels = [session.labels[i] for i in idx]
     lower_lip = np.array([label.startswith(("MOUTH", "CHIN")) and session.positions[:, i, 1].mean()
                           < np.nanmedian(session.positions[:, idx, 1]) for label, i in zip(labels, idx)])
     out: dict = {"lower_lip_markers": [lab for lab, low in zip(labels, lower_lip) if low]}
     rng = np.random.default_rng(0)
-    for kind in KINDS:
+    for kind in kinds:
         model = fit_model(session.positions, idx, kind=kind)
         x = test.positions[:, model.layout]
         row = {}
@@ -168,7 +170,7 @@ def robustness() -> dict:
     return out
 
 
-def speed() -> dict:
+def speed(kinds: tuple[str, ...] = KINDS) -> dict:
     """Training time and frames/s: 86 layout markers -> 139 dense markers and -> the ICT face."""
     from mocaptk.clustering.reconstruction_models import fit_model
     from mocaptk.retarget.solve import MeshMap, solve_chunks, FaceSolver
@@ -193,7 +195,7 @@ def speed() -> dict:
         anchors = cKDTree(rest).query(model0.neutral)[1]
         mesh = MeshMap.anchored(rest, face.faces[:face.face_triangle_count], anchors, model0.neutral)
         out["mesh_vertices"] = int(nv)
-    for kind in KINDS:
+    for kind in kinds:
         t0 = time.perf_counter()
         model = fit_model(session.positions, idx, kind=kind)
         train_s = time.perf_counter() - t0
@@ -216,8 +218,8 @@ def speed() -> dict:
 
 
 def memory() -> dict:
-    """Peak RSS of writing a 72,000-frame solve (dense.c3d + mesh_frames.npy, 7,657-vertex mesh)
-    in a fresh process."""
+    """Peak RSS of writing a 72,000-frame solve (dense.c3d + mesh_frames.npy of the 511-vertex
+    mesh, 441 MB on disk) in a fresh process."""
     code = f"""
 import resource, numpy as np, sys, tempfile, pathlib
 sys.path.insert(0, {str(REPO)!r})
@@ -239,7 +241,7 @@ capture = capture.replace(positions=np.tile(capture.positions, (60, 1, 1)), resi
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 with tempfile.TemporaryDirectory() as d:
     write_solve_outputs(solver, capture, {{"path": "long.c3d"}}, pathlib.Path(d), formats=("npz",),
-                        subdivisions=3)
+                        subdivisions=1)
 print(capture.n_frames, base, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """
     t0 = time.perf_counter()
@@ -309,6 +311,11 @@ if __name__ == "__main__":
     print(f"load: {open('/proc/loadavg').read().split()[:3]}")
     if what == "maps":
         maps(Path(sys.argv[2] if len(sys.argv) > 2 else "."))
+    elif what == "speed" and len(sys.argv) > 3:  # speed OUT.json KIND,KIND
+        Path(sys.argv[2]).write_text(json.dumps(speed(tuple(sys.argv[3].split(","))), indent=1))
+    elif what == "robustness" and len(sys.argv) > 3:  # robustness OUT.json KIND,KIND STEP
+        result = robustness(tuple(sys.argv[3].split(",")), int(sys.argv[4]) if len(sys.argv) > 4 else 1)
+        Path(sys.argv[2]).write_text(json.dumps(result, indent=1, sort_keys=True))
     else:
         result = {"speed": speed, "memory": memory, "accuracy": accuracy, "robustness": robustness}[what]()
         if len(sys.argv) > 2:
