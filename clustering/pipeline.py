@@ -25,10 +25,15 @@ from .neutral import max_displacement, neutral_pose
 from .regions import default_regions, face_frame, unassigned
 from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
-from .threshold import cluster_region
+from .threshold import RegionClusters, cluster_region, keep_representatives
 
 #: Fewer sampled frames than this in a region make correlations meaningless.
 MIN_SAMPLES = 3
+
+
+#: Layout method of ``mocaptk cluster``: the best measured on held-out data (docs/layout-methods.md).
+#: The paper's rule still sets the count (``factor``) and the influence regions.
+DEFAULT_METHOD = "hybrid"
 
 
 @dataclass(frozen=True)
@@ -36,10 +41,15 @@ class ClusterOptions:
     """Options of :func:`cluster_session` (CLI flags of ``mocaptk cluster``).
 
     ``regions``: ``{name: labels}`` (None: default regions); ``takes``: None = the session's
-    takes; ``mirror``: None = mirror when the labels show a half face + midline.
+    takes; ``mirror``: None = mirror when the labels show a half face + midline. ``method``: the
+    layout method choosing the measured markers (``"paper"``: the paper's representatives);
+    ``markers``: their number (None: the paper's rule at ``factor``; with ``"paper"`` the factor
+    is then found by bisection).
     """
 
     factor: float = 1.1
+    method: str = DEFAULT_METHOD
+    markers: int | None = None  # measured markers of the layout (None: as many as the paper's rule gives)
     step: int = 5
     stabilize: bool = True
     mirror: bool | None = None
@@ -105,6 +115,15 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tupl
     return (result.trajectories if applied else traj), report
 
 
+def check_layout_options(*, method: str, markers: int | None) -> None:
+    """Reject an unknown layout method and a marker count < 1 (OptionError)."""
+    from .methods import method_names
+    if method not in method_names():
+        raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
+    if markers is not None and markers < 1:
+        raise OptionError(f"--markers must be >= 1, got {markers}")
+
+
 def check_options(options: ClusterOptions, n_frames: int, *, source: str | None = None) -> None:
     """Reject a factor <= 0 and a step outside 1..frames-1 (OptionError; naming the session file
     ``source`` when the step does not fit its frames)."""
@@ -114,6 +133,7 @@ def check_options(options: ClusterOptions, n_frames: int, *, source: str | None 
         raise OptionError(f"--step must be >= 1, got {options.step}")
     if options.rigid is not None and not options.stabilize:
         raise OptionError(RIGID_WITHOUT_STABILIZING)
+    check_layout_options(method=options.method, markers=options.markers)
     if options.step >= n_frames:
         raise source_error(source, f"--step {options.step} is not smaller than the session's {n_frames} frames")
 
@@ -178,7 +198,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     frame = plane_frame(plane, face_frame(neutral, displacement))
 
     index = {label: i for i, label in enumerate(labels)}
-    region_results, clusters, matrices, static_markers = [], [], {}, []
+    region_data = []  # per region: (name, point indices, sampled frames, displacement, correlation, notes)
+    static_markers: list[str] = []
     for name in region_names:
         if progress:
             progress(f"clustering {name}")
@@ -191,18 +212,30 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         corr = consolidated_correlation(traj.positions[frames][:, idx])
         static = [regions[name][i] for i in np.flatnonzero(corr.static)]
         static_markers.extend(static)
+        region_notes = []
         if static:
-            notes.append(f"region {name!r}: {len(static)} markers do not move (correlation 0): "
-                         + ", ".join(static[:8]) + (" ..." if len(static) > 8 else ""))
+            region_notes.append(f"region {name!r}: {len(static)} markers do not move (correlation 0): "
+                                + ", ".join(static[:8]) + (" ..." if len(static) > 8 else ""))
         if idx.size < 2:
-            notes.append(f"region {name!r} has only 1 marker; it is its own representative")
-        result = cluster_region(corr.matrix, region_disp, factor=options.factor)
+            region_notes.append(f"region {name!r} has only 1 marker; it is its own representative")
+        region_data.append((name, idx, frames, region_disp, corr, region_notes))
+
+    factor = options.factor
+    region_clusters = [cluster_region(d[4].matrix, d[3], factor=factor) for d in region_data]
+    if options.markers is not None and options.method == "paper":
+        factor, region_clusters = _clusters_of_count(
+            [(d[4].matrix, d[3]) for d in region_data], options.markers)
+    region_results, clusters, matrices = [], [], {}
+    for (name, idx, frames, region_disp, corr, region_notes), result in zip(region_data, region_clusters):
+        notes.extend(region_notes)
         if idx.size >= 2 and result.mean_correlation <= 0:
             notes.append(f"region {name!r}: mean correlation {result.mean_correlation:.3f} <= 0, so the "
                          "factor's meaning flips (a larger factor gives fewer markers)")
-        elif idx.size >= 2 and result.threshold > 3:
-            notes.append(f"region {name!r}: threshold {result.threshold:.3f} = factor x mean correlation "
-                         "exceeds 3, so every marker becomes a representative")
+        elif idx.size >= 2 and result.unreachable:
+            notes.append(f"region {name!r}: threshold {result.threshold:.3f} (factor {factor:g} x mean "
+                         f"correlation {result.mean_correlation:.3f}) is not below its largest correlation "
+                         f"{result.max_correlation:.3f}, so every marker is its own cluster; "
+                         f"--factor {result.clustering_factor():.3f} or lower clusters it")
         member_labels = regions[name]
         reps = [member_labels[r] for r in result.representatives]
         for k, rep in enumerate(result.representatives):
@@ -222,15 +255,67 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         midline = {label for label, side in sides.items() if side == "C"}
         mirrored = mirror_clusters(clusters, plane, labels, midline)
     stabilized = bool(options.stabilize and stabilization.get("applied"))
-    parameters = {"factor": options.factor, "step": options.step, "stabilized": stabilized,
+    parameters = {"factor": factor, "step": options.step, "stabilized": stabilized,
                   "mirror": mirror, "method": "paper", "regions_from": region_method,
                   "takes": [t.as_dict() for t in takes]}
+    if options.markers is not None:
+        parameters["markers"] = options.markers
     extra = {"stabilization": stabilization, "excluded_markers": excluded, "unassigned_markers": loose,
              "static_markers": static_markers, "notes": notes,
              "sagittal_plane": {"point": plane.point, "normal": plane.normal}}
     src = {"frames": traj.n_frames, "rate": traj.rate, "markers": traj.n_markers, **(source or {})}
     layout = Layout(src, parameters, tuple(region_results), tuple(clusters + mirrored), extra)
-    return ClusterResult(layout, traj, neutral, matrices, frame, notes)
+    result = ClusterResult(layout, traj, neutral, matrices, frame, notes)
+    if options.method == "paper":
+        return result
+    from .methods.session_layout import relayout  # the methods build on this module
+    if progress:
+        progress(f"choosing the layout ({options.method})")
+    return relayout(result, method=options.method, count=options.markers)
+
+
+def _clusters_of_count(regions: Sequence[tuple[np.ndarray, np.ndarray]], count: int
+                       ) -> tuple[float, list[RegionClusters]]:
+    """The paper's clusters with exactly ``count`` representatives over all regions.
+
+    ``regions``: (correlation matrix, displacement) per region. The factor is found by bisection
+    (the count grows with it, stepwise); when no factor gives ``count`` exactly, the smallest
+    clustering above it drops the representatives created last (per region in creation order,
+    the least-moving first), their members joining the kept representative they correlate with
+    most. Returns (factor, clusters per region).
+    """
+    if count < len(regions):
+        raise OptionError(f"--markers {count} is fewer than the {len(regions)} regions; the paper's "
+                          "rule keeps at least one marker per region")
+
+    def at(factor: float) -> list[RegionClusters]:
+        return [cluster_region(matrix, disp, factor=factor) for matrix, disp in regions]
+
+    def total(result: list[RegionClusters]) -> int:
+        return sum(r.representatives.size for r in result)
+
+    lo, hi = 1e-3, 1.0
+    result_hi = at(hi)
+    while total(result_hi) < count and hi < 64:
+        lo, hi = hi, hi * 2.0
+        result_hi = at(hi)
+    for _ in range(40):
+        if total(result_hi) == count or hi - lo < 1e-6:
+            break
+        mid = 0.5 * (lo + hi)
+        result = at(mid)
+        if total(result) >= count:
+            hi, result_hi = mid, result
+        else:
+            lo = mid
+    if total(result_hi) < count:
+        raise OptionError(f"the paper's correlation rule cannot give {count} markers here (at most "
+                          f"{total(result_hi)}); choose another --method or fewer --markers")
+    order = sorted((k, -float(disp[rep]), r) for r, ((_, disp), clusters) in enumerate(zip(regions, result_hi))
+                   for k, rep in enumerate(clusters.representatives))
+    kept = np.bincount([r for _, _, r in order[:count]], minlength=len(regions))
+    return hi, [keep_representatives(matrix, clusters, int(n))
+                for (matrix, _), clusters, n in zip(regions, result_hi, kept)]
 
 
 def load_session(path: str, *, rate: float | None = None, units: str | None = None) -> tuple[Trajectories, dict[str, Any]]:

@@ -33,11 +33,39 @@ class RegionClusters:
     member_correlation: np.ndarray
     mean_correlation: float
     threshold: float
+    max_correlation: float  # largest off-diagonal C (NaN for one marker)
 
     @property
     def moved(self) -> int:
         """Markers the reassignment moved to another representative."""
         return int((self.assignment != self.first_assignment).sum())
+
+    @property
+    def unreachable(self) -> bool:
+        """The threshold is at or above every correlation: each marker is its own cluster."""
+        return bool(self.threshold >= self.max_correlation)
+
+    def clustering_factor(self) -> float:
+        """The largest factor (3 decimals) whose threshold some pair still reaches (NaN if none)."""
+        if not (self.mean_correlation > 0 and np.isfinite(self.max_correlation)):
+            return float("nan")
+        return float(np.floor(self.max_correlation / self.mean_correlation * 1000.0) / 1000.0)
+
+
+def keep_representatives(matrix: np.ndarray, clusters: RegionClusters, keep: int) -> RegionClusters:
+    """``clusters`` with only its first ``keep`` representatives (creation order); the members of
+    the dropped ones join the kept representative they correlate with most (ties: created first)."""
+    if keep >= clusters.representatives.size:
+        return clusters
+    if keep < 1:
+        raise OptionError("a region must keep at least one representative")
+    reps = clusters.representatives[:keep]
+    assignment = clusters.assignment.copy()
+    moved = assignment >= keep
+    assignment[moved] = np.argmax(matrix[np.ix_(reps, np.flatnonzero(moved))], axis=0)
+    member_corr = matrix[reps[assignment], np.arange(matrix.shape[0])]
+    return RegionClusters(reps, assignment, clusters.first_assignment, member_corr,
+                          clusters.mean_correlation, clusters.threshold, clusters.max_correlation)
 
 
 def threshold_clusters(matrix: np.ndarray, displacement: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
@@ -73,6 +101,18 @@ def reassign(matrix: np.ndarray, representatives: np.ndarray, assignment: np.nda
     return out
 
 
+def max_off_diagonal(matrix: np.ndarray) -> float:
+    """Largest off-diagonal entry of a square matrix (in row blocks: no full copy)."""
+    n = matrix.shape[0]
+    largest = -np.inf
+    for lo in range(0, n, _BLOCK):
+        block = np.array(matrix[lo:lo + _BLOCK], dtype=np.float64)
+        rows = np.arange(block.shape[0])
+        block[rows, lo + rows] = -np.inf
+        largest = max(largest, float(block.max()))
+    return largest
+
+
 def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: float) -> RegionClusters:
     """Threshold clustering followed by reassignment.
 
@@ -90,7 +130,8 @@ def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: floa
     n = matrix.shape[0]
     mean = mean_off_diagonal(matrix)
     threshold = factor * mean if n > 1 else float("nan")
+    largest = max_off_diagonal(matrix) if n > 1 else float("nan")
     reps, first = threshold_clusters(matrix, displacement, threshold if n > 1 else np.inf)
     final = reassign(matrix, reps, first)
     member_corr = matrix[reps[final], np.arange(n)]
-    return RegionClusters(reps, final, first, member_corr, mean, threshold)
+    return RegionClusters(reps, final, first, member_corr, mean, threshold, largest)

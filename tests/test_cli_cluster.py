@@ -71,7 +71,7 @@ def test_cluster_refuses_existing_folder_and_bad_options(run_cli, session_files,
 def test_evaluate_and_sweep(run_cli, session_files, tmp_path):
     path, takes, group_of = session_files
     assert run_cli("cluster", path, "--takes", takes, "--no-stabilize", "--out", tmp_path / "L",
-                   "--quiet", "--formats", "none").exit_code == 0
+                   "--method", "paper", "--quiet", "--formats", "none").exit_code == 0  # the planted groups
     result = run_cli("evaluate", path, "--layout", tmp_path / "L" / "layout.json", "--takes", takes,
                      "--seeds", "2", "--folds", "3")
     assert result.exit_code == 0, result.stderr

@@ -18,7 +18,7 @@ def mirrored(tmp_path_factory):
     traj, _ = planted_session(seed=5, per_group=3, frames=240)
     path, takes = save_session(traj, folder / "session.npz")
     session, source = load_session(str(path))
-    result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
+    result = cluster_session(session, options=ClusterOptions(method="paper", stabilize=False, takes=traj.takes), source=source)
     layout = folder / "layout.json"
     write_layout(result.layout, layout)
     assert any(c.mirrored_from is not None for c in result.layout.clusters)  # the note's condition

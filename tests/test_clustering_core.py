@@ -104,7 +104,7 @@ def test_representatives_are_taken_by_largest_displacement(smooth_field):
 @pytest.mark.parametrize("factor", [0.9, 1.0, 1.1])
 def test_planted_structure_is_recovered_exactly(factor):
     traj, group_of = planted_session(seed=4)
-    result = cluster_session(traj, options=ClusterOptions(factor=factor, stabilize=False, mirror=False))
+    result = cluster_session(traj, options=ClusterOptions(method="paper", factor=factor, stabilize=False, mirror=False))
     found = sorted(sorted(c.members) for c in result.layout.clusters)
     planted: dict[int, list[str]] = {}
     for label, group in group_of.items():
@@ -115,24 +115,24 @@ def test_planted_structure_is_recovered_exactly(factor):
 
 def test_planted_structure_with_gaps_and_without_takes():
     traj, group_of = planted_session(seed=5, gaps=0.1, takes=False)
-    result = cluster_session(traj, options=ClusterOptions(stabilize=False, mirror=False))
+    result = cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False, mirror=False))
     for cluster in result.layout.clusters:
         assert len({group_of[m] for m in cluster.members}) == 1
     assert len(result.layout.clusters) == len(set(group_of.values()))
 
 
-def test_threshold_above_three_and_negative_mean_are_reported():
+def test_unreachable_threshold_and_negative_mean_are_reported():
     rng = np.random.default_rng(6)
     signal = rng.normal(size=(300, 1, 3)).cumsum(axis=0)
     pos = signal + rng.normal(scale=0.01, size=(300, 5, 3)) + rng.normal(size=(1, 5, 3)) * 20
     labels = [f"CHIN_{i:02d}" for i in range(1, 6)]
     traj = Trajectories(pos, labels, 60.0)
-    result = cluster_session(traj, options=ClusterOptions(factor=1.1, stabilize=False))
+    result = cluster_session(traj, options=ClusterOptions(method="paper", factor=1.1, stabilize=False))
     assert len(result.layout.clusters) == 5  # every marker a representative, as the rule says
-    assert any("exceeds 3" in note and "chin" in note for note in result.notes)
+    assert any("own cluster" in note and "chin" in note for note in result.notes)  # τ ≥ max C
     anti = np.concatenate([signal, -signal], axis=1) + rng.normal(scale=0.01, size=(300, 2, 3))
     result = cluster_session(Trajectories(anti, ["NOSE_01", "NOSE_02"], 60.0),
-                             options=ClusterOptions(stabilize=False))
+                             options=ClusterOptions(method="paper", stabilize=False))
     assert any("<= 0" in note for note in result.notes)
 
 
@@ -142,22 +142,22 @@ def test_bad_markers_and_options_are_reported_not_crashing():
     pos[:, 0] = np.nan  # all-NaN marker
     pos[:, 1] = pos[0, 1]  # constant marker
     bad = traj.replace(positions=pos)
-    result = cluster_session(bad, options=ClusterOptions(stabilize=False, mirror=False))
+    result = cluster_session(bad, options=ClusterOptions(method="paper", stabilize=False, mirror=False))
     assert any("no data" in n and traj.labels[0] in n for n in result.notes)
     assert any("do not move" in n and traj.labels[1] in n for n in result.notes)
     assert traj.labels[0] not in {m for c in result.layout.clusters for m in c.members}
     assert result.layout.extra["static_markers"] == [traj.labels[1]]
     with pytest.raises(OptionError, match="factor"):
-        cluster_session(traj, options=ClusterOptions(factor=0, stabilize=False))
+        cluster_session(traj, options=ClusterOptions(method="paper", factor=0, stabilize=False))
     with pytest.raises(OptionError, match="step"):
-        cluster_session(traj, options=ClusterOptions(step=traj.n_frames, stabilize=False))
+        cluster_session(traj, options=ClusterOptions(method="paper", step=traj.n_frames, stabilize=False))
     with pytest.raises(OptionError, match="smaller step"):  # a region's take too short for the step
         short = traj.replace(metadata={"takes": [Take("nose", 0, 8, "nose")]})
-        cluster_session(short, options=ClusterOptions(step=5, stabilize=False))
-    one = cluster_session(traj, options=ClusterOptions(stabilize=False, regions={
+        cluster_session(short, options=ClusterOptions(method="paper", step=5, stabilize=False))
+    one = cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False, regions={
         "nose": [traj.labels[0]], "rest": list(traj.labels[1:])}))
     assert any("only 1 marker" in n for n in one.notes)
-    partial = cluster_session(traj, options=ClusterOptions(stabilize=False, mirror=False, regions={
+    partial = cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False, mirror=False, regions={
         "nose": [m for m in traj.labels if m.startswith("NOSE")]}))
     loose = [m for m in traj.labels if not m.startswith("NOSE")]
     assert partial.layout.extra["unassigned_markers"] == loose
@@ -219,7 +219,7 @@ def test_takes_feed_their_regions(tmp_path):
 
 def test_layout_file_round_trip_is_byte_identical(tmp_path):
     traj, _ = planted_session(seed=9)
-    layout = cluster_session(traj, options=ClusterOptions(stabilize=False),
+    layout = cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False),
                              source={"path": "x.c3d", "sha256": "0" * 64}).layout
     first = write_layout(layout, tmp_path / "a.json")
     again = read_layout(first)

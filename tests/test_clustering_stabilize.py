@@ -35,9 +35,9 @@ def test_stabilized_counts_match_motion_free_capture(still_and_moving, factor):
     # (the 0.3 mm noise of any rigid set becomes a small pose noise shared by all markers).
     n_ref = n_stab = 0
     for still, moving in still_and_moving:
-        reference = cluster_session(still, options=ClusterOptions(factor=factor, stabilize=False, mirror=False))
-        stabilized = cluster_session(moving, options=ClusterOptions(factor=factor, stabilize=True, mirror=False))
-        raw = cluster_session(moving, options=ClusterOptions(factor=factor, stabilize=False, mirror=False))
+        reference = cluster_session(still, options=ClusterOptions(method="paper", factor=factor, stabilize=False, mirror=False))
+        stabilized = cluster_session(moving, options=ClusterOptions(method="paper", factor=factor, stabilize=True, mirror=False))
+        raw = cluster_session(moving, options=ClusterOptions(method="paper", factor=factor, stabilize=False, mirror=False))
         n_ref += len(reference.layout.clusters)
         n_stab += len(stabilized.layout.clusters)
         assert len(stabilized.layout.extra["stabilization"]["rigid_labels"]) >= 3

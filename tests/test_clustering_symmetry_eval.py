@@ -20,7 +20,7 @@ from mocaptk.clustering.symmetry import (
 @pytest.fixture(scope="module")
 def mirrored_layout():
     traj, _ = planted_session(seed=11)
-    return traj, cluster_session(traj, options=ClusterOptions(stabilize=False))
+    return traj, cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False))
 
 
 def test_half_capture_is_detected_and_mirrored_symmetrically(mirrored_layout):
@@ -48,7 +48,7 @@ def test_half_capture_is_detected_and_mirrored_symmetrically(mirrored_layout):
 
 def test_no_mirror_and_full_faces_are_left_alone(mirrored_layout):
     traj, _ = mirrored_layout
-    plain = cluster_session(traj, options=ClusterOptions(stabilize=False, mirror=False)).layout
+    plain = cluster_session(traj, options=ClusterOptions(method="paper", stabilize=False, mirror=False)).layout
     assert all(c.mirrored_from is None for c in plain.clusters)
     assert not is_half_capture(["A_01_L", "A_01_R", "A_02_C"])
     assert mirror_label("NOSE_02_L") == "NOSE_02_R" and mirror_label("X7") == "X7_mirror"

@@ -32,7 +32,7 @@ def f(tmp_path_factory) -> dict[str, Path]:
     traj, _ = planted_session(seed=2, per_group=3, frames=120)
     save_session(traj, d / "session.npz")
     session, source = load_session(str(d / "session.npz"))
-    result = cluster_session(session, options=ClusterOptions(stabilize=False, takes=traj.takes), source=source)
+    result = cluster_session(session, options=ClusterOptions(method="paper", stabilize=False, takes=traj.takes), source=source)
     write_layout(result.layout, d / "layout.json")
     rig = cara_rig()
     save_rig(rig, d / "cameras.json")
@@ -213,6 +213,11 @@ CATALOGUE = [
     ("E-CLU-STEP-BIG", lambda f: ["cluster", S(f), "--step", "100000", "--out", f["dir"] / "o3"],
      "is not smaller than the session's"),
     ("E-CLU-METHOD", lambda f: ["cluster", S(f), "--method", "magic", "--out", f["dir"] / "o4"], "unknown --method 'magic'"),
+    ("E-CLU-MARKERS", lambda f: ["cluster", S(f), "--markers", "0", "--out", f["dir"] / "o4m"], "--markers must be >= 1"),
+    ("E-CLU-MARKERS-REGIONS", lambda f: ["cluster", S(f), "--markers", "1", "--method", "paper", "--no-stabilize",
+                                         "--formats", "none", "--out", f["dir"] / "o4r"], "fewer than the"),
+    ("E-CLU-MARKERS-MANY", lambda f: ["cluster", S(f), "--markers", "9999", "--method", "paper", "--no-stabilize",
+                                      "--formats", "none", "--out", f["dir"] / "o4n"], "cannot give 9999 markers"),
     ("E-CLU-INFLUENCES", lambda f: ["cluster", S(f), "--max-influences", "9", "--out", f["dir"] / "o5"],
      "--max-influences must be 1..8"),
     ("E-REGIONS-JSON", lambda f: ["cluster", S(f), "--regions", f["bad.json"], "--out", f["dir"] / "o6"], "invalid JSON"),

@@ -110,7 +110,8 @@ def test_hybrid_reports_its_contenders():
     problem, _ = driven_problem()
     result = select_layout(problem, 8, method="hybrid")
     scores = result.details["local_rmse_mm"]
-    assert set(scores) == {"clusters", "thin-shell", "qr", "greedy", "thin-shell+local"}
+    assert set(scores) == {"clusters", "thin-shell", "qr", "greedy", "kmeans",
+                           "thin-shell+local", "kmeans+local"}
     assert scores[result.details["winner"]] == min(scores.values())
 
 

@@ -8,8 +8,9 @@
    the other clusters' representatives (coordinate descent over clusters, until no
    representative changes).
 3. **Contenders.** The clustered layout, the thin-shell optimizer (Le et al.) started from it, the
-   column-pivoted QR and the greedy layouts; the thin-shell layout also competes refined by swaps
-   with spatial neighbours while its local error (below, 2 nearest markers) drops.
+   column-pivoted QR, the greedy and the k-means layouts; the thin-shell and k-means layouts also
+   compete refined by swaps with spatial neighbours while their local error (below, 2 nearest
+   markers) drops.
 4. **Choice by local reconstruction.** A training session moves one region at a time, a
    performance all of them: a layout judged by how well a *global* regression fits the training
    takes is rewarded for cross-region correlations the performance does not have (the previous
@@ -26,11 +27,12 @@ from typing import Any
 import numpy as np
 
 from ...errors import OptionError
+from ..baselines import kmeans_layout
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
-from .reconstruction import (CrossValidatedError, _gains, _residual_gram, greedy_layout,
-                             pivoted_qr_layout, swap_descent, training_frames, training_gram)
+from .reconstruction import (CrossValidatedError, gains_given, greedy_layout, pivoted_qr_layout,
+                             swap_descent, training_frames, training_gram)
 
 
 def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start: np.ndarray, *,
@@ -55,8 +57,9 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
             members = members[~np.isin(members, others)]
             if clusters[rep] < 0 or members.size < 2:
                 continue
-            gain = _gains(_residual_gram(gram, others, jitter), jitter)
-            best = int(members[np.argmax(gain[members])])
+            points = np.union1d(members, [rep])
+            gain = dict(zip(points.tolist(), gains_given(gram, others, points, jitter).tolist()))
+            best = int(members[np.argmax([gain[int(m)] for m in members])])
             if best != rep and gain[best] > gain[rep] * (1.0 + 1e-9):
                 layout[slot] = best
                 changed = True
@@ -71,7 +74,10 @@ def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2)) -> 
         disp, _ = training_frames(problem)
         every = np.arange(disp.shape[0])
         problem.cache["local-fit"] = CrossValidatedError.from_displacements(disp, [(every, every)])
-    return LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales))
+    key = ("local-error", tuple(scales))
+    if key not in problem.cache:  # shared, so a point's error is computed once per neighbours
+        problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales))
+    return problem.cache[key]
 
 
 def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *,
@@ -92,9 +98,13 @@ def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *
     return swap_descent(layout, candidates, score.rmse, max_passes=max_passes)
 
 
+#: The contender layouts of the hybrid and the ones also refined by local swaps.
+CONTENDERS = ("clusters", "thin-shell", "qr", "greedy", "kmeans")
+REFINED = ("thin-shell", "kmeans")
+
+
 def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
-                      contenders: tuple[str, ...] = ("clusters", "thin-shell", "qr", "greedy")
-                      ) -> dict[str, np.ndarray]:
+                      contenders: tuple[str, ...] = CONTENDERS) -> dict[str, np.ndarray]:
     """The unrefined contender layouts (sorted point indices) by name."""
     layouts: dict[str, np.ndarray] = {}
     if "clusters" in contenders:
@@ -119,14 +129,17 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
         layouts["qr"] = pivoted_qr_layout(problem, count)
     if "greedy" in contenders:
         layouts["greedy"] = greedy_layout(problem, count)
+    if "kmeans" in contenders:
+        cand = problem.candidate_points()
+        layouts["kmeans"] = np.sort(cand[kmeans_layout(problem.displacements[:, cand], count, seed=seed)])
     if not layouts:
         raise OptionError("no hybrid contender could produce a layout")
     return layouts
 
 
 def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
-                  contenders: tuple[str, ...] = ("clusters", "thin-shell", "qr", "greedy"),
-                  refine: tuple[str, ...] = ("thin-shell",)) -> tuple[np.ndarray, dict[str, Any]]:
+                  contenders: tuple[str, ...] = CONTENDERS, refine: tuple[str, ...] = REFINED
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """The hybrid layout of ``count`` points and the local error (mm) of every contender.
 
     The ``refine`` contenders also compete after :func:`local_swaps` (``<name>+local``; swaps

@@ -14,7 +14,8 @@ layout costs one batch of (3k × 3k) solves per fold, never a pass over the fram
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -27,32 +28,51 @@ class LocalError:
 
     ``folds``: train/test Gram matrices (train = test for the in-sample fit); ``neutral`` (N, 3)
     mm; ``scales``: the values of ``k``, whose mean squared errors are averaged. Layout points
-    are measured (error 0), as in the evaluation.
+    are measured (error 0), as in the evaluation. A point's error depends only on its ``k``
+    nearest layout points, so it is cached by them: a swap search recomputes only the points
+    whose neighbours changed.
     """
 
     folds: CrossValidatedError
     neutral: np.ndarray
     scales: tuple[int, ...] = (1, 2)
+    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors, distances
+
+    def _squared_errors(self, targets: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """(T,) squared error of each target from its layout points ``near`` (T, k), summed over folds."""
+        k = near.shape[1]
+        dst = 3 * targets[:, None] + np.arange(3)  # (T, 3)
+        src = (3 * near[:, :, None] + np.arange(3)).reshape(targets.size, 3 * k)  # (T, 3k)
+        ss, sd = (src[:, :, None], src[:, None, :]), (src[:, :, None], dst[:, None, :])
+        eye = np.eye(3 * k)
+        total = np.zeros(targets.size)
+        for gram, test in zip(self.folds.train_gram, self.folds.test_gram):
+            g_ss = gram[ss]
+            lam = self.folds.ridge * np.maximum(np.trace(g_ss, axis1=1, axis2=2) / (3 * k), 1e-12)
+            coef = np.linalg.solve(g_ss + lam[:, None, None] * eye, gram[sd])  # (T, 3k, 3)
+            own = np.trace(test[dst[:, :, None], dst[:, None, :]], axis1=1, axis2=2)
+            total += own + np.sum(coef * (test[ss] @ coef - 2.0 * test[sd]), axis=(1, 2))
+        return total
 
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
         layout = np.unique(np.asarray(layout, dtype=np.intp))
-        n = self.neutral.shape[0]
-        targets = np.setdiff1d(np.arange(n), layout)
-        dist = np.linalg.norm(self.neutral[targets, None] - self.neutral[None, layout], axis=2)
+        if "distance" not in self._cache:
+            self._cache["distance"] = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=2)
+        is_target = np.ones(self.neutral.shape[0], dtype=bool)
+        is_target[layout] = False
+        targets = np.flatnonzero(is_target)
+        dist = self._cache["distance"][np.ix_(targets, layout)]
         order = layout[np.argsort(dist, axis=1, kind="stable")]
-        dst = 3 * targets[:, None] + np.arange(3)  # (T, 3)
         total = 0.0
         for k in self.scales:
             k = min(k, layout.size)
-            src = (3 * order[:, :k, None] + np.arange(3)).reshape(targets.size, 3 * k)  # (T, 3k)
-            ss, sd = (src[:, :, None], src[:, None, :]), (src[:, :, None], dst[:, None, :])
-            eye = np.eye(3 * k)
-            for gram, test in zip(self.folds.train_gram, self.folds.test_gram):
-                g_ss = gram[ss]
-                lam = self.folds.ridge * np.maximum(np.trace(g_ss, axis1=1, axis2=2) / (3 * k), 1e-12)
-                coef = np.linalg.solve(g_ss + lam[:, None, None] * eye, gram[sd])  # (T, 3k, 3)
-                own = np.trace(test[dst[:, :, None], dst[:, None, :]], axis1=1, axis2=2).sum()
-                total += (own - 2.0 * np.sum(coef * test[sd])
-                          + np.einsum("tsj,tsu,tuj->", coef, test[ss], coef, optimize=True))
+            near = order[:, :k]
+            keys = [(k, t, *row) for t, row in zip(targets.tolist(), near.tolist())]
+            missing = [i for i, key in enumerate(keys) if key not in self._cache]
+            if missing:
+                rows = np.array(missing, dtype=np.intp)
+                for i, value in zip(missing, self._squared_errors(targets[rows], near[rows]).tolist()):
+                    self._cache[keys[i]] = value
+            total += float(np.sum([self._cache[key] for key in keys]))
         return float(np.sqrt(max(total, 0.0) / (self.folds.n_test_points * len(self.scales))))

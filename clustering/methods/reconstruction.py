@@ -81,6 +81,22 @@ def _gains(resid: np.ndarray, jitter: float) -> np.ndarray:
     return np.einsum("anm,amn->a", np.linalg.inv(own), cross)
 
 
+def gains_given(gram: np.ndarray, chosen: Sequence[int], points: np.ndarray, jitter: float) -> np.ndarray:
+    """(len(points),) what :func:`_gains` gives ``points`` after projecting out ``chosen``, from
+    their residual columns only (O(3N·3L·3P) instead of the whole residual Gram matrix)."""
+    cols_s, cols_p = _blocks(np.asarray(chosen, dtype=np.intp)), _blocks(points)
+    resid = gram[:, cols_p]
+    if cols_s.size:
+        g_ss = gram[np.ix_(cols_s, cols_s)] + jitter * np.eye(cols_s.size)
+        resid = resid - gram[:, cols_s] @ np.linalg.solve(g_ss, gram[np.ix_(cols_s, cols_p)])
+    n_p = len(points)
+    blocks = resid.reshape(resid.shape[0], n_p, 3)
+    cross = np.einsum("ian,iam->anm", blocks, blocks)
+    square = resid[cols_p].reshape(n_p, 3, n_p, 3)
+    own = square[np.arange(n_p), :, np.arange(n_p), :] + jitter * np.eye(3)
+    return np.einsum("anm,amn->a", np.linalg.inv(own), cross)
+
+
 def greedy_layout(problem: LayoutProblem, count: int, *, fixed: Sequence[int] = (),
                   seed: int = 0) -> np.ndarray:
     """Greedy forward selection of ``count`` points (``fixed`` ones are kept and counted)."""
@@ -147,8 +163,8 @@ class CrossValidatedError:
             lam = self.ridge * max(float(np.trace(g_ss)) / cols.size, 1e-12)
             coef = np.linalg.solve(g_ss + lam * np.eye(cols.size), gram[np.ix_(cols, rest)])
             t_sr = test[np.ix_(cols, rest)]
-            total += (np.trace(test[np.ix_(rest, rest)]) - 2.0 * np.einsum("sr,sr->", coef, t_sr)
-                      + np.einsum("sr,st,tr->", coef, test[np.ix_(cols, cols)], coef, optimize=True))
+            total += (float(np.diagonal(test)[rest].sum())
+                      + float(np.sum(coef * (test[np.ix_(cols, cols)] @ coef - 2.0 * t_sr))))
         return float(np.sqrt(max(total, 0.0) / self.n_test_points))
 
 

@@ -18,8 +18,9 @@ from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
 from . import LayoutProblem, select_layout
 
 
-def relayout(result: ClusterResult, *, method: str, seed: int = 0) -> ClusterResult:
-    """``result`` with its clusters chosen by ``method`` (same number of measured markers)."""
+def relayout(result: ClusterResult, *, method: str, count: int | None = None, seed: int = 0) -> ClusterResult:
+    """``result`` with its clusters chosen by ``method``: ``count`` measured markers (default: as
+    many as ``result`` has)."""
     if method == "paper":
         return result
     layout = result.layout
@@ -30,7 +31,8 @@ def relayout(result: ClusterResult, *, method: str, seed: int = 0) -> ClusterRes
     regions = {r.name: np.array([index[m] for m in r.markers], dtype=np.intp) for r in layout.regions}
     problem = LayoutProblem(traj.positions - neutral[None], neutral, labels=traj.labels, regions=regions,
                             segments=tuple((t.start, t.end) for t in traj.takes))
-    chosen = select_layout(problem, len(measured), method=method, seed=seed).layout
+    selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
+    chosen = selected.layout
     plane_info = layout.extra["sagittal_plane"]
     plane = SagittalPlane(np.asarray(plane_info["point"]), np.asarray(plane_info["normal"]))
     sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
@@ -61,6 +63,8 @@ def relayout(result: ClusterResult, *, method: str, seed: int = 0) -> ClusterRes
         c.representative for c in clusters if c.mirrored_from is None and c.region == r.name))
         for r in layout.regions)
     parameters = dict(layout.parameters, method=method)
+    if "winner" in selected.details:  # which contender the hybrid chose
+        parameters["winner"] = selected.details["winner"]
     new_layout = dataclasses.replace(layout, parameters=parameters, regions=region_results,
                                      clusters=tuple(clusters))
     return dataclasses.replace(result, layout=new_layout)

@@ -2,7 +2,7 @@
 
 Extension points for later issues:
 - the layout is computed in ONE place, :func:`mocaptk.clustering.pipeline.cluster_session`
-  (a ``--method`` option selects another layout rule there; ``paper`` is the default);
+  (``--method`` selects the layout rule there; ``hybrid`` is the default, ``paper`` the paper's);
 - every output file is written in ONE place, :func:`write_cluster_outputs` below (rig/guide
   exports add their files there, into the same staging folder, so the whole folder stays atomic).
 """
@@ -48,22 +48,36 @@ def warn_unless_face(traj, session: Path, *, regions_given: bool) -> None:
 
 
 def summary_text(result) -> str:
-    """Short text summary: markers per region (measured + mirrored), total, notes, warnings."""
+    """Short text summary: markers per region (measured + mirrored = total), notes, warnings.
+
+    The paper's mean correlation and threshold columns appear when the paper's rule chose the
+    markers; with another method they only set the count, which the header says.
+    """
     from ..clustering.pipeline import stabilization_note
 
     layout = result.layout
-    lines = [f"mocaptk cluster: {layout.source.get('path')}  factor {layout.parameters['factor']}  "
-             f"step {layout.parameters['step']}  stabilized {layout.parameters['stabilized']}  "
-             f"mirror {layout.parameters['mirror']}",
-             f"regions from: {layout.parameters['regions_from']}", "",
-             f"{'region':<16}{'markers':>8}{'layout':>8}{'mirrored':>10}{'mean C':>9}{'threshold':>11}"]
+    params = layout.parameters
+    method = params.get("method", "paper")
+    lines = [f"mocaptk cluster: {layout.source.get('path')}  method {method}  factor {params['factor']:g}  "
+             f"step {params['step']}  stabilized {params['stabilized']}  mirror {params['mirror']}",
+             f"regions from: {params['regions_from']}"]
+    if method != "paper":
+        count = (f"--markers {params['markers']}" if "markers" in params
+                 else f"the paper's rule at factor {params['factor']:g}")
+        winner = f" (hybrid contender: {params['winner']})" if "winner" in params else ""
+        lines.append(f"measured markers chosen by {method}{winner}; count from {count}; "
+                     "influence regions by the paper's correlations")
+    paper = method == "paper"
+    lines += ["", f"{'region':<16}{'dense':>7}{'measured':>10}{'mirrored':>10}{'total':>7}"
+              + (f"{'mean C':>9}{'threshold':>11}" if paper else "")]
+    sums = [0, 0, 0]
     for region in layout.regions:
         own = sum(c.region == region.name and c.mirrored_from is None for c in layout.clusters)
         mirrored = sum(c.region == region.name and c.mirrored_from is not None for c in layout.clusters)
-        lines.append(f"{region.name:<16}{len(region.markers):>8}{own:>8}{mirrored:>10}"
-                     f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}")
-    total_in = sum(len(r.markers) for r in layout.regions)
-    lines.append(f"{'total':<16}{total_in:>8}{len(layout.clusters):>8}")
+        sums = [sums[0] + len(region.markers), sums[1] + own, sums[2] + mirrored]
+        lines.append(f"{region.name:<16}{len(region.markers):>7}{own:>10}{mirrored:>10}{own + mirrored:>7}"
+                     + (f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}" if paper else ""))
+    lines.append(f"{'total':<16}{sums[0]:>7}{sums[1]:>10}{sums[2]:>10}{sums[1] + sums[2]:>7}")
     stabilization = layout.extra.get("stabilization", {})
     rigid = stabilization.get("rigid_labels")
     if rigid and stabilization.get("applied"):
@@ -103,9 +117,13 @@ def cluster(
     session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
                                  "region mean correlation; larger gives more markers."),
-    method: str = typer.Option("paper", "--method", help="Layout method: paper (the correlation rule) "
-                               "or hybrid, qr, greedy, kmeans, thin-shell, set-cover, farthest-point, "
-                               "random with as many markers as the paper's rule gives (see mocaptk compare)."),
+    method: str = typer.Option("hybrid", "--method", help="Layout method choosing the measured markers: "
+                               "hybrid (default, the best on held-out data), paper (the paper's "
+                               "representatives: Will, De Martino & Bezerra as written), qr, greedy, "
+                               "kmeans, thin-shell, set-cover, farthest-point, random. The paper's rule "
+                               "at --factor sets the count and the influence regions (see mocaptk compare)."),
+    markers: int = typer.Option(None, "--markers", help="Exactly N measured markers (mirrored twins come "
+                                "on top) instead of the count the paper's rule gives at --factor."),
     regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: list of labels} "
                                  "or CSV label,region (default: label prefixes, else geometric)."),
     takes: Path = typer.Option(None, "--takes", help="Takes file {\"takes\": [{name, region, start, end}]} "
@@ -129,14 +147,15 @@ def cluster(
     animate: list[Path] = typer.Option(None, "--animate", help="A performance to bake onto the "
                                        "rig after the session's own motion (as in mocaptk rig)."),
 ) -> None:
-    """Cluster a dense session into a minimal marker layout (Will, De Martino & Bezerra).
+    """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra's
+    correlation clusters; markers chosen by the hybrid method unless --method paper).
 
     Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json, pictures,
     summary.txt, rig files and guide.pdf.
     """
     from rich.console import Console
 
-    from ..clustering.pipeline import ClusterOptions, cluster_session, load_session
+    from ..clustering.pipeline import ClusterOptions, check_layout_options, cluster_session, load_session
     from ..clustering.regions import read_regions
     from ..clustering.takes import read_takes
 
@@ -146,22 +165,17 @@ def cluster(
     from .rig import animation_summary, cluster_rig_outputs, rig_options
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
-    from ..clustering.methods import method_names
-    if method not in method_names():  # fail before the slow part
-        from ..errors import OptionError
-        raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
+    check_layout_options(method=method, markers=markers)  # fail before the slow part
     traj, source = load_session(session, rate=rate, units=units)
     warn_unless_face(traj, session, regions_given=regions is not None)
     options = ClusterOptions(
-        factor=factor, step=step, stabilize=not no_stabilize, mirror=mirror, rigid=rigid_labels(rigid),
+        factor=factor, method=method, markers=markers, step=step, stabilize=not no_stabilize,
+        mirror=mirror, rigid=rigid_labels(rigid),
         regions=read_regions(regions, traj.labels) if regions else None,
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:
         result = cluster_session(traj, options=options, source=source,
                                  progress=lambda text: status.update(text))
-        if method != "paper":  # same marker count, chosen by another layout method
-            from ..clustering.methods.session_layout import relayout
-            result = relayout(result, method=method)
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:

@@ -86,7 +86,7 @@ def sweep(
         task = progress.add_task("sweeping factors", total=len(values))
         for factor in values:
             # the session is stabilized once above, so clustering runs on head-relative data
-            options = ClusterOptions(factor=factor, step=step, stabilize=False, mirror=False,
+            options = ClusterOptions(factor=factor, method="paper", step=step, stabilize=False, mirror=False,
                                      regions=region_map, takes=take_list)
             result = cluster_session(traj, options=options, source=source)
             index = {label: i for i, label in enumerate(result.trajectories.labels)}
