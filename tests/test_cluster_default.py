@@ -65,7 +65,7 @@ def test_readme_layout_beats_random_farthest_point_and_kmeans_of_the_same_count(
     methods = evaluation["methods"]
     ours = methods["hybrid"]
     assert ours["count"] == methods["kmeans"]["count"] == 48  # the paper's rule at factor 1.1
-    for baseline in ("random", "farthest_point", "kmeans"):
+    for baseline in ("random", "farthest-point", "kmeans"):
         assert ours["rmse_mm"] < methods[baseline]["rmse_mm"], baseline
     lost = ours["lost_marker"]  # the worst single lost marker, beside the normal error
     assert lost["lost_rmse_mm"] > lost["intact_rmse_mm"] and lost["marker"] in layout["layout"]

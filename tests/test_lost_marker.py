@@ -45,3 +45,22 @@ def test_lost_marker_follows_the_held_out_splits_on_gap_free_frames():
     errors = heldout_errors(positions, np.array([3, 8]), clean)
     errors[~keep] = np.nan
     assert lost_marker_rmse(folds, layout)[0] == pytest.approx(error_summary(errors)["rmse_mm"], rel=1e-6)
+
+
+def test_robust_method_lowers_the_worst_single_lost_marker_of_the_hybrid():
+    from test_methods_hybrid import wave_problem
+
+    from mocaptk.clustering.methods import select_layout
+    from mocaptk.clustering.methods.hybrid import local_error
+    from mocaptk.clustering.methods.robust import worst_lost
+
+    problem = wave_problem(seed=4)
+    hybrid = select_layout(problem, 7, method="hybrid").layout
+    robust = select_layout(problem, 7, method="robust")
+    assert robust.layout.size == 7
+    score = local_error(problem, scales=(1, 2))
+    before, after = worst_lost(score, hybrid)[0], worst_lost(score, robust.layout)[0]
+    assert robust.details["worst_lost_local_rmse_mm"] == {"hybrid": pytest.approx(before),
+                                                          "robust": pytest.approx(after)}
+    assert after <= before
+    np.testing.assert_array_equal(robust.layout, select_layout(wave_problem(seed=4), 7, method="robust").layout)

@@ -93,6 +93,11 @@ def _hybrid(problem: LayoutProblem, count: int, *, seed: int = 0, **options: Any
     return hybrid_layout(problem, count, seed=seed, **options)
 
 
+def _robust(problem: LayoutProblem, count: int, *, seed: int = 0, **options: Any) -> tuple[np.ndarray, dict]:
+    from .robust import robust_layout
+    return robust_layout(problem, count, seed=seed, **options)
+
+
 #: name → method; every method: ``(problem, count, *, seed, **options) -> (layout, details)``.
 LAYOUT_METHODS: dict[str, MethodFunction] = {
     "paper": _paper,
@@ -104,6 +109,7 @@ LAYOUT_METHODS: dict[str, MethodFunction] = {
     "thin-shell": _thin_shell,
     "set-cover": _set_cover,
     "hybrid": _hybrid,
+    "robust": _robust,
 }
 
 
