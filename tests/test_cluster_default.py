@@ -3,7 +3,7 @@
 The README's own commands, on a fresh copy of the bundled sample: the default layout must beat
 random, farthest-point and k-means layouts of the same count on the README's held-out
 evaluation; ``--method paper`` must still write the layout the paper's rule wrote before the
-default changed (``tests/data/paper_layout_sample.json``, written by the code of e3ac71c).
+default changed (``tests/data/paper_layout_sample.json``, written by the code of 0c9bed4).
 """
 
 from __future__ import annotations
