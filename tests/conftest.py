@@ -28,6 +28,19 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def fuzz_readers():
+    """``benchmarks/fuzz_readers.py`` as a module: its isolated, memory-capped reader ``Worker``."""
+    import importlib.util
+    import sys
+
+    if "fuzz_readers" not in sys.modules:  # its dataclasses look their module up by name
+        spec = importlib.util.spec_from_file_location("fuzz_readers", REPO / "benchmarks" / "fuzz_readers.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["fuzz_readers"] = module
+        spec.loader.exec_module(module)
+    return sys.modules["fuzz_readers"]
+
+
 @dataclass
 class CliResult:
     exit_code: int

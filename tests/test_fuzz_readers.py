@@ -6,22 +6,16 @@ no crash, no hang, no other exception. Plus the campaign's past findings as regr
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 
 import pytest
-from conftest import REPO, shared_path
+from conftest import fuzz_readers, shared_path
 
 CASES_PER_FORMAT = 24
 
 
 @pytest.fixture(scope="module")
 def fuzz():
-    spec = importlib.util.spec_from_file_location("fuzz_readers", REPO / "benchmarks" / "fuzz_readers.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("fuzz_readers", module)  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return fuzz_readers()
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ text, an out-of-memory read names the file, and infinite cells are gaps.
 from __future__ import annotations
 
 import gzip
-import importlib.util
 import json
 import subprocess
 import sys
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, fuzz_readers
 
 FUZZ = REPO / "tests" / "data" / "fuzz"
 MARKER_SUFFIXES = (".c3d", ".csv", ".trc")
@@ -53,10 +52,7 @@ def unpacked(path: Path, folder: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def worker():
-    spec = importlib.util.spec_from_file_location("fuzz_readers", REPO / "benchmarks" / "fuzz_readers.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("fuzz_readers", module)
-    spec.loader.exec_module(module)
+    module = fuzz_readers()
     w = module.Worker(memory_limit=2 << 30)
     w.start()
     yield w

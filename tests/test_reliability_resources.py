@@ -5,13 +5,11 @@ never a MemoryError, a crash or a hang. Limits: docs/reliability.md "Resource li
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import fuzz_readers
 
 from mocaptk import Trajectories
 from mocaptk.acquisition import c3d_raw, text_io
@@ -23,10 +21,7 @@ GB = 1 << 30
 
 @pytest.fixture(scope="module")
 def worker():
-    spec = importlib.util.spec_from_file_location("fuzz_readers", REPO / "benchmarks" / "fuzz_readers.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("fuzz_readers", module)
-    spec.loader.exec_module(module)
+    module = fuzz_readers()
     w = module.Worker(memory_limit=2 * GB)  # RLIMIT_AS: reading may not need more
     w.start()
     yield w
