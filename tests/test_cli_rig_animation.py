@@ -135,6 +135,19 @@ def test_coincident_markers_build_a_rig(tmp_path):
     assert np.isfinite(report["skinning_check"]["rmse_mm"])
 
 
+def test_mutated_c3d_with_coincident_markers_builds_a_rig(tmp_path):
+    """The fuzz campaign's case: pc_real.c3d with its data-start byte changed 13 -> 2 reads
+    frames of parameter bytes, markers coincide; the rig step used to raise a traceback."""
+    data = bytearray(shared_path("c3d", "btkdata", "c3d.org", "sample02", "pc_real.c3d")
+                     .read_bytes())
+    assert data[16] == 13
+    data[16] = 2
+    (tmp_path / "mutated.c3d").write_bytes(bytes(data))
+    _run("cluster", tmp_path / "mutated.c3d", "--out", tmp_path / "o", "--formats", "json",
+         "--quiet")
+    assert (tmp_path / "o" / "rig.json").stat().st_size > 0
+
+
 def test_coincident_joint_vertices_share_their_weight():
     from mocaptk.retarget.influence import edge_graph
     from mocaptk.retarget.weights import thin_shell_weights
