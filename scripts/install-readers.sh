@@ -31,13 +31,17 @@ else
 fi
 
 python -c "import websocket" 2>/dev/null || python -m pip install --quiet "websocket-client>=1.7"
-if command -v chromium >/dev/null || command -v chromium-browser >/dev/null; then
+# Debian packages: chromium opens report.html; poppler-utils (pdftoppm) renders guide.pdf pages
+debs=()
+command -v chromium >/dev/null || command -v chromium-browser >/dev/null || debs+=(chromium)
+command -v pdftoppm >/dev/null || debs+=(poppler-utils)
+if [ "${#debs[@]}" -eq 0 ]; then
     :
 elif command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null \
-        || echo "install-readers: apt-get could not install chromium (the browser tests skip)" >&2
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${debs[@]}" >/dev/null \
+        || echo "install-readers: apt-get could not install ${debs[*]} (the browser / PDF-page tests skip)" >&2
 else
-    echo "install-readers: no chromium and no root apt-get, skipping it (the browser tests skip)" >&2
+    echo "install-readers: no root apt-get, skipping ${debs[*]} (the browser / PDF-page tests skip)" >&2
 fi
 
 if [ "${1:-}" = "--blender" ] && [ ! -x "$tools/bpyvenv/bin/python" ]; then

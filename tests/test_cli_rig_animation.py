@@ -47,14 +47,15 @@ def moving(tmp_path_factory):
     (folder / "again.npz").write_bytes(session.read_bytes())
     out = folder / "out"
     _run("cluster", session, "--out", out, "--animate", folder / "again.npz", "--quiet")
-    return folder, out, raw, list(perf.labels)
+    motion = (rotation, shift, centre)  # the applied head motion, for checking face_root
+    return folder, out, raw, list(perf.labels), motion
 
 
 def test_cluster_bakes_the_head_motion_onto_face_root(moving):
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.export_json import read_rig_animation
 
-    _, out, raw, labels = moving
+    _, out, raw, labels, (head_rotation, head_shift, centre) = moving
     layout = read_layout(out / "layout.json")
     assert layout.parameters["stabilized"]
     report = json.loads((out / "rig_report.json").read_text())
@@ -75,8 +76,14 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
             errors.append(np.linalg.norm(world[take, joint][seen] - captured[seen], axis=1).max())
     print(f"world joints vs raw markers: max {max(errors):.2g} mm")
     assert max(errors) < 0.1
-    # the root moves: head motion is in the scene, not removed
-    assert np.ptp(world[:, 0], axis=0).max() > 30.0
+    # the root carries the applied head motion (not removed), to within the head-pose estimate's
+    # error (stabilization: rotation p99 ~0.4 deg, about 1 mm at the root's lever arm)
+    root_raw = world[:, 0] @ rotation  # back to the capture's frame
+    for take in (slice(0, FRAMES), slice(FRAMES, 2 * FRAMES)):
+        expected = (np.einsum("fij,j->fi", head_rotation, root_raw[take][0] - centre) + centre
+                    + head_shift)
+        assert np.linalg.norm(root_raw[take] - expected, axis=1).max() < 2.0
+    assert np.ptp(root_raw[:, 0]) > 20.0  # a 30 mm sideways sway, not a still root
     # renders at rest and at the last capture's widest jaw opening
     assert report["renders"]["jaw_open_frame"] >= FRAMES
     for name in ("rest_front", "rest_profile", "jaw_open_front", "jaw_open_profile"):
@@ -99,7 +106,7 @@ def test_blender_plays_the_baked_animation(moving, name):
     equals the rig's own skinning (< 0.01 mm), world joints equal the raw capture (< 0.1 mm)."""
     from mocaptk.clustering.layout import read_layout
 
-    _, out, raw, labels = moving
+    _, out, raw, labels, _ = moving
     python = installed.blender_python()
     script = installed.REPO / "scripts" / "check_fbx_blender.py"
     done = subprocess.run([str(python), str(script), str(out / name), str(out / "rig.json")],
@@ -142,8 +149,17 @@ def test_mutated_c3d_with_coincident_markers_builds_a_rig(tmp_path):
                      .read_bytes())
     assert data[16] == 13
     data[16] = 2
-    (tmp_path / "mutated.c3d").write_bytes(bytes(data))
-    _run("cluster", tmp_path / "mutated.c3d", "--out", tmp_path / "o", "--formats", "json",
+    mutated = tmp_path / "mutated.c3d"
+    mutated.write_bytes(bytes(data))
+    # it spans 1.4 m: refused as no face in one line, and clustered with explicit regions
+    done = subprocess.run(["mocaptk", "cluster", str(mutated), "--out", str(tmp_path / "n")],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "not a face capture" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "n").exists()
+    from mocaptk.acquisition.formats import read_trajectories
+    regions = tmp_path / "regions.json"
+    regions.write_text(json.dumps({"body": list(read_trajectories(mutated).labels)}))
+    _run("cluster", mutated, "--regions", regions, "--out", tmp_path / "o", "--formats", "json",
          "--quiet")
     assert (tmp_path / "o" / "rig.json").stat().st_size > 0
 

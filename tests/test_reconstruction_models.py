@@ -44,7 +44,7 @@ def test_evaluate_numbers_are_unchanged_by_the_move():
                              n_random=2)
     expected = {"layout": (0.8071752404661571, 1.720734728897507),
                 "random": (0.7280330215204696, 1.536044278458335),
-                "farthest_point": (0.6615374714494986, 1.3479154015675943),
+                "farthest-point": (0.6615374714494986, 1.3479154015675943),
                 "kmeans": (0.608235666700686, 1.2426197818879288)}
     for name, (rmse, p95) in expected.items():
         assert result["methods"][name]["rmse_mm"] == pytest.approx(rmse, rel=1e-12)

@@ -120,7 +120,7 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
                 if int(rep) not in kept:
                     clusters[clusters == c] = -1
             layouts["clusters"] = cluster_representatives(problem, clusters, paper.layout)
-    if "thin-shell" in contenders and problem.n_points <= 2000:
+    if "thin-shell" in contenders and problem.n_points <= 2000 and problem.has_surface():
         from .thin_shell_layout import thin_shell_layout
         start = layouts.get("clusters")
         layouts["thin-shell"] = thin_shell_layout(problem, count, restarts=1, seed=seed,

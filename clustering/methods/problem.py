@@ -97,6 +97,11 @@ class LayoutProblem:
             return self.displacements[complete]
         return np.nan_to_num(self.displacements, nan=0.0)
 
+    def has_surface(self) -> bool:
+        """Whether :meth:`surface_faces` can give a mesh: faces given, or distinct neutral points
+        (coincident markers, e.g. a duplicated label, have no marker surface)."""
+        return self.faces is not None or len(np.unique(self.neutral, axis=0)) == len(self.neutral)
+
     def surface_faces(self) -> np.ndarray:
         """(T, 3) the surface mesh over the points (``faces``, else triangulated from ``neutral``)."""
         if self.faces is not None:

@@ -8,7 +8,7 @@ import typer
 
 from ..errors import InputFileError, OptionError
 from .app import app
-from .options import Rate, Units
+from .options import Quiet, Rate, Units
 
 
 def session_path(layout_path: Path, recorded: str | None, given: Path | None) -> Path:
@@ -67,7 +67,7 @@ def solve(
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress or summary."),
+    quiet: Quiet = False,
 ) -> None:
     """Solve every dense marker and an animated face mesh from a capture of the layout's markers."""
     from rich.console import Console
