@@ -459,6 +459,8 @@ def _repair_bowties(faces: np.ndarray, n_vertices: int) -> np.ndarray:
         drop = np.zeros(len(faces), bool)
         for v in bad:
             around = np.flatnonzero(np.any(faces == v, axis=1) & ~drop)
+            if len(around) == 0:  # every fan went with an earlier vertex's small fans
+                continue
             fans = _fans_around(faces[around], int(v))
             largest = np.argmax(np.bincount(fans))
             drop[around[fans != largest]] = True

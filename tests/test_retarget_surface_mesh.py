@@ -100,3 +100,13 @@ def test_surface_mesh_keeps_every_marker_of_the_bundled_sample(name):
     q = mesh_quality(*marker_surface_mesh(points))
     assert q.unreferenced_vertices == 0
     assert q.non_manifold_edges == 0 and q.non_manifold_vertices == 0 and q.boundary_loops == 1
+
+
+def test_bowtie_repair_when_earlier_fans_took_every_triangle_of_a_vertex():
+    """Vertex 5 joins two small fans, one of vertex 0 and one of vertex 1: repairing 0 and 1 drops
+    both of its triangles (10,000 markers 2 mm apart raised 'argmax of an empty sequence')."""
+    from mocaptk.surface_mesh import _repair_bowties
+
+    fans = [[0, 10, 11], [0, 11, 12], [0, 12, 13], [1, 20, 21], [1, 21, 22], [1, 22, 23]]
+    faces = np.array(fans + [[0, 5, 6], [1, 5, 7]])
+    np.testing.assert_array_equal(_repair_bowties(faces, 24), fans)
