@@ -33,7 +33,7 @@ from mocaptk.trajectories import Trajectories
 from ..clustering.layout import Layout
 from ..clustering.neutral import max_displacement, neutral_pose
 from ..clustering.regions import face_frame
-from ..clustering.symmetry import SagittalPlane, mirror_label
+from ..clustering.symmetry import SagittalPlane, mirror_label, side_tag
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
@@ -241,8 +241,11 @@ def dense_cloud(layout: Layout, session: Trajectories, *,
     if mirrored:
         plane = _sagittal_plane(layout)
         lookup = {label: i for i, label in enumerate(labels)}
-        wanted = {m for c in mirrored for m in c.members if m not in lookup}
         sources = {mirror_label(label): i for label, i in lookup.items()}
+        # the whole mirrored half, also side markers that joined a midline cluster: a symmetric mesh
+        wanted = ({m for c in mirrored for m in c.members}
+                  | {mirror_label(label) for label in labels if side_tag(label) in ("L", "R")}
+                  ) - set(lookup)
         unknown = sorted(m for m in wanted if m not in sources)
         if unknown:
             raise OptionError("mirrored layout markers have no source marker in the session: "

@@ -104,7 +104,7 @@ def test_evaluate_and_compare_write_error_reports(planted_reports, run_cli, tmp_
     (table,) = data["tables"]
     assert sorted(row[0] for row in table["rows"]) == sorted(evaluation["methods"])
     name = table["rows"][table["picks"].index(0)][0]
-    assert name == "paper"
+    assert name == json.loads((folder / "layout.json").read_text())["parameters"]["method"]
     # per-marker RMSEs pool back to the table's RMSE (same protocol; markers tested equally often)
     assert np.sqrt(np.mean(values[:captured] ** 2)) == pytest.approx(evaluation["methods"][name]["rmse_mm"], rel=0.02)
 
