@@ -88,6 +88,11 @@ class RigAnimation:
 
         return Rotation.from_quat(self.root_rotations).as_matrix()
 
+    def check_rig(self, rig) -> None:
+        """Raise ValueError unless this animation was baked for ``rig`` (same joint names)."""
+        if self.joint_names != rig.joint_names:
+            raise ValueError("the animation was baked for another rig (joint names differ)")
+
     def world_positions(self) -> np.ndarray:
         """World position (F, J, 3) mm of every joint (root rotation applied to its children)."""
         root = self.translations[:, :1]

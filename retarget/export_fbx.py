@@ -73,8 +73,8 @@ def write_rig_fbx(rig: Rig, path: str | os.PathLike[str], *, animation: RigAnima
 
 def rig_fbx_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
     """The binary FBX 7.4 file for ``rig`` and its optional ``animation`` (deterministic)."""
-    if animation is not None and animation.joint_names != rig.joint_names:
-        raise ValueError("the animation was baked for another rig (joint names differ)")
+    if animation is not None:
+        animation.check_rig(rig)
     anim = _Animation(rig, animation) if animation is not None else None
     objects, links = _objects(rig), _links(rig)
     if anim is not None:

@@ -44,8 +44,8 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
     """The .glb file for ``rig`` and its optional ``animation`` (deterministic)."""
     import pygltflib  # ~0.2 s to import: only when writing glTF
 
-    if animation is not None and animation.joint_names != rig.joint_names:
-        raise ValueError("the animation was baked for another rig (joint names differ)")
+    if animation is not None:
+        animation.check_rig(rig)
     if rig.joint_count > 65535:
         raise ValueError("glTF JOINTS_n as unsigned short holds at most 65535 joints")
     builder = _BufferBuilder()

@@ -70,7 +70,9 @@ def test_guide_pdf_pages_and_render(guide):
         assert words in text
 
 
-def test_one_to_one_page_scale_bar_is_50_mm(guide):
+@pytest.fixture(scope="module")
+def one_to_one_page(guide):
+    """Page 3 (the 1:1 page) rendered at 254 dpi (10 px/mm), grey levels (H, W)."""
     folder, pdf, _ = guide
     if shutil.which("pdftoppm") is None:
         pytest.skip("poppler-utils (pdftoppm) not installed")
@@ -78,15 +80,23 @@ def test_one_to_one_page_scale_bar_is_50_mm(guide):
 
     subprocess.run(["pdftoppm", "-png", "-r", "254", "-f", "3", "-l", "3", str(pdf),
                     str(folder / "scale")], check=True)
-    image = mpimg.imread(next(folder.glob("scale-*.png")))[..., :3].mean(axis=2)
-    assert image.shape[1] == pytest.approx(2100, abs=2)  # A4 width at 10 px/mm
-    dark = image < 0.2
-    runs = []
-    for row in dark[int(0.8 * len(dark)):]:  # the bar is near the bottom
-        padded = np.concatenate([[0], row.astype(int), [0]])
-        edges = np.flatnonzero(np.diff(padded))
+    return mpimg.imread(next(folder.glob("scale-*.png")))[..., :3].mean(axis=2)
+
+
+def _longest_dark_run(lines: np.ndarray) -> int:
+    """Longest run of dark (< 0.2) pixels along any of ``lines`` (K, N), pixels."""
+    runs = [0]
+    for line in lines < 0.2:
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], line.astype(int), [0]])))
         runs.extend(edges[1::2] - edges[0::2])
-    assert max(runs) == pytest.approx(500, abs=3)  # 50 mm at 10 px/mm
+    return int(max(runs))
+
+
+def test_one_to_one_page_scale_bar_is_50_mm(one_to_one_page):
+    image = one_to_one_page
+    assert image.shape[1] == pytest.approx(2100, abs=2)  # A4 width at 10 px/mm
+    # the bar is near the bottom: 50 mm at 10 px/mm
+    assert _longest_dark_run(image[int(0.8 * len(image)):]) == pytest.approx(500, abs=3)
 
 
 def test_pair_names_share_a_number_with_the_side():
@@ -145,22 +155,10 @@ def test_one_to_one_page_labels_do_not_overlap_in_the_pdf(guide):
     assert label_overlaps(boxes, np.empty((0, 2)), 0.0) == 0
 
 
-def test_one_to_one_page_vertical_scale_bar_is_50_mm(guide):
-    folder, pdf, _ = guide
-    if shutil.which("pdftoppm") is None:
-        pytest.skip("poppler-utils (pdftoppm) not installed")
-    import matplotlib.image as mpimg
-
-    subprocess.run(["pdftoppm", "-png", "-r", "254", "-f", "3", "-l", "3", str(pdf),
-                    str(folder / "vscale")], check=True)
-    image = mpimg.imread(next(folder.glob("vscale-*.png")))[..., :3].mean(axis=2)
-    dark = image < 0.2
-    runs = []
-    for column in dark[:, : dark.shape[1] // 4].T:  # the vertical bar is at the left
-        padded = np.concatenate([[0], column.astype(int), [0]])
-        edges = np.flatnonzero(np.diff(padded))
-        runs.extend(edges[1::2] - edges[0::2])
-    assert max(runs) == pytest.approx(500, abs=3)
+def test_one_to_one_page_vertical_scale_bar_is_50_mm(one_to_one_page):
+    image = one_to_one_page
+    # the vertical bar is at the left
+    assert _longest_dark_run(image[:, : image.shape[1] // 4].T) == pytest.approx(500, abs=3)
 
 
 def test_replaces_column_wraps_instead_of_cutting(tmp_path, guide):
