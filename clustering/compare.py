@@ -32,6 +32,7 @@ from ..errors import OptionError
 from ..trajectories import Trajectories
 from .evaluation import error_summary, heldout_errors, holdout_splits
 from .figures import _pyplot, _save
+from .lost_marker import heldout_folds, pooled_worst_lost
 from .regions import face_frame
 from .methods import LayoutProblem, method_names, select_layout
 from .methods.set_cover import layout_statistics, problem_shapes
@@ -57,6 +58,8 @@ class CompareRow:
     error: str | None = None  # the method could not produce this count
     #: Zell & McDonnell's statistics of ``layout``: {"0.3": {"idle_markers_percent", "unseen_shapes"}, "0.7": ...}
     statistics: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: held-out RMSE (mm, gap-free frames) when each scored layout loses its most important marker
+    lost_rmse_mm: float = float("nan")
 
 
 def _problem(positions: np.ndarray, session: Trajectories, frames: np.ndarray | None,
@@ -121,6 +124,9 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
     full = _problem(positions, session, None, region_idx)
     shapes = problem_shapes(full)
     fold_problems = [_problem(positions, session, train, region_idx) for train, _ in folds]
+    # one scorer per scored layout for the worst single lost marker (gap-free frames)
+    lost_folds = ([heldout_folds(positions, test=test.positions)] if test is not None
+                  else [heldout_folds(positions, [fold]) for fold in folds])
     options = options or {}
     rows: list[CompareRow] = []
     for method in methods:
@@ -129,7 +135,7 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
             if progress:
                 progress(f"{method} × {count}")
             try:
-                summaries, seconds, layout, details = [], [], None, {}
+                summaries, seconds, lost, layout, details = [], [], [], None, {}
                 for s in seeds:
                     chosen = select_layout(full, count, method=method, seed=s, **options.get(method, {}))
                     layout = chosen.layout if layout is None else layout
@@ -138,15 +144,19 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                         errors = heldout_errors(_gap_free(positions), chosen.layout, [],
                                                 test=test.positions)
                         seconds.append(chosen.seconds)
+                        scored = [chosen.layout]
                     else:
                         errors = np.full(positions.shape[:2], np.nan)
+                        scored = []
                         for problem, (train, held) in zip(fold_problems, folds):
                             fold = select_layout(problem, count, method=method, seed=s,
                                                  **options.get(method, {}))
                             seconds.append(fold.seconds)
+                            scored.append(fold.layout)
                             errors[held] = heldout_errors(_gap_free(positions[train]), fold.layout,
                                                           [], test=positions[held])
                     summaries.append(error_summary(errors))
+                    lost.append(pooled_worst_lost(lost_folds, scored))
             except OptionError as exc:
                 rows.append(CompareRow(method, count, float("nan"), float("nan"), 0.0,
                                        np.zeros(0, dtype=np.intp), error=str(exc)))
@@ -154,7 +164,8 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
             rows.append(CompareRow(method, count, float(np.mean([s["rmse_mm"] for s in summaries])),
                                    float(np.mean([s["p95_mm"] for s in summaries])),
                                    float(np.mean(seconds)), layout, details,
-                                   statistics=layout_statistics(shapes, layout)))
+                                   statistics=layout_statistics(shapes, layout),
+                                   lost_rmse_mm=float(np.mean(lost))))
     return rows
 
 
@@ -164,14 +175,14 @@ def rows_as_json(rows: Sequence[CompareRow], labels: Sequence[str], *,
     return {
         "format": "mocaptk-compare", "version": 1, "protocol": protocol, "source": dict(source or {}),
         "rows": [{"method": r.method, "count": r.count, "rmse_mm": r.rmse_mm, "p95_mm": r.p95_mm,
-                  "seconds": r.seconds, "error": r.error, "layout_statistics": r.statistics,
+                  "lost_marker_rmse_mm": r.lost_rmse_mm, "seconds": r.seconds, "error": r.error, "layout_statistics": r.statistics,
                   "layout": [labels[i] for i in r.layout]} for r in rows],
     }
 
 
 def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
-    """Two tables, one line per method. First, per count: RMSE / p95 (mm) and run time (best RMSE
-    in bold). Second, per count: the layout statistics (% idle markers and unseen shapes per ε)."""
+    """Two tables, one line per method. First, per count: RMSE / p95 / worst single lost marker
+    RMSE (mm) and run time (best RMSE in bold). Second, per count: the layout statistics (% idle markers and unseen shapes per ε)."""
     counts = sorted({r.count for r in rows})
     methods = list(dict.fromkeys(r.method for r in rows))
     cell = {(r.method, r.count): r for r in rows}
@@ -188,7 +199,7 @@ def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
 
     def scores(r: CompareRow) -> str:
         rmse = f"**{r.rmse_mm:.3f}**" if r.rmse_mm == best[r.count] else f"{r.rmse_mm:.3f}"
-        return f"{rmse} / {r.p95_mm:.3f} ({r.seconds:.2f})"
+        return f"{rmse} / {r.p95_mm:.3f} / {r.lost_rmse_mm:.3f} ({r.seconds:.2f})"
 
     def statistics(r: CompareRow) -> str:
         eps = list(r.statistics)
@@ -198,8 +209,9 @@ def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
 
     epsilons = " / ".join(next((list(r.statistics) for r in rows if r.statistics), ["0.3", "0.7"]))
     return "\n".join(
-        table("{} markers: RMSE / p95 mm (s)", scores)
-        + ["", f"Layout statistics (Zell & McDonnell) at ε = {epsilons}: idle % = markers where no "
+        table("{} markers: RMSE / p95 / 1 lost mm (s)", scores)
+        + ["", "1 lost = held-out RMSE when the layout loses the marker whose loss hurts most "
+           "(gap-free frames; per fold its own layout's worst marker).", "", f"Layout statistics (Zell & McDonnell) at ε = {epsilons}: idle % = markers where no "
            "shape moves ≥ ε (relative to its largest displacement); unseen = shapes no marker sees "
            "move ≥ ε. Shapes: the session's extreme frames, as set cover uses.", ""]
         + table("{} markers: idle %; unseen (ε = " + epsilons + ")", statistics)) + "\n"

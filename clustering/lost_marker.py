@@ -81,6 +81,20 @@ def worst_lost_marker(folds: CrossValidatedError, layout: Sequence[int] | np.nda
     return LostMarker(intact, float(lost[worst]), int(layout[worst]))
 
 
+def pooled_worst_lost(folds: Sequence[CrossValidatedError], layouts: Sequence[np.ndarray]) -> float:
+    """Held-out RMSE (mm) pooled over folds when each fold's layout loses the marker whose loss
+    hurts that fold most (``compare`` chooses a layout per fold). ``folds``: one single-split
+    :class:`CrossValidatedError` per layout; a fold without gap-free frames adds nothing (NaN
+    when none has any, or a layout has a single marker)."""
+    sse, points = 0.0, 0
+    for fold, layout in zip(folds, layouts):
+        if fold.n_test_points == 0:
+            continue
+        lost = worst_lost_marker(fold, layout).lost_rmse_mm
+        sse, points = sse + lost ** 2 * fold.n_test_points, points + fold.n_test_points
+    return float(np.sqrt(sse / points)) if points else float("nan")
+
+
 def lost_marker_summaries(folds: CrossValidatedError, layouts: dict[str, Sequence[np.ndarray]],
                           labels: Sequence[str] | None = None) -> dict[str, dict]:
     """Per named method: intact and worst-lost-marker RMSE (mm; mean over its layouts, e.g. random

@@ -47,6 +47,26 @@ def test_protocol_scores_layouts_chosen_without_the_test_take():
     assert "**" in rows_as_markdown(rows)
 
 
+def test_rows_carry_the_worst_single_lost_marker_of_each_folds_layout():
+    from mocaptk.clustering.lost_marker import heldout_folds
+
+    session = small_session()
+    rows = compare_methods(session, counts=[2], methods=["qr"])
+    # by hand: per left-out take, the fold's layout without each marker, refitted on gap-free frames
+    sse = points = 0.0
+    for take in session.takes:
+        held = np.arange(take.start, take.end)
+        train = np.setdiff1d(np.arange(session.n_frames), held)
+        layout = select_layout(_problem(session.positions, session, train, {}), 2, method="qr").layout
+        fold = heldout_folds(session.positions, [(train, held)])
+        worst = max(fold.rmse(np.delete(layout, i)) for i in range(layout.size))
+        sse, points = sse + worst ** 2 * fold.n_test_points, points + fold.n_test_points
+    assert rows[0].lost_rmse_mm == pytest.approx(np.sqrt(sse / points))
+    assert rows[0].lost_rmse_mm > 1.5 * rows[0].rmse_mm  # one marker (3 coordinates) cannot follow 4 drivers
+    table = rows_as_markdown(rows)
+    assert "1 lost" in table and f"{rows[0].lost_rmse_mm:.3f}" in table
+
+
 def test_every_row_carries_zell_layout_statistics_over_the_set_cover_shapes():
     session = small_session()
     rows = compare_methods(session, counts=[3, 8], methods=["kmeans", "set-cover"])
@@ -82,6 +102,7 @@ def test_compare_cli_writes_table_json_plot_and_gallery(tmp_path, run_cli):
     assert {(r["method"], r["count"]) for r in data["rows"]} == {
         (m, c) for m in ("kmeans", "qr", "hybrid") for c in (4, 6)}
     assert all(len(r["layout"]) == r["count"] for r in data["rows"] if r["error"] is None)
+    assert all(r["lost_marker_rmse_mm"] > r["rmse_mm"] for r in data["rows"])
     for r in data["rows"]:
         assert set(r["layout_statistics"]) == {"0.3", "0.7"}
         assert 0 <= r["layout_statistics"]["0.7"]["idle_markers_percent"] <= 100

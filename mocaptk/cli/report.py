@@ -65,7 +65,7 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
     entries = []
     for row in rows:
         entry = {"method": row.method, "count": row.count, "rmse_mm": row.rmse_mm, "p95_mm": row.p95_mm,
-                 "seconds": row.seconds, "error": row.error}
+                 "lost_rmse_mm": row.lost_rmse_mm, "seconds": row.seconds, "error": row.error}
         if row.error is None:
             errors = heldout_errors(session.positions, row.layout, splits,
                                     test=None if test is None else test.positions)

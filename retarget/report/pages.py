@@ -98,8 +98,9 @@ def compare_report(session: Trajectories, *, rows: Sequence[dict], performance: 
     data = scene_data(cloud, regions=regions_from_prefixes(cloud.labels))
     table, picks, maps = [], [], []
     for row in rows:
-        table.append([row["method"], row["count"], *(["–", "–", "–"] if row.get("error") else
-                     [f"{row['rmse_mm']:.3f}", f"{row['p95_mm']:.3f}", f"{row['seconds']:.2f}"])])
+        table.append([row["method"], row["count"], *(["–"] * 4 if row.get("error") else
+                     [f"{row['rmse_mm']:.3f}", f"{row['p95_mm']:.3f}",
+                      f"{row['lost_rmse_mm']:.3f}", f"{row['seconds']:.2f}"])])
         picks.append(None if row.get("error") else len(maps))
         if not row.get("error"):
             maps.append(error_map(cloud, session.labels, row["rmse"], name=f"{row['method']} × {row['count']}",
@@ -107,7 +108,7 @@ def compare_report(session: Trajectories, *, rows: Sequence[dict], performance: 
     data.update(kind="compare", title=title, summary=summary, errors=maps,
                 clips=session_clips(cloud, session.rate, labels=session.labels, performance=performance),
                 tables=[{"title": "Held-out reconstruction error (mm), time (s per layout)",
-                         "columns": ["method", "markers", "RMSE", "p95", "s"], "rows": table,
+                         "columns": ["method", "markers", "RMSE", "p95", "1 lost", "s"], "rows": table,
                          "picks": picks, "note": note}])
     return data
 
