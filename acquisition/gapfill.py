@@ -150,9 +150,12 @@ def fill_gaps(traj: Trajectories, *, max_gap: int = 10, method: str = "auto",
                 kind_name = "akima" if method == "akima" else "cubic"
                 _interpolate(out[s:e, m], ~miss, interp, akima=method == "akima")
                 records += [GapRecord(label, s + gs, s + ge, "interior", kind_name) for gs, ge in interp]
+    visible = ~np.isnan(out).any(axis=2)  # includes points filled by splines; kept up to date
     for m, s, e, gs, ge, kind in long_gaps:
-        note = _neighbour_fill(out, missing, m, (s, e), (gs, ge), k=neighbours, labels=traj.labels)
-        filled = not np.isnan(out[gs, m, 0])
+        note = _neighbour_fill(out, missing, visible, m, (s, e), (gs, ge), k=neighbours,
+                               labels=traj.labels)
+        visible[gs:ge, m] = ~np.isnan(out[gs:ge, m]).any(axis=1)
+        filled = bool(visible[gs, m])
         records.append(GapRecord(traj.labels[m], gs, ge, kind, "neighbours" if filled else None, note))
     records.sort(key=lambda r: (traj.labels.index(r.marker), r.start))
     return traj.replace(positions=out), FillReport(tuple(records))
@@ -193,11 +196,14 @@ def _interpolate(track: np.ndarray, valid: np.ndarray, gaps: list[tuple[int, int
         track[frames] = CubicSpline(known, track[known], axis=0)(frames)
 
 
-def _neighbour_fill(out: np.ndarray, missing: np.ndarray, m: int, segment: tuple[int, int],
-                    gap: tuple[int, int], *, k: int, labels: tuple[str, ...]) -> str:
-    """Fill one gap of marker ``m`` in ``out`` from its best-correlated neighbours; returns a note."""
+def _neighbour_fill(out: np.ndarray, missing: np.ndarray, visible_now: np.ndarray, m: int,
+                    segment: tuple[int, int], gap: tuple[int, int], *, k: int,
+                    labels: tuple[str, ...]) -> str:
+    """Fill one gap of marker ``m`` in ``out`` from its best-correlated neighbours; returns a note.
+
+    ``visible_now`` (frames, markers) is where ``out`` holds a position now (the caller updates it
+    after each fill), so a gap's work does not scale with the session's length."""
     gs, ge = gap
-    visible_now = ~np.isnan(out).any(axis=2)  # includes points already filled by splines
     candidates = np.flatnonzero(visible_now[gs:ge].all(axis=0))
     candidates = candidates[candidates != m]
     if candidates.size == 0:
