@@ -559,12 +559,17 @@ def _basis(d: np.ndarray, degree: str) -> np.ndarray:
 
 
 class DetailModel(FaceModel):
-    """Thin-shell + per-marker polynomial displacement detail (Ma et al. 2008)."""
+    """Thin-shell + per-marker polynomial displacement detail (Ma et al. 2008).
+
+    ``coef`` (M, B, 3) the polynomials; ``bounds`` (2, M, 2) the training range of each dense
+    marker's interpolated (d1, d2). A lost layout marker's neighbours interpolate their own PCA
+    parameters (other axes) into its area: unclamped, a quadratic took such values to ~50 mm.
+    """
 
     def __init__(self, *, kind: str, surface: ThinShellModel, local: LocalDeformation,
-                 coef: np.ndarray, degree: str) -> None:
+                 coef: np.ndarray, degree: str, bounds: np.ndarray | None = None) -> None:
         self.kind, self.surface, self.local = kind, surface, local
-        self.coef, self.degree = coef, degree  # coef (M, B, 3)
+        self.coef, self.degree, self.bounds = coef, degree, bounds
         self.layout, self.neutral, self.n_markers = surface.layout, surface.neutral, surface.n_markers
 
     @classmethod
@@ -578,16 +583,18 @@ class DetailModel(FaceModel):
         model = cls(kind=kind, surface=surface, local=local,
                     coef=np.zeros((train.shape[1], 6 if degree == "biquadratic" else 3, 3)),
                     degree=degree)
-        terms = _basis(model._vertex_parameters(np.ones(layout.size, bool), x[rows]), degree)
-        model.coef = _fit_polynomials(terms, residual[rows])
+        d = model._vertex_parameters(np.ones(layout.size, bool), x[rows])
+        model.bounds = np.stack([np.fmin.reduce(d, axis=0), np.fmax.reduce(d, axis=0)])  # NaN: unseen
+        model.coef = _fit_polynomials(_basis(d, degree), residual[rows])
         return model
 
     def _vertex_parameters(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """(f, M, 2) (d1, d2) interpolated over the surface from the present layout markers."""
+        """(f, M, 2) (d1, d2) interpolated over the surface from the present layout markers,
+        clipped to each dense marker's training range (no polynomial extrapolation)."""
         full = np.full((x.shape[0], self.layout.size, 3), np.nan)
         full[:, pattern] = x
-        d = self.local.parameters(full)[:, pattern]
-        return self.surface.interpolate(pattern, d)
+        d = self.surface.interpolate(pattern, self.local.parameters(full)[:, pattern])
+        return d if self.bounds is None else np.clip(d, self.bounds[0], self.bounds[1])
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         terms = _basis(self._vertex_parameters(pattern, x), self.degree)
@@ -595,7 +602,8 @@ class DetailModel(FaceModel):
         return self.surface._solve(pattern, x) + detail
 
     def _arrays(self) -> dict[str, np.ndarray]:
-        return {**self.surface._arrays(), **self.local.arrays(), "pdm_coef": self.coef}
+        return {**self.surface._arrays(), **self.local.arrays(), "pdm_coef": self.coef,
+                "pdm_vertex_bounds": self.bounds}
 
 
 def _fit_polynomials(terms: np.ndarray, residual: np.ndarray) -> np.ndarray:
@@ -666,7 +674,8 @@ def model_from_arrays(kind: str, arrays: Mapping[str, np.ndarray]) -> FaceModel:
         else:
             local = LocalDeformation.from_arrays(a, neutral[layout])
             model = DetailModel(kind=kind, surface=surface, local=local, coef=a["pdm_coef"],
-                                degree="linear" if kind == "pdm-linear" else "biquadratic")
+                                degree="linear" if kind == "pdm-linear" else "biquadratic",
+                                bounds=a["pdm_vertex_bounds"])
     else:
         raise OptionError(f"unknown model kind {kind!r}")
     model.error_base, model.error_drop = float(a["error_base"]), a["error_drop"]
