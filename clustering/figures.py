@@ -50,10 +50,9 @@ def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.
         ax.set_xticks(range(n), [labels[i] for i in order], rotation=90, fontsize=6)
         ax.set_yticks(range(n), [labels[i] for i in order], fontsize=6)
     bounds = np.flatnonzero(np.diff(clusters[order])) + 0.5
-    if len(bounds) <= HEATMAP_MAX_CELLS:  # more cluster lines than cells would be a black square
-        for b in bounds:
-            ax.axhline(b, color="k", lw=0.6)
-            ax.axvline(b, color="k", lw=0.6)
+    if 0 < len(bounds) <= HEATMAP_MAX_CELLS:  # more cluster lines than cells would be a black square
+        ax.hlines(bounds, -0.5, n - 0.5, color="k", lw=0.6)  # one artist for all lines: cheap to draw
+        ax.vlines(bounds, -0.5, n - 0.5, color="k", lw=0.6)
     fig.colorbar(image, ax=ax, label="consolidated correlation Cx+Cy+Cz")
     ax.set_title(title)
     fig.tight_layout()
@@ -110,15 +109,17 @@ def layout_picture(layout: Layout, neutral: Mapping[str, np.ndarray], *, frame: 
     if others.size:
         xy = _front(others, frame)
         ax.scatter(xy[:, 0], xy[:, 1], s=10, c="lightgrey", label="not clustered")
-    for k, cluster in enumerate(layout.clusters):
-        colour = cmap(k % 20)
-        if cluster.mirrored_from is None:
-            members = np.array([neutral[m] for m in cluster.members])
-            xy = _front(members, frame)
-            ax.scatter(xy[:, 0], xy[:, 1], s=14, color=colour)
-        rep = _front(np.array(cluster.position)[None], frame)[0]
-        face = "none" if cluster.mirrored_from else colour
-        ax.scatter([rep[0]], [rep[1]], s=150, facecolors=[face], edgecolors=["k"], linewidths=1.2, zorder=3)
+    colours = [cmap(k % 20) for k in range(len(layout.clusters))]
+    measured = [k for k, c in enumerate(layout.clusters) if c.mirrored_from is None]
+    if measured:  # one scatter for all members, one for all representatives: few artists to draw
+        members = np.array([neutral[m] for k in measured for m in layout.clusters[k].members])
+        xy = _front(members, frame)
+        ax.scatter(xy[:, 0], xy[:, 1], s=14, color=[colours[k] for k in measured
+                                                    for _ in layout.clusters[k].members])
+    if layout.clusters:
+        reps = _front(np.array([c.position for c in layout.clusters]), frame)
+        faces = ["none" if c.mirrored_from else colour for c, colour in zip(layout.clusters, colours)]
+        ax.scatter(reps[:, 0], reps[:, 1], s=150, facecolors=faces, edgecolors="k", linewidths=1.2, zorder=3)
     ax.set_aspect("equal")
     ax.set_xlabel("lateral (mm, + = subject's left)")
     ax.set_ylabel("up (mm)")

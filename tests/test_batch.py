@@ -125,8 +125,7 @@ def test_outputs_identical_to_the_serial_command(local_run, sessions, tmp_path, 
         result = run_cli("cluster", sessions / f"{name}.c3d", "--formats", "none", *own, "--out", tmp_path / name)
         assert result.exit_code == 0, result.stderr
         assert _files(out / name) == _files(tmp_path / name), name
-    assert sorted(_files(out / "actor0_s00")) == ["correlation_mouth.png", "layout.json", "layout.png",
-                                                  "regions.png", "report.html", "summary.txt"]
+    assert sorted(_files(out / "actor0_s00")) == ["layout.json", "report.html", "summary.txt"]
 
 
 def test_second_run_skips_unchanged_sessions_and_force_redoes(local_run, sessions):

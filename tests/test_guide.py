@@ -175,14 +175,18 @@ def test_replaces_column_wraps_instead_of_cutting(tmp_path, guide):
     assert "..." not in text and all(label in text for label in many)
 
 
-def test_regions_picture_keeps_its_axis_labels_inside(run_cli, tmp_path):
+def test_regions_picture_keeps_its_axis_labels_inside(tmp_path):
     """blenderFace (read as mm, 0.5 mm across): the 'up (mm)' label was cut at the left edge."""
     import matplotlib.image as mpimg
     from conftest import shared_path
 
+    from mocaptk.cli.cluster import write_cluster_pictures
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session, load_session
+
     csv = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
-    done = run_cli("cluster", csv, "--rate", "50", "--no-stabilize", "--formats", "none", "--out", tmp_path / "bf", "-q")
-    assert done.exit_code == 0, done.stderr
-    image = mpimg.imread(tmp_path / "bf" / "regions.png")[..., :3].mean(axis=2)
+    traj, source = load_session(csv, rate=50)
+    result = cluster_session(traj, options=ClusterOptions(stabilize=False), source=source)
+    write_cluster_pictures(result, tmp_path)  # as `mocaptk cluster` draws them
+    image = mpimg.imread(tmp_path / "regions.png")[..., :3].mean(axis=2)
     assert (image[:, :3] > 0.95).all() and (image[:, -3:] > 0.95).all()  # nothing cut at the edges
     assert (image[:, 3:40] < 0.5).any()  # and the y label is there

@@ -90,14 +90,26 @@ def summary_text(result) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_cluster_outputs(result, folder: Path) -> list[Path]:
-    """Write layout.json, per-region heatmaps, layout + regions pictures and summary.txt into ``folder``."""
+def write_cluster_outputs(result, folder: Path, *, pictures: bool = True) -> list[Path]:
+    """Write layout.json, summary.txt and (``pictures``) the per-region heatmaps and the layout +
+    regions pictures into ``folder``."""
     from ..atomic import write_text
-    from ..clustering.figures import correlation_heatmap, layout_picture, regions_picture
     from ..clustering.layout import write_layout
 
     layout = result.layout
-    written = [write_layout(layout, folder / "layout.json")]
+    written = [write_layout(layout, folder / "layout.json"),
+               write_text(folder / "summary.txt", summary_text(result))]
+    if pictures:  # matplotlib: most of the time of a --formats none run on a long session
+        written += write_cluster_pictures(result, folder)
+    return written
+
+
+def write_cluster_pictures(result, folder: Path) -> list[Path]:
+    """correlation_<region>.png per region, layout.png and regions.png in ``folder``."""
+    from ..clustering.figures import correlation_heatmap, layout_picture, regions_picture
+
+    layout = result.layout
+    written = []
     for name, region in result.matrices.items():
         written.append(correlation_heatmap(region.labels, region.matrix, region.clusters,
                                            title=f"{name}: consolidated correlation (by cluster)",
@@ -108,7 +120,6 @@ def write_cluster_outputs(result, folder: Path) -> list[Path]:
     written.append(layout_picture(layout, neutral, frame=frame, path=folder / "layout.png"))
     regions = {r.name: list(r.markers) for r in layout.regions}
     written.append(regions_picture(regions, neutral, frame=frame, path=folder / "regions.png"))
-    written.append(write_text(folder / "summary.txt", summary_text(result)))
     return written
 
 
@@ -143,15 +154,16 @@ def cluster(
                               "default: a surface through the dense markers)."),
     max_influences: int = typer.Option(4, "--max-influences", help="Rig joints per vertex (1-8)."),
     formats: str = typer.Option("json,fbx,glb", "--formats", help="Rig files to write (json,fbx,glb) "
-                                "with guide.pdf; 'none' skips the rig and the guide."),
+                                "with guide.pdf and the pictures; 'none' skips the rig, the guide "
+                                "and the pictures (layout.json, summary.txt, report.html only)."),
     animate: list[Path] = typer.Option(None, "--animate", help="A performance to bake onto the "
                                        "rig after the session's own motion (as in mocaptk rig)."),
 ) -> None:
     """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra's
     correlation clusters; markers chosen by the hybrid method unless --method paper).
 
-    Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json, pictures,
-    summary.txt, rig files and guide.pdf.
+    Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json,
+    summary.txt, report.html, pictures, rig files and guide.pdf (--formats none: the first three).
     """
     from rich.console import Console
 
@@ -162,7 +174,7 @@ def cluster(
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
-    from .rig import animation_summary, cluster_rig_outputs, rig_options
+    from .rig import animation_summary, cluster_rig_outputs, parse_formats, rig_options
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers)  # fail before the slow part
@@ -179,7 +191,7 @@ def cluster(
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:
-        write_cluster_outputs(result, folder)
+        write_cluster_outputs(result, folder, pictures=parse_formats(formats) != ("none",))
         build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
                                     formats=formats, quiet=quiet, session=traj,
                                     animate=animate or [])
