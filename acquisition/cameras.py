@@ -8,6 +8,7 @@ Camera axes: +X right, +Y down, +Z forward (viewing direction).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Sequence
@@ -177,6 +178,18 @@ class CameraRig:
         """A rig with the cameras at ``indices``, in that order."""
         return CameraRig(tuple(self.cameras[i] for i in indices), name=self.name,
                          rate=self.rate, metadata=dict(self.metadata))
+
+    def moved(self, rotation: np.ndarray, translation: Sequence[float]) -> CameraRig:
+        """The rig carried along by the rigid motion ``X' = rotation @ X + translation`` (mm):
+        every camera sees the moved points where it saw the original ones."""
+        rotation = np.asarray(rotation, dtype=np.float64)
+        translation = np.asarray(translation, dtype=np.float64)
+        cameras = []
+        for cam in self.cameras:
+            turned = cam.rotation @ rotation.T  # world' -> camera
+            cameras.append(dataclasses.replace(cam, rvec=cv2.Rodrigues(turned)[0].ravel(),
+                                               tvec=cam.tvec - turned @ translation))
+        return CameraRig(tuple(cameras), name=self.name, rate=self.rate, metadata=dict(self.metadata))
 
     def as_dict(self) -> dict[str, Any]:
         return {"format": RIG_FORMAT, "version": RIG_VERSION, "name": self.name,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -411,45 +412,69 @@ def marker_normals(model: FaceModel, truth: GroundTruth, *, chunk: int = 1000) -
     return normals
 
 
+#: A camera misses a marker whose surface normal is further than this from the direction to it
+#: (a marker hemisphere still shows at grazing angles), degrees.
+MAX_VIEW_NORMAL_DEG = 85.0
+
+
+def detection_noise_px(rig: Any, points: np.ndarray, noise_mm: float) -> float:
+    """``noise_mm`` of marker position as detection noise in px: the median over the cameras of
+    focal length / distance to the centre of ``points`` (..., 3) mm."""
+    center = np.nanmean(np.asarray(points, dtype=np.float64).reshape(-1, 3), axis=0)
+    return float(np.median([noise_mm * cam.focal_px / np.linalg.norm(cam.center - center)
+                            for cam in rig]))
+
+
 def camera_capture(model: FaceModel, truth: GroundTruth, rig: Any, *, noise_mm: float = 0.3,
                    dropout: float = 0.01, ghost_rate: float = 0.002, seed: int = 0,
                    outlier_threshold_px: float = 4.0, spike_threshold_mm: float = 4.0,
                    ) -> Trajectories:
     """Simulate the cameras: project the truth into ``rig`` (a :class:`CameraRig`), detect, triangulate.
 
-    A camera misses a marker whose surface normal is more than 85° from the direction to it
-    (a marker hemisphere still shows at grazing angles),
-    that is outside its image or field of view, or that randomly drops out (``dropout``);
-    ``ghost_rate`` of the detections are wrong (mislabels, reflections). Detection noise is
-    ``noise_mm`` expressed in pixels per camera (focal length / distance to the face).
-    Triangulation drops views by reprojection error; points that still jump more than
-    ``spike_threshold_mm`` from their running median are removed (:func:`spike_mask`).
-    Returns the trajectories (gaps NaN, residuals = reprojection error px,
-    ``metadata["view_counts"]``, ``metadata["spikes_removed"]``) with the truth's takes.
+    The markers' surface normals come from the deformed mesh (:func:`marker_normals`); detection
+    noise is ``noise_mm`` expressed in pixels per camera (:func:`detection_noise_px`); the rest
+    is :func:`capture_points` (with the truth's takes).
+    """
+    if noise_mm < 0:
+        raise OptionError(f"noise must be ≥ 0 mm, got {noise_mm}")
+    points = truth.positions
+    return capture_points(rig, points, marker_normals(model, truth),
+                          pixel_noise=detection_noise_px(rig, points, noise_mm), labels=truth.labels,
+                          rate=truth.rate, dropout=dropout, ghost_rate=ghost_rate, seed=seed,
+                          outlier_threshold_px=outlier_threshold_px,
+                          spike_threshold_mm=spike_threshold_mm, takes=truth.takes)
+
+
+def capture_points(rig: Any, points: np.ndarray, normals: np.ndarray, *, pixel_noise: float,
+                   labels: Sequence[str], rate: float, dropout: float = 0.01,
+                   ghost_rate: float = 0.002, seed: int = 0, outlier_threshold_px: float = 4.0,
+                   spike_threshold_mm: float = 4.0, takes: Sequence[Take] = ()) -> Trajectories:
+    """Capture markers ``points (F, M, 3)`` mm with outward ``normals (F, M, 3)`` through ``rig``.
+
+    A camera misses a marker whose normal is more than :data:`MAX_VIEW_NORMAL_DEG` from the
+    direction to it, that is outside its image or field of view, or that randomly drops out
+    (``dropout``); ``ghost_rate`` of the detections are wrong (mislabels, reflections);
+    ``pixel_noise`` px of Gaussian detection noise. Triangulation drops views by reprojection
+    error; points that still jump more than ``spike_threshold_mm`` from their running median
+    are removed (:func:`spike_mask`). Returns the trajectories (gaps NaN, residuals =
+    reprojection error px, ``metadata["view_counts"]``, ``metadata["spikes_removed"]``).
     """
     from .projection import project_markers
     from .triangulate import triangulate
 
-    if noise_mm < 0:
-        raise OptionError(f"noise must be ≥ 0 mm, got {noise_mm}")
-    points = truth.positions
-    normals = marker_normals(model, truth)
-    center = np.nanmean(points.reshape(-1, 3), axis=0)
-    pixel_noise = float(np.median([noise_mm * cam.focal_px / np.linalg.norm(cam.center - center)
-                                   for cam in rig]))
     observations = project_markers(rig, points, normals=normals, pixel_noise=pixel_noise,
                                    dropout=dropout, ghost_rate=ghost_rate,
-                                   min_view_cos=np.cos(np.deg2rad(85.0)),
+                                   min_view_cos=np.cos(np.deg2rad(MAX_VIEW_NORMAL_DEG)),
                                    rng=np.random.default_rng([seed, 5]))
-    traj = triangulate(rig, observations, labels=truth.labels, rate=truth.rate,
+    traj = triangulate(rig, observations, labels=labels, rate=rate,
                        outlier_threshold_px=outlier_threshold_px)
     spikes = spike_mask(traj.positions, threshold_mm=spike_threshold_mm)
     positions = np.where(spikes[..., None], np.nan, traj.positions)
     residuals = np.where(spikes, np.nan, traj.residuals)
     meta = dict(traj.metadata)
     meta["spikes_removed"] = int(spikes.sum())
-    meta.update({"takes": list(truth.takes), "source": f"synthetic capture ({rig.name})",
-                 "format": "synthetic", "original_units": "mm", "pixel_noise": pixel_noise})
+    meta.update({"takes": list(takes), "source": f"synthetic capture ({rig.name})", "format": "synthetic",
+                 "original_units": "mm", "pixel_noise": pixel_noise})
     return traj.replace(positions=positions, residuals=residuals, metadata=meta)
 
 

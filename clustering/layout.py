@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -107,6 +108,19 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
     known = {"format", "version", "units", "source", "parameters", "regions", "clusters", "layout"}
     extra = {k: v for k, v in data.items() if k not in known}
     return Layout(dict(data["source"]), dict(data["parameters"]), regions, clusters, extra)
+
+
+def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,
+                     session_name: str) -> list[int]:
+    """Indices into ``labels`` (a session's) of the layout's measured markers, in cluster order;
+    InputFileError naming the layout file when some are not in the session ``session_name``."""
+    index = {label: i for i, label in enumerate(labels)}
+    measured = [c.representative for c in layout.clusters if c.mirrored_from is None]
+    unknown = [label for label in measured if label not in index]
+    if unknown:
+        raise InputFileError(layout_path, f"{len(unknown)} layout markers are not in {session_name}: "
+                             + ", ".join(unknown[:5]))
+    return [index[label] for label in measured]
 
 
 def _num(value: Any) -> float:

@@ -69,14 +69,16 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
 
 
 def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2)) -> LocalError:
-    """The local error of the problem's gap-free training frames, fitted and scored in-sample."""
+    """The local error of the problem's gap-free training frames, fitted and scored in-sample
+    (layout markers charged the problem's ``measured_error_mm``, when it has one)."""
     if "local-fit" not in problem.cache:
         disp, _ = training_frames(problem)
         every = np.arange(disp.shape[0])
         problem.cache["local-fit"] = CrossValidatedError.from_displacements(disp, [(every, every)])
     key = ("local-error", tuple(scales))
     if key not in problem.cache:  # shared, so a point's error is computed once per neighbours
-        problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales))
+        measured = None if problem.measured_error_mm is None else problem.measured_error_mm ** 2
+        problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales), measured)
     return problem.cache[key]
 
 

@@ -28,7 +28,8 @@ class LocalError:
 
     ``folds``: train/test Gram matrices (train = test for the in-sample fit); ``neutral`` (N, 3)
     mm; ``scales``: the values of ``k``, whose mean squared errors are averaged. Layout points
-    are measured (error 0), as in the evaluation. A point's error depends only on its ``k``
+    are measured (error 0, as in the evaluation; with ``measured`` (N,) mm², that expected squared
+    error of each point when it is a captured layout marker). A point's error depends only on its ``k``
     nearest layout points, so it is cached by them: a swap search recomputes only the points
     whose neighbours changed.
     """
@@ -36,6 +37,7 @@ class LocalError:
     folds: CrossValidatedError
     neutral: np.ndarray
     scales: tuple[int, ...] = (1, 2)
+    measured: np.ndarray | None = None
     _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors, distances
 
     def _squared_errors(self, targets: np.ndarray, near: np.ndarray) -> np.ndarray:
@@ -75,4 +77,7 @@ class LocalError:
                 for i, value in zip(missing, self._squared_errors(targets[rows], near[rows]).tolist()):
                     self._cache[keys[i]] = value
             total += float(np.sum([self._cache[key] for key in keys]))
+        if self.measured is not None:  # layout markers: their capture error in every test frame
+            frames = self.folds.n_test_points / self.neutral.shape[0]
+            total += len(self.scales) * frames * float(self.measured[layout].sum())
         return float(np.sqrt(max(total, 0.0) / (self.folds.n_test_points * len(self.scales))))

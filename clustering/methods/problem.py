@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,6 +35,9 @@ class LayoutProblem:
         Mirror partner of every point across the sagittal plane (itself on the midline).
     candidates : (K,) int, optional
         Points a layout may use (default: all), e.g. the face region of a head mesh.
+    measured_error_mm : (N,) float, optional
+        Expected error (mm, RMS) of each point when it is a layout marker captured by the rig
+        (triangulation error, :mod:`mocaptk.clustering.camera_cost`); None: measured exactly.
     """
 
     displacements: np.ndarray
@@ -44,6 +48,7 @@ class LayoutProblem:
     segments: tuple[tuple[int, int], ...] = ()
     mirror: np.ndarray | None = None
     candidates: np.ndarray | None = None
+    measured_error_mm: np.ndarray | None = None
     #: derived arrays shared between methods (Gram matrices ...), filled on first use
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
@@ -69,6 +74,11 @@ class LayoutProblem:
             object.__setattr__(self, "mirror", mirror)
         if self.candidates is not None:
             object.__setattr__(self, "candidates", np.unique(np.asarray(self.candidates, dtype=np.intp)))
+        if self.measured_error_mm is not None:
+            error = np.asarray(self.measured_error_mm, dtype=np.float64)
+            if error.shape != (self.n_points,):
+                raise OptionError(f"measured_error_mm must be ({self.n_points},), got {error.shape}")
+            object.__setattr__(self, "measured_error_mm", error)
 
     @property
     def n_frames(self) -> int:
@@ -108,6 +118,27 @@ class LayoutProblem:
             return self.faces
         from ...surface_mesh import marker_surface_mesh
         return np.asarray(marker_surface_mesh(self.neutral)[1], dtype=np.intp)
+
+
+#: With capture costs, a point seen by >= 2 cameras in fewer than this fraction of the frames is
+#: no candidate: it would be a gap in production too often.
+MIN_VISIBILITY = 0.9
+
+
+def camera_aware(problem: LayoutProblem, *, visibility: np.ndarray,
+                 triangulation_error_mm: np.ndarray) -> LayoutProblem:
+    """``problem`` for a rig: points seen in fewer than :data:`MIN_VISIBILITY` of the frames are
+    left out of the candidates (unless that leaves fewer than a tenth of them), and every layout
+    marker is charged its expected triangulation error (``(N,)`` each; NaN error: never seen)."""
+    visibility = np.asarray(visibility, dtype=np.float64)
+    error = np.asarray(triangulation_error_mm, dtype=np.float64)
+    cand = problem.candidate_points()
+    seen = cand[(visibility[cand] >= MIN_VISIBILITY) & np.isfinite(error[cand])]
+    if seen.size >= max(1, cand.size // 10):
+        cand = seen
+    worst = float(np.nanmax(error)) if np.isfinite(error).any() else 0.0
+    return dataclasses.replace(problem, candidates=cand, measured_error_mm=np.nan_to_num(error, nan=worst),
+                               cache={})
 
 
 def layout_problem(session: Trajectories, *, neutral: np.ndarray | None = None,

@@ -24,6 +24,7 @@ from . import sweep  # noqa: E402,F401
 from . import evaluate  # noqa: E402,F401
 from . import compare  # noqa: E402,F401
 from . import rig  # noqa: E402,F401
+from . import plan  # noqa: E402,F401
 from . import solve  # noqa: E402,F401
 from . import batch  # noqa: E402,F401
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from ..errors import InputFileError, OptionError
+from ..errors import OptionError
 from .app import app
 from .options import Quiet, Rate, Units
 from .report import write_evaluation_report
@@ -97,7 +97,7 @@ def evaluate(
 
     from ..atomic import claim_output
     from ..clustering.evaluation import evaluate_layout
-    from ..clustering.layout import read_layout
+    from ..clustering.layout import measured_indices, read_layout
     from ..clustering.takes import read_takes
     from ..jsonio import write_json
 
@@ -113,11 +113,8 @@ def evaluate(
         session, test=test, stabilized=stabilized, rate=rate, units=units,
         rigid=layout_rigid_set(lay) if stabilized else None)  # an unapplied rigid set is only a record
     index = {label: i for i, label in enumerate(traj.labels)}
-    measured = [c.representative for c in lay.clusters if c.mirrored_from is None]
-    unknown = [label for label in measured if label not in index]
-    if unknown:
-        raise InputFileError(layout, f"{len(unknown)} layout markers are not in {session.name}: "
-                             + ", ".join(unknown[:5]))
+    measured = [traj.labels[i] for i in measured_indices(lay, traj.labels, layout_path=layout,
+                                                         session_name=session.name)]
     regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
     name = str(lay.parameters.get("method", "layout"))
     take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
