@@ -209,3 +209,24 @@ def test_rig_option_bakes_the_solved_capture_onto_the_rig(workspace, tmp_path):
     assert done.returncode == 0, done.stderr
     gltf = pygltflib.GLTF2().load(str(tmp_path / "r" / "rig" / "rig.glb"))
     assert gltf.animations and gltf.accessors[gltf.animations[0].samplers[0].input].count == 480
+    summary = json.loads((tmp_path / "r" / "solve.json").read_text())
+    assert summary["outputs"] == sorted(p.name + "/" * p.is_dir() for p in (tmp_path / "r").iterdir())
+
+
+def test_blender_imports_and_plays_the_usd_and_gltf_mesh(workspace, tmp_path):
+    """Blender's own USD and glTF importers (PyPI bpy in its venv; skipped without it): the
+    evaluated mesh at 4 frames equals mesh_frames.npy and moves (scripts/check_mesh_blender.py)."""
+    python = installed.blender_python()
+    root, _ = workspace
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
+                   tmp_path / "b", "--formats", "npz,usd,glb", "--subdivisions", "0")
+    assert done.returncode == 0, done.stderr
+    script = installed.REPO / "scripts" / "check_mesh_blender.py"
+    for name in ("mesh.usd", "mesh.glb"):
+        run = subprocess.run([str(python), str(script), str(tmp_path / "b" / name),
+                              str(tmp_path / "b" / "mesh_frames.npy"), "60"],
+                             capture_output=True, text=True, timeout=300)
+        report = json.loads(run.stdout[run.stdout.index("{"):])
+        print(name, json.dumps(report, sort_keys=True))
+        assert run.returncode == 0 and report["ok"], report
+        assert report["vertices"] == report["expected_vertices"] and report["motion_mm"] > 1.0

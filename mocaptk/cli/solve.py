@@ -75,6 +75,7 @@ def solve(
     from ..clustering.layout import read_layout
     from ..clustering.pipeline import load_session, stabilize
     from ..clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
+    from ..jsonio import write_json
     from ..retarget.solve import FaceSolver, train_solver
     from ..retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
@@ -123,7 +124,8 @@ def solve(
             if rig:
                 say("building the rig and baking the solve onto it")
                 bake_solved_rig(lay, dense, staging, capture.stem, rigid=rigid, progress=say)
-                summary["outputs"].append("rig/")
+                summary["outputs"] = sorted(summary["outputs"] + ["rig/"])
+                write_json(staging / "solve.json", summary)  # the staged folder is moved in whole
     if not quiet:
         frames = summary["frames"]
         typer.echo(f"solved {frames['solved']} of {traj.n_frames} frames with {summary['model']['kind']} "
