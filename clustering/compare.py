@@ -97,8 +97,11 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                     counts: Sequence[int] = DEFAULT_COUNTS, methods: Sequence[str] = DEFAULT_METHODS,
                     regions: Mapping[str, Sequence[int]] | None = None, seed: int = 0,
                     options: Mapping[str, Mapping[str, Any]] | None = None,
-                    progress: Callable[[str], None] | None = None) -> list[CompareRow]:
+                    progress: Callable[[str], None] | None = None, rig: str | None = None) -> list[CompareRow]:
     """Score every ``method`` at every ``count`` (see the module docstring for the protocol).
+
+    ``rig`` (``cara``, ``room`` or a rig file): the methods weigh how it sees every marker
+    (:func:`rig_aware`; the paper's rule ignores it); the score stays the held-out one.
 
     ``options``: per-method keyword options, e.g. ``{"thin-shell": {"restarts": 3}}``.
     A count larger than the session's markers is skipped; a method that cannot reach a count
@@ -124,6 +127,9 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
     full = _problem(positions, session, None, region_idx)
     shapes = problem_shapes(full)
     fold_problems = [_problem(positions, session, train, region_idx) for train, _ in folds]
+    if rig is not None:
+        aware = rig_aware(session, rig)
+        full, fold_problems = aware(full), [aware(p) for p in fold_problems]
     # one scorer per scored layout for the worst single lost marker (gap-free frames)
     lost_folds = ([heldout_folds(positions, test=test.positions)] if test is not None
                   else [heldout_folds(positions, [fold]) for fold in folds])
@@ -167,6 +173,24 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                                    statistics=layout_statistics(shapes, layout),
                                    lost_rmse_mm=float(np.mean(lost))))
     return rows
+
+
+def rig_aware(session: Trajectories, rig: str) -> Callable[[LayoutProblem], LayoutProblem]:
+    """A function making a problem of ``session`` camera-aware for ``rig``: the rig films the whole
+    session once (a half face with its mirror image across the estimated sagittal plane)."""
+    from .camera_cost import session_costs
+    from .methods.problem import camera_aware
+    from .neutral import max_displacement
+    from .symmetry import estimate_sagittal_plane, is_half_capture
+
+    labels = list(session.labels)
+    plane = None
+    if is_half_capture(labels):
+        neutral = neutral_pose(session.positions)
+        plane = estimate_sagittal_plane(labels, neutral, max_displacement(session.positions, neutral), half=True)
+    costs = session_costs(session.positions, labels, rig, plane=plane).select(labels)
+    return lambda problem: camera_aware(problem, visibility=costs.visibility,
+                                        triangulation_error_mm=costs.triangulation_error_mm)
 
 
 def rows_as_json(rows: Sequence[CompareRow], labels: Sequence[str], *,

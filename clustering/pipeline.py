@@ -44,7 +44,8 @@ class ClusterOptions:
     takes; ``mirror``: None = mirror when the labels show a half face + midline. ``method``: the
     layout method choosing the measured markers (``"paper"``: the paper's representatives);
     ``markers``: their number (None: the paper's rule at ``factor``; with ``"paper"`` the factor
-    is then found by bisection).
+    is then found by bisection). ``rig``: ``cara``, ``room`` or a rig file; the method then weighs
+    how the rig sees each marker (:func:`~mocaptk.clustering.methods.problem.camera_aware`).
     """
 
     factor: float = 1.1
@@ -56,6 +57,7 @@ class ClusterOptions:
     regions: dict[str, list[str]] | None = None
     takes: list[Take] | None = None
     rigid: tuple[str, ...] | None = None  # rigid head markers for stabilization (None: detected)
+    rig: str | None = None  # camera rig whose per-marker costs the layout method weighs (None: camera-blind)
 
 
 @dataclass
@@ -115,13 +117,28 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tupl
     return (result.trajectories if applied else traj), report
 
 
-def check_layout_options(*, method: str, markers: int | None) -> None:
-    """Reject an unknown layout method and a marker count < 1 (OptionError)."""
+def check_layout_options(*, method: str, markers: int | None, rig: str | None = None) -> None:
+    """Reject an unknown layout method, a marker count < 1 and ``--rig`` with the paper's
+    representatives or naming no preset and no rig file (OptionError / InputFileError)."""
     from .methods import method_names
     if method not in method_names():
         raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
     if markers is not None and markers < 1:
         raise OptionError(f"--markers must be >= 1, got {markers}")
+    if rig is not None:
+        check_rig(rig, methods=[method])
+
+
+def check_rig(rig: str, *, methods: Sequence[str]) -> None:
+    """Reject ``--rig`` with the paper's representatives (they take no costs) or naming neither a
+    preset nor a readable rig file."""
+    from ..acquisition.cameras import RIG_PRESETS
+    if "paper" in methods:
+        raise OptionError("--rig needs a layout method that weighs camera costs; the paper's "
+                          "representatives do not (use another --method)")
+    if rig not in RIG_PRESETS:
+        from .camera_cost import read_rig_file
+        read_rig_file(rig)
 
 
 def check_options(options: ClusterOptions, n_frames: int, *, source: str | None = None) -> None:
@@ -133,7 +150,7 @@ def check_options(options: ClusterOptions, n_frames: int, *, source: str | None 
         raise OptionError(f"--step must be >= 1, got {options.step}")
     if options.rigid is not None and not options.stabilize:
         raise OptionError(RIGID_WITHOUT_STABILIZING)
-    check_layout_options(method=options.method, markers=options.markers)
+    check_layout_options(method=options.method, markers=options.markers, rig=options.rig)
     if options.step >= n_frames:
         raise source_error(source, f"--step {options.step} is not smaller than the session's {n_frames} frames")
 
@@ -271,7 +288,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     from .methods.session_layout import relayout  # the methods build on this module
     if progress:
         progress(f"choosing the layout ({options.method})")
-    return relayout(result, method=options.method, count=options.markers)
+    return relayout(result, method=options.method, count=options.markers, rig=options.rig)
 
 
 def _clusters_of_count(regions: Sequence[tuple[np.ndarray, np.ndarray]], count: int

@@ -16,11 +16,14 @@ from ..layout import Cluster
 from ..pipeline import ClusterResult
 from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
 from . import LayoutProblem, select_layout
+from .problem import camera_aware
 
 
-def relayout(result: ClusterResult, *, method: str, count: int | None = None, seed: int = 0) -> ClusterResult:
+def relayout(result: ClusterResult, *, method: str, count: int | None = None, seed: int = 0,
+             rig: str | None = None) -> ClusterResult:
     """``result`` with its clusters chosen by ``method``: ``count`` measured markers (default: as
-    many as ``result`` has)."""
+    many as ``result`` has); with ``rig``, weighing how that rig sees every marker (mirror images
+    of a half face included, across the layout's sagittal plane)."""
     if method == "paper":
         return result
     layout = result.layout
@@ -31,10 +34,16 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
     regions = {r.name: np.array([index[m] for m in r.markers], dtype=np.intp) for r in layout.regions}
     problem = LayoutProblem(traj.positions - neutral[None], neutral, labels=traj.labels, regions=regions,
                             segments=tuple((t.start, t.end) for t in traj.takes))
-    selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
-    chosen = selected.layout
     plane_info = layout.extra["sagittal_plane"]
     plane = SagittalPlane(np.asarray(plane_info["point"]), np.asarray(plane_info["normal"]))
+    if rig is not None:
+        from ..camera_cost import session_costs
+        costs = session_costs(traj.positions, labels, rig,
+                              plane=plane if layout.parameters.get("mirror") else None).select(labels)
+        problem = camera_aware(problem, visibility=costs.visibility,
+                               triangulation_error_mm=costs.triangulation_error_mm)
+    selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
+    chosen = selected.layout
     sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
     members: dict[int, list[tuple[int, float]]] = {int(c): [] for c in chosen}
     region_of = {int(c): next((n for n, idx in regions.items() if c in idx), "") for c in chosen}
@@ -63,6 +72,8 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
         c.representative for c in clusters if c.mirrored_from is None and c.region == r.name))
         for r in layout.regions)
     parameters = dict(layout.parameters, method=method)
+    if rig is not None:
+        parameters["rig"] = rig
     if "winner" in selected.details:  # which contender the hybrid chose
         parameters["winner"] = selected.details["winner"]
     new_layout = dataclasses.replace(layout, parameters=parameters, regions=region_results,

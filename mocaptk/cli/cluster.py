@@ -65,7 +65,8 @@ def summary_text(result) -> str:
         count = (f"--markers {params['markers']}" if "markers" in params
                  else f"the paper's rule at factor {params['factor']:g}")
         winner = f" (hybrid contender: {params['winner']})" if "winner" in params else ""
-        lines.append(f"measured markers chosen by {method}{winner}; count from {count}; "
+        rig = f" for the {params['rig']} rig" if "rig" in params else ""
+        lines.append(f"measured markers chosen by {method}{winner}{rig}; count from {count}; "
                      "influence regions by the paper's correlations")
     paper = method == "paper"
     lines += ["", f"{'region':<16}{'dense':>7}{'measured':>10}{'mirrored':>10}{'total':>7}"
@@ -133,6 +134,9 @@ def cluster(
                                "representatives: Will, De Martino & Bezerra as written), qr, greedy, "
                                "kmeans, thin-shell, set-cover, farthest-point, random. The paper's rule "
                                "at --factor sets the count and the influence regions (see mocaptk compare)."),
+    rig: str = typer.Option(None, "--rig", help="Camera rig the layout is for: cara, room or a rig "
+                            "file; the method then avoids markers the rig sees badly or triangulates "
+                            "noisily (see mocaptk plan). Not with --method paper."),
     markers: int = typer.Option(None, "--markers", help="Exactly N measured markers (mirrored twins come "
                                 "on top) instead of the count the paper's rule gives at --factor."),
     regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: list of labels} "
@@ -177,12 +181,12 @@ def cluster(
     from .rig import animation_summary, cluster_rig_outputs, parse_formats, rig_options
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
-    check_layout_options(method=method, markers=markers)  # fail before the slow part
+    check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
     traj, source = load_session(session, rate=rate, units=units)
     warn_unless_face(traj, session, regions_given=regions is not None)
     options = ClusterOptions(
         factor=factor, method=method, markers=markers, step=step, stabilize=not no_stabilize,
-        mirror=mirror, rigid=rigid_labels(rigid),
+        mirror=mirror, rigid=rigid_labels(rigid), rig=rig,
         regions=read_regions(regions, traj.labels) if regions else None,
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:
