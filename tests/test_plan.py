@@ -117,3 +117,26 @@ def test_plan_errors_are_one_line(sample_copy, tmp_path, capsys):
     shutil.copy(PAPER_LAYOUT, lonely)
     assert run(["plan", str(lonely), "--rig", "cara"]) == 2 and "give it with --session" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_plan_of_a_synthetic_full_face_with_head_motion_through_the_room_rig(tmp_path):
+    from conftest import shared_path
+    from mocaptk.acquisition import dense_layout, dense_session, load_face_model, write_trajectories
+    from mocaptk.clustering.layout import write_layout
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
+
+    model = load_face_model(shared_path("face_mesh", "ict_facekit", "ict_facekit_FaceXModel_subset.tar.xz"))
+    session = dense_session(model, dense_layout(model, mode="full", seed=1), seed=1, expressions_per_take=1,
+                            rest_seconds=0.5, expression_seconds=1.0, head_motion=True).trajectories
+    write_trajectories(session, tmp_path / "full.c3d")
+    result = cluster_session(session, options=ClusterOptions(markers=10, method="kmeans", step=2),
+                             source={"path": "full.c3d"})  # found beside the layout folder
+    (tmp_path / "full_layout").mkdir()
+    write_layout(result.layout, tmp_path / "full_layout" / "layout.json")
+    assert run(["plan", str(tmp_path / "full_layout" / "layout.json"), "--rig", "room", "-q"]) == 0
+    plan = json.loads((tmp_path / "full_layout_plan" / "plan.json").read_text())
+    assert len(plan["markers"]) == 10 and all(m["mirrored_from"] is None for m in plan["markers"])
+    assert plan["rig"]["cameras"][0] == "room_01" and len(plan["rig"]["cameras"]) == 10
+    # ten cameras around the head see every frontal marker, through the head's motion too
+    assert min(m["visibility_percent"] for m in plan["markers"]) > 95
+    assert all(0.05 < m["triangulation_error_mm"] < 1.0 for m in plan["markers"])
