@@ -1,39 +1,45 @@
 """Command-line interface: ``mocaptk COMMAND ...``.
 
-Each command lives in its own module and registers itself on :data:`app`; heavy imports
-happen inside the command functions so ``mocaptk --help`` stays fast.
+Each command lives in its own module and registers itself on :data:`app` when imported; heavy
+imports happen inside the command functions, and a call imports only its own command's module,
+so ``mocaptk info`` starts fast.
 """
 
 from __future__ import annotations
 
+import importlib
 import sys
 from collections.abc import Sequence
 
 from ..errors import MocaptkError
 from .app import app
 
-# Command modules register themselves on import; this order is the order of `mocaptk --help`
-# (pipeline order: files -> capture -> cleaning -> layout -> evaluation -> rig; then batch).
-from . import info  # noqa: E402,F401
-from . import convert  # noqa: E402,F401
-from . import synth  # noqa: E402,F401
-from . import triangulate  # noqa: E402,F401
-from . import clean  # noqa: E402,F401
-from . import cluster  # noqa: E402,F401
-from . import sweep  # noqa: E402,F401
-from . import evaluate  # noqa: E402,F401
-from . import compare  # noqa: E402,F401
-from . import rig  # noqa: E402,F401
-from . import plan  # noqa: E402,F401
-from . import solve  # noqa: E402,F401
-from . import batch  # noqa: E402,F401
+# The order of `mocaptk --help` (pipeline order: files -> capture -> cleaning -> layout ->
+# evaluation -> rig; then batch); each command is defined in the module of its name.
+COMMANDS = ("info", "convert", "synth", "triangulate", "clean", "cluster", "sweep", "evaluate",
+            "compare", "rig", "plan", "solve", "batch")
 
 
-def command_line():
-    """The click command tree of :data:`app`, with help that shows no ``<bool>`` beside plain flags."""
+def _register(names: Sequence[str]) -> None:
+    """Import the modules of the commands ``names`` (registering them on :data:`app`), in
+    ``--help`` order whatever was imported before."""
+    for name in names:
+        importlib.import_module(f"{__name__}.{name}")
+    app.registered_commands.sort(key=lambda c: COMMANDS.index(c.callback.__module__.rsplit(".", 1)[1]))
+
+
+def command_line(args: Sequence[str] | None = None):
+    """The click command tree of :data:`app`, with help that shows no ``<bool>`` beside plain flags.
+
+    Given the ``args`` of a call naming a command (``info FILE``), only that command is built;
+    otherwise (``--help``, a misspelt command) all of them."""
     import typer
     import typer.main
 
+    from .coercion import install
+
+    named = next((a for a in args or () if not a.startswith("-")), None)
+    _register([named] if named in COMMANDS else COMMANDS)
     command = typer.main.get_command(app)
     names = command.context_settings["help_option_names"]
     for sub in [command, *command.commands.values()]:
@@ -41,6 +47,7 @@ def command_line():
         for param in [*sub.params, help_option]:
             if getattr(param, "is_flag", False) and param.metavar is None:
                 param.metavar = ""  # a flag takes no value: show none
+        install([*sub.params, help_option])
     return command
 
 
@@ -63,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         command_line()(args=["--help"], prog_name="mocaptk", standalone_mode=False)
         sys.exit(2)
     try:
-        code = command_line()(args=args, prog_name="mocaptk", standalone_mode=False)
+        code = command_line(args)(args=args, prog_name="mocaptk", standalone_mode=False)
     except MocaptkError as exc:
         print(f"mocaptk: error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
