@@ -180,6 +180,53 @@ def test_rig_on_the_ict_face_mesh_against_true_vertices(sample, tmp_path):
     assert err.rmse_mm < 2.0 and err.vertices == count
 
 
+def test_rig_on_the_ict_facekit_head_obj(sample, tmp_path):
+    """--mesh with the whole ICT-FaceKit head OBJ (26,719 vertices, UV seams, 12 materials):
+    read as the file's vertices (a seam does not split the skin into pieces), no trimesh
+    warnings, and the rig follows the markers as on the default mesh."""
+    import tarfile
+    import warnings
+
+    from scipy.sparse.csgraph import connected_components
+
+    from conftest import shared_path
+    from mocaptk.retarget.build import build_rig
+    from mocaptk.retarget.influence import edge_graph
+    from mocaptk.retarget.mesh_io import load_mesh
+
+    archive = shared_path("face_mesh", "ict_facekit", "ict_facekit_FaceXModel_subset.tar.xz")
+    member = "ICT-FaceKit/FaceXModel/generic_neutral_mesh.obj"
+    with tarfile.open(archive) as tar:
+        (tmp_path / "head.obj").write_bytes(tar.extractfile(member).read())
+    _, session, layout, default = sample
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        mesh = load_mesh(tmp_path / "head.obj")
+        build = build_rig(layout, session, mesh=mesh)
+    positions = sum(1 for line in open(tmp_path / "head.obj") if line.startswith("v "))
+    assert build.rig.vertex_count == positions == 26719
+    # the skin, eyes, teeth, gums... 56 parts (was one per triangle), the skin in one piece
+    count, part = connected_components(edge_graph(mesh.vertices, mesh.faces), directed=False)
+    assert count < 100 and np.bincount(part).max() > 10_000
+    assert build.alignment.rms_mm < 0.5
+    assert build.check.rmse_mm < default.check.rmse_mm + 0.1
+
+
+def test_obj_reader_fans_polygons_and_counts_negative_indices(tmp_path):
+    from mocaptk.errors import InputFileError
+    from mocaptk.retarget.mesh_io import load_mesh
+
+    path = tmp_path / "quad.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\n"
+                    "g a\nusemtl m\nf 1/1 2/2 3/1 4/2\nf -4//1 -2//1 -1//1\n")
+    mesh = load_mesh(path)
+    assert mesh.vertices.shape == (4, 3)
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3], [0, 2, 3]])
+    path.write_text("v 0 0 0\nv 1 0 0\nf 1 2 3\n")
+    with pytest.raises(InputFileError, match="missing vertex"):
+        load_mesh(path)
+
+
 def _every(session, step):
     return session.replace(positions=session.positions[::step], metadata={})
 
