@@ -204,9 +204,11 @@ def rows_as_json(rows: Sequence[CompareRow], labels: Sequence[str], *,
     }
 
 
-def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
+def rows_as_markdown(rows: Sequence[CompareRow], *, times: bool = True) -> str:
     """Two tables, one line per method. First, per count: RMSE / p95 / worst single lost marker
-    RMSE (mm) and run time (best RMSE in bold). Second, per count: the layout statistics (% idle markers and unseen shapes per ε)."""
+    RMSE (mm) and, with ``times``, run time (best RMSE in bold). Second, per count: the layout
+    statistics (% idle markers and unseen shapes per ε). Without times the text is the same for
+    the same input (report.html)."""
     counts = sorted({r.count for r in rows})
     methods = list(dict.fromkeys(r.method for r in rows))
     cell = {(r.method, r.count): r for r in rows}
@@ -223,7 +225,7 @@ def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
 
     def scores(r: CompareRow) -> str:
         rmse = f"**{r.rmse_mm:.3f}**" if r.rmse_mm == best[r.count] else f"{r.rmse_mm:.3f}"
-        return f"{rmse} / {r.p95_mm:.3f} / {r.lost_rmse_mm:.3f} ({r.seconds:.2f})"
+        return f"{rmse} / {r.p95_mm:.3f} / {r.lost_rmse_mm:.3f}" + (f" ({r.seconds:.2f})" if times else "")
 
     def statistics(r: CompareRow) -> str:
         eps = list(r.statistics)
@@ -233,7 +235,7 @@ def rows_as_markdown(rows: Sequence[CompareRow]) -> str:
 
     epsilons = " / ".join(next((list(r.statistics) for r in rows if r.statistics), ["0.3", "0.7"]))
     return "\n".join(
-        table("{} markers: RMSE / p95 / 1 lost mm (s)", scores)
+        table("{} markers: RMSE / p95 / 1 lost mm" + (" (s)" if times else ""), scores)
         + ["", "1 lost = held-out RMSE when the layout loses the marker whose loss hurts most "
            "(gap-free frames; per fold its own layout's worst marker).", "", f"Layout statistics (Zell & McDonnell) at ε = {epsilons}: idle % = markers where no "
            "shape moves ≥ ε (relative to its largest displacement); unseen = shapes no marker sees "

@@ -54,7 +54,7 @@ from .neutral import neutral_pose
 
 __all__ = [
     "DEFAULT_KIND", "DEFAULT_RIDGE", "MODEL_FORMAT", "MODEL_KINDS", "MODEL_VERSION", "FaceModel",
-    "Prediction", "ReconstructionModel", "fit_model", "fit_reconstruction", "load_model",
+    "Prediction", "ReconstructionModel", "check_frames", "fit_model", "fit_reconstruction", "load_model",
     "model_from_arrays", "row_patterns", "save_model",
 ]
 
@@ -288,11 +288,25 @@ class FaceModel:
             drops[j] = _rms(self.predict_positions(lost) - check) if self.layout.size > 1 else np.nan
         self.error_drop = drops
 
+    def check_residuals(self, train: np.ndarray) -> np.ndarray:
+        """Distances (f, M) mm between each dense marker and its prediction from every layout
+        marker, on the training frames the expected error is measured on (:func:`check_frames`
+        of ``train`` (F, M, 3) mm with every layout marker present); their RMS is ``error_base``."""
+        check = check_frames(np.asarray(train, dtype=np.float64))
+        check = check[np.isfinite(check[:, self.layout]).all(axis=(1, 2))]
+        return np.linalg.norm(self.predict_positions(check[:, self.layout]) - check, axis=2)
+
     def arrays(self) -> dict[str, np.ndarray]:
         """Everything :func:`model_from_arrays` needs (saved in ``model.npz``)."""
         return {"layout": self.layout, "neutral": self.neutral,
                 "error_base": np.array(self.error_base), "error_drop": self.error_drop,
                 **self._arrays()}
+
+
+def check_frames(train: np.ndarray) -> np.ndarray:
+    """The training frames (f, M, 3) the expected error is measured on: ``train`` (F, M, 3)
+    evenly subsampled to at most :data:`CHECK_FRAMES`."""
+    return train[::-(-train.shape[0] // CHECK_FRAMES)]
 
 
 def _rms(diff: np.ndarray) -> float:
@@ -650,7 +664,7 @@ def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind
     else:
         raise OptionError(f"unknown model kind {kind!r} (choose from {', '.join(MODEL_KINDS)})")
     if expected_error:
-        model.measure_expected_error(train[::-(-train.shape[0] // CHECK_FRAMES)])
+        model.measure_expected_error(check_frames(train))
     else:
         model.error_base, model.error_drop = float("nan"), np.full(layout.size, np.nan)
     return model

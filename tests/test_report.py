@@ -116,3 +116,41 @@ def test_evaluate_and_compare_write_error_reports(planted_reports, run_cli, tmp_
     assert [(m["name"], len(m["layout"])) for m in data["errors"]] == [
         ("kmeans × 4", 4), ("kmeans × 6", 6), ("farthest-point × 4", 4), ("farthest-point × 6", 6)]
     assert data["tables"][0]["picks"] == [0, 1, 2, 3]
+    # the page shows no measured run time, so the same input gives the same bytes
+    again = run_cli("compare", session, "--counts", "4,6", "--methods", "kmeans,farthest-point",
+                    "--out", tmp_path / "cmp2", "--no-stabilize", "--quiet")
+    assert again.exit_code == 0, again.stderr
+    assert (tmp_path / "cmp" / "report.html").read_bytes() == (tmp_path / "cmp2" / "report.html").read_bytes()
+    assert data["tables"][0]["columns"] == ["method", "markers", "RMSE", "p95", "1 lost"]
+    assert "(s)" in (tmp_path / "cmp" / "compare.md").read_text() and "(s)" not in data["summary"]
+
+
+def test_solve_writes_a_deterministic_report(planted_reports, run_cli, tmp_path):
+    """solve on the planted session itself (its layout markers are in it): the page holds the
+    layout, the per-marker expected error whose RMS is the model's, the solved replay, the
+    printed summary and its own size; twice the same bytes."""
+    folder = planted_reports[0]
+    session = folder.parent / "planted.npz"
+    runs = [run_cli("solve", folder / "layout.json", session, "--formats", "none", "--out", tmp_path / name)
+            for name in ("a", "b")]
+    assert all(r.exit_code == 0 for r in runs), runs[0].stderr
+    page = tmp_path / "a" / "report.html"
+    assert page.read_bytes() == (tmp_path / "b" / "report.html").read_bytes()
+    summary = json.loads((tmp_path / "a" / "solve.json").read_text())
+    assert "report.html" in summary["outputs"] and sorted(summary["outputs"]) == sorted(
+        p.name for p in (tmp_path / "a").iterdir())
+    size = re.search(r"report\.html: ([\d.]+) MB", runs[0].stdout)
+    assert size and abs(float(size.group(1)) - page.stat().st_size / 1e6) <= 0.051
+    data = page_data(page)
+    layout = json.loads((folder / "layout.json").read_text())
+    assert data["kind"] == "solve" and [c["label"] for c in data["clusters"]] == layout["layout"]
+    (errors,) = data["errors"]
+    values = np.array([np.nan if v is None else v for v in errors["values"]])
+    captured = data["markers"]["captured"]
+    assert np.isfinite(values[:captured]).all()
+    # per-marker errors pool back to the model's expected error (all layout markers present)
+    expected = summary["model"]["expected_error_all_present_mm"]
+    assert np.sqrt(np.mean(values[:captured] ** 2)) == pytest.approx(expected, rel=0.01)
+    assert runs[0].stdout.splitlines()[0] in data["summary"]  # the printed summary, in the side panel
+    (clip,) = data["clips"]
+    assert clip["name"] == "solved performance" and clip["source_frames"] == summary["capture"]["frames"]

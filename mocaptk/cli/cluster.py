@@ -199,11 +199,12 @@ def cluster(
         build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
                                     formats=formats, quiet=quiet, session=traj,
                                     animate=animate or [])
-        write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
+        report = write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
     if not quiet:
         typer.echo(summary_text(result), nl=False)
         if build is not None:  # after the summary's header, not before it
             typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
                        f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
             typer.echo(animation_summary(build.report["animation"]))
+        typer.echo(report)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

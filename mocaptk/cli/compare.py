@@ -100,7 +100,8 @@ def compare(
     compare_plot(rows, targets[2], title=f"{session.name}: held-out RMSE")
     neutral = neutral_pose(traj.positions)
     layout_gallery(rows, neutral, max_displacement(traj.positions, neutral), targets[3])
-    report = write_compare_report(targets[4], traj, rows, test=perf, summary=table, protocol=protocol)
+    report = write_compare_report(targets[4], traj, rows, test=perf, protocol=protocol,
+                                  summary=rows_as_markdown(rows, times=False))
     for row in rows:
         if row.error is not None:
             typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)

@@ -15,9 +15,9 @@ def report_line(path: Path, size: int, clips: list[dict]) -> str:
     return f"{path.name}: {size / 1e6:.1f} MB (self-contained, opens offline{replay})"
 
 
-def write_cluster_report(result, build, path: Path, *, summary: str) -> Path:
+def write_cluster_report(result, build, path: Path, *, summary: str) -> str:
     """``mocaptk cluster``'s report (``build``: the rig, None without one); its size and replay
-    rate are added to ``summary.txt`` beside it."""
+    rate are added to ``summary.txt`` beside it. Returns that line."""
     from ..atomic import write_text
     from ..retarget.report import cluster_report, write_report
 
@@ -26,8 +26,9 @@ def write_cluster_report(result, build, path: Path, *, summary: str) -> Path:
              f"{layout.parameters.get('factor')} · {len(layout.clusters)} layout markers")
     data = cluster_report(layout, result.trajectories, build=build, summary=summary, title=title)
     written, size = write_report(path, data)
-    write_text(path.with_name("summary.txt"), summary + report_line(path, size, data["clips"]) + "\n")
-    return written
+    line = report_line(written, size, data["clips"])
+    write_text(path.with_name("summary.txt"), summary + line + "\n")
+    return line
 
 
 def write_evaluation_report(path: Path, layout, session, layout_idx, result: dict, *, test, takes,
@@ -51,7 +52,9 @@ def write_evaluation_report(path: Path, layout, session, layout_idx, result: dic
 def write_compare_report(path: Path, session, rows, *, test, summary: str, protocol: str) -> str:
     """``mocaptk compare``'s report: each method x count's per-marker held-out RMSE with its layout
     on the face (with ``test``: fitted on the session, scored on it, as the table; without: the
-    whole-session layout kept fixed across the held-out takes/blocks). Returns the size line."""
+    whole-session layout kept fixed across the held-out takes/blocks). Run times stay out of the
+    page (compare.md / compare.json have them), so the same input gives the same bytes. Returns
+    the size line."""
     from ..clustering.evaluation import heldout_errors, holdout_splits
     from ..retarget.report import compare_report, per_marker_rmse, write_report
 
@@ -65,7 +68,7 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
     entries = []
     for row in rows:
         entry = {"method": row.method, "count": row.count, "rmse_mm": row.rmse_mm, "p95_mm": row.p95_mm,
-                 "lost_rmse_mm": row.lost_rmse_mm, "seconds": row.seconds, "error": row.error}
+                 "lost_rmse_mm": row.lost_rmse_mm, "error": row.error}
         if row.error is None:
             errors = heldout_errors(session.positions, row.layout, splits,
                                     test=None if test is None else test.positions)
@@ -73,6 +76,43 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
         entries.append(entry)
     data = compare_report(session, rows=entries, performance=None if test is None else test.positions,
                           summary=summary, title=f"mocaptk compare: {protocol}",
-                          note=note + " Click a row to show its layout and error.")
+                          note=note + " Click a row to show its layout and error. Run times: "
+                          "compare.md / compare.json (measured, so kept out of this page).")
+    written, size = write_report(path, data)
+    return report_line(written, size, data["clips"])
+
+
+def write_solve_report(path: Path, layout, solver, *, solved: Path, rigid, training, summary: dict,
+                       text: str) -> str:
+    """``mocaptk solve``'s report: the solved performance (``solved``: its dense.c3d, made
+    head-relative on ``rigid`` when head motion was solved) on the face, each dense marker coloured
+    by the model's expected error on the ``training`` session (None with ``--model``: no map),
+    the model table and ``text`` (solve's summary). Returns the line stating its size."""
+    from ..acquisition.c3d_read import read_c3d
+    from ..clustering.pipeline import stabilize
+    from ..retarget.report import per_marker_rmse, solve_report, write_report
+
+    motion = read_c3d(solved)
+    if rigid:
+        motion = stabilize(motion, rigid=rigid)[0]
+    error = None if training is None else per_marker_rmse(solver.model.check_residuals(training.positions))
+    model, frames, expected = summary["model"], summary["frames"], summary["expected_error_mm"]
+    head = summary["head_motion"]
+    mm = lambda v: "–" if v is None else f"{v:.2f} mm"  # noqa: E731
+    table = [["model", model["kind"]],
+             ["layout markers used", len(model["layout_markers"])],
+             ["dense markers", model["dense_markers"]],
+             ["expected error, all layout markers present", mm(model["expected_error_all_present_mm"])],
+             ["frames solved", f"{frames['solved']} of {summary['capture']['frames']}"],
+             ["frames with lost markers", frames["with_lost_markers"]],
+             ["expected error mean / p95 / max", " / ".join(mm(expected[k]) for k in ("mean", "p95", "max"))],
+             ["head motion", "removed and put back" if head["removed_and_restored"] else "none removed"],
+             ["mesh", f"{summary['mesh']['vertices']} vertices, {summary['mesh']['triangles']} triangles"],
+             ["colour map", "per-marker expected error on the training session (all layout markers present)"
+              if error is not None else "none: a --model file holds no per-marker errors"]]
+    title = (f"mocaptk solve: {summary['capture']['path']} · {model['kind']} · "
+             f"{len(model['layout_markers'])} layout markers")
+    data = solve_report(layout, motion, marker_error=error, kind=model["kind"], table=table,
+                        summary=text, title=title)
     written, size = write_report(path, data)
     return report_line(written, size, data["clips"])

@@ -41,6 +41,19 @@ def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progres
                       captures=[Capture(name, relative, solved if rigid else None)], progress=progress)
 
 
+def summary_text(summary: dict) -> str:
+    """What solve prints, and its report's side panel shows (from solve.json's ``summary``)."""
+    frames, model = summary["frames"], summary["model"]
+    lines = [f"solved {frames['solved']} of {summary['capture']['frames']} frames with {model['kind']} "
+             f"({len(model['layout_markers'])} layout -> {model['dense_markers']} dense markers, mesh "
+             f"{summary['mesh']['vertices']} vertices); {frames['with_lost_markers']} frames with "
+             f"lost markers, expected error mean {summary['expected_error_mm']['mean'] or float('nan'):.2f} mm"]
+    if frames["unsolved"]:
+        lines.append(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
+                     "are not solved (see solve_frames.csv)")
+    return "\n".join(lines + [f"note: {note}" for note in summary["notes"]]) + "\n"
+
+
 @app.command()
 def solve(
     layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
@@ -80,6 +93,7 @@ def solve(
     from ..retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
     from .evaluate import layout_rigid_set
+    from .report import write_solve_report
     from .rig import parse_formats
 
     if model_kind is not None and model_kind not in MODEL_KINDS:
@@ -124,17 +138,13 @@ def solve(
             if rig:
                 say("building the rig and baking the solve onto it")
                 bake_solved_rig(lay, dense, staging, capture.stem, rigid=rigid, progress=say)
-                summary["outputs"] = sorted(summary["outputs"] + ["rig/"])
-                write_json(staging / "solve.json", summary)  # the staged folder is moved in whole
+                summary["outputs"].append("rig/")
+            say("writing report.html")
+            report = write_solve_report(staging / "report.html", lay, solver, solved=staging / "dense.c3d",
+                                        rigid=rigid, training=dense if model is None else None,
+                                        summary=summary, text=summary_text(summary))
+            summary["outputs"] = sorted([*summary["outputs"], "report.html"])
+            write_json(staging / "solve.json", summary)  # again: it lists rig/ and report.html now
     if not quiet:
-        frames = summary["frames"]
-        typer.echo(f"solved {frames['solved']} of {traj.n_frames} frames with {summary['model']['kind']} "
-                   f"({len(solver.layout_labels)} layout -> {len(solver.labels)} dense markers, mesh "
-                   f"{summary['mesh']['vertices']} vertices); {frames['with_lost_markers']} frames with "
-                   f"lost markers, expected error mean {summary['expected_error_mm']['mean'] or float('nan'):.2f} mm")
-        if frames["unsolved"]:
-            typer.echo(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
-                       "are not solved (see solve_frames.csv)")
-        for note in summary["notes"]:
-            typer.echo(f"note: {note}")
+        typer.echo(summary_text(summary) + report)
         typer.echo(f"wrote {out}/ ({', '.join(summary['outputs'])})")

@@ -12,7 +12,8 @@ from mocaptk.trajectories import Trajectories
 from ..build import DenseCloud, RigBuild, dense_cloud
 from .scene import replay_clips, scene_data
 
-__all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse", "session_clips"]
+__all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse", "session_clips",
+           "solve_report"]
 
 
 def session_clips(cloud: DenseCloud, rate_hz: float, *, labels: Sequence[str] = (),
@@ -82,8 +83,8 @@ def evaluation_report(layout: Layout, session: Trajectories, *, rmse: np.ndarray
 def compare_report(session: Trajectories, *, rows: Sequence[dict], performance: np.ndarray | None,
                    summary: str, title: str, note: str) -> dict:
     """Page data of ``mocaptk compare``: one colour map per method x count, each with its own
-    layout (``rows``: dicts with ``method``, ``count``, ``rmse_mm``, ``p95_mm``, ``seconds``,
-    ``layout`` (labels) and ``rmse`` (M,) mm per session marker, or ``error``), the table, the
+    layout (``rows``: dicts with ``method``, ``count``, ``rmse_mm``, ``p95_mm``, ``lost_rmse_mm``, ``layout``
+    (labels) and ``rmse`` (M,) mm per session marker, or ``error``), the table, the
     session and held-out ``performance`` replays. Regions come from the label prefixes."""
     from mocaptk.clustering.neutral import max_displacement, neutral_pose
     from mocaptk.clustering.regions import regions_from_prefixes
@@ -98,17 +99,16 @@ def compare_report(session: Trajectories, *, rows: Sequence[dict], performance: 
     data = scene_data(cloud, regions=regions_from_prefixes(cloud.labels))
     table, picks, maps = [], [], []
     for row in rows:
-        table.append([row["method"], row["count"], *(["–"] * 4 if row.get("error") else
-                     [f"{row['rmse_mm']:.3f}", f"{row['p95_mm']:.3f}",
-                      f"{row['lost_rmse_mm']:.3f}", f"{row['seconds']:.2f}"])])
+        table.append([row["method"], row["count"], *(["–"] * 3 if row.get("error") else
+                     [f"{row['rmse_mm']:.3f}", f"{row['p95_mm']:.3f}", f"{row['lost_rmse_mm']:.3f}"])])
         picks.append(None if row.get("error") else len(maps))
         if not row.get("error"):
             maps.append(error_map(cloud, session.labels, row["rmse"], name=f"{row['method']} × {row['count']}",
                                   layout=row["layout"]))
     data.update(kind="compare", title=title, summary=summary, errors=maps,
                 clips=session_clips(cloud, session.rate, labels=session.labels, performance=performance),
-                tables=[{"title": "Held-out reconstruction error (mm), time (s per layout)",
-                         "columns": ["method", "markers", "RMSE", "p95", "1 lost", "s"], "rows": table,
+                tables=[{"title": "Held-out reconstruction error (mm)",
+                         "columns": ["method", "markers", "RMSE", "p95", "1 lost"], "rows": table,
                          "picks": picks, "note": note}])
     return data
 
@@ -141,3 +141,21 @@ def _rig_tables(build: RigBuild | None) -> list[dict]:
         ["skinning check p95", f"{check.p95_mm:.2f} mm"],
     ]
     return [{"title": "Rig (rig.json / rig.fbx / rig.glb)", "columns": ["", ""], "rows": rows}]
+
+
+def solve_report(layout: Layout, solved: Trajectories, *, marker_error: np.ndarray | None, kind: str,
+                 table: Sequence[Sequence], summary: str, title: str) -> dict:
+    """Page data of ``mocaptk solve``: the layout on the surface through the solved dense markers
+    ``solved`` (head-relative, as the model solves them), each marker coloured by the model's
+    expected error ``marker_error`` (M,) mm over ``solved.labels`` (None: unknown, no map), the
+    model ``table`` rows ([name, value]) and the replay of the solved performance."""
+    cloud = dense_cloud(layout, solved)
+    data = scene_data(cloud, layout=layout)
+    data["errors"] = [] if marker_error is None else [
+        error_map(cloud, solved.labels, marker_error, name=f"expected error, {kind}")]
+    captured = int(np.sum(cloud.captured))
+    clips = replay_clips([("solved performance", cloud.trajectories[:, :captured])], solved.rate,
+                         cloud.neutral[:captured])
+    data.update(kind="solve", title=title, summary=summary, clips=clips,
+                tables=[{"title": "Model and solve", "columns": ["", ""], "rows": list(table)}])
+    return data
