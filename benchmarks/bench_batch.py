@@ -7,7 +7,8 @@ costs ~12 CPU-s per session; ``--frames 0`` uses whole takes). Both sides run
 
 Reported: wall time of the serial loop (``mocaptk cluster`` once per session, as a studio's shell
 loop does), of ``mocaptk batch --workers 2`` (cluster start included), the ratio; the per-session
-CPU cost (user + sys of the serial children) for the farm projection; the scheduler's own cost per
+CPU cost (user + sys of the serial children) for the farm projection, and batch's CPU (the
+sessions' own CPU in the runners, from batch.json, plus the batch process tree that was reaped); the scheduler's own cost per
 task (2-worker LocalCluster, 400 empty tasks submitted and gathered, per task), and batch's whole
 per-session overhead (a re-run in which every session is skipped: hashing, runner round trip).
 The machine's load average is printed before and after: timings on a shared machine are only
@@ -95,11 +96,14 @@ def main() -> None:
 
         batch_line = [*MOCAPTK, "batch", str(root / "sessions" / "*.c3d"), "--do", "cluster", "--formats", "none",
                       "--out", str(root / "batch"), "--workers", "2", "--quiet"]
-        start = time.perf_counter()
+        cpu0, start = children_cpu(), time.perf_counter()
         subprocess.run(batch_line, check=True)
         batch = time.perf_counter() - start
-        print(f"batch, 2 workers: {batch:.1f} s ({batch / len(paths):.2f} s/session)  "
-              f"load {os.getloadavg()[0]:.1f}")
+        reaped = children_cpu() - cpu0  # client + workers; runners die with their worker, unreaped
+        runners = sum(r["cpu_seconds"] for r in json.loads((root / "batch" / "batch.json").read_text())["sessions"])
+        print(f"batch, 2 workers: {batch:.1f} s ({batch / len(paths):.2f} s/session wall, "
+              f"{runners / len(paths):.2f} CPU-s/session in the runners, {reaped:.1f} CPU-s in client + "
+              f"workers)  load {os.getloadavg()[0]:.1f}")
         print(f"ratio serial / batch: {serial / batch:.2f}x")
 
         for path in paths:

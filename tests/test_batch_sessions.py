@@ -68,3 +68,21 @@ def test_find_sessions_skips_sidecars_and_refuses_shared_stems(tmp_path):
     with pytest.raises(OptionError, match="no session file matches"):
         find_sessions([str(tmp_path / "a" / "*.c3d"), str(tmp_path / "nope*")])
     assert Path(find_sessions([str(tmp_path / "a" / "x.c3d")])[0]).is_absolute()
+
+
+def test_solve_takes_its_layout_from_the_batch_line_or_the_sidecar(tmp_path):
+    capture = tmp_path / "shoot" / "take1.c3d"
+    capture.parent.mkdir()
+    capture.write_bytes(b"")
+    patterns, options = split_batch_line("solve", ["shoot/*.c3d", "--layout", "L.json", "--formats", "none"],
+                                         base=tmp_path)
+    assert patterns == ["shoot/*.c3d"] and options == ["--layout", str(tmp_path / "L.json"), "--formats", "none"]
+    argv = session_argv("solve", capture, tmp_path / "o", options)
+    assert argv == ["solve", str(tmp_path / "L.json"), str(capture), "--formats", "none", "--quiet",
+                    "--out", str(tmp_path / "o")]
+    (capture.parent / "take1.mocaptk.json").write_text(json.dumps({"layout": "anna/layout.json"}))
+    assert session_argv("solve", capture, tmp_path / "o", options)[1] == str(capture.parent / "anna" / "layout.json")
+    with pytest.raises(InputFileError, match="no layout for it: give batch --layout L.json"):
+        session_argv("solve", tmp_path / "take2.c3d", tmp_path / "o", [])
+    with pytest.raises(OptionError, match="mocaptk cluster has no option --layout"):
+        split_batch_line("cluster", ["x", "--layout", "L.json"], base=tmp_path)

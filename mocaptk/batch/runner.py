@@ -82,7 +82,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
     from .sessions import COMMANDS, input_files, file_digest, session_argv
     from .summary import session_metrics
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     command, session, out_dir = task["command"], Path(task["session"]), Path(task["out"])
     record: dict[str, Any] = {"session": session.stem, "path": str(session), "command": command,
                               "host": socket.gethostname(), "warnings": [], "outputs": {}}
@@ -131,6 +131,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
                                if before.get(name) != stat},
                    "metrics": session_metrics(out_dir)}
     record["seconds"] = time.perf_counter() - start
+    record["cpu_seconds"] = time.process_time() - cpu  # this runner's CPU (the session's own work)
     return record
 
 

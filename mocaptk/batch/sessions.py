@@ -28,13 +28,16 @@ class BatchCommand:
     """How batch runs one command: where its outputs go inside ``DIR/<stem>/``.
 
     ``out_file``: the command's ``--out`` is this file in the session folder (None: the folder);
-    ``stdout_file``: the command prints its result (``--json``) and batch saves it under this name.
+    ``stdout_file``: the command prints its result (``--json``) and batch saves it under this name;
+    ``layout_argument``: the command's first argument is a layout (``solve LAYOUT CAPTURE``): the
+    matched files are its captures and the layout comes from ``--layout`` (batch line or sidecar).
     """
 
     name: str
     out_file: str | None = None
     stdout_file: str | None = None
     fixed: tuple[str, ...] = ("--quiet",)
+    layout_argument: bool = False
 
 
 COMMANDS: dict[str, BatchCommand] = {
@@ -42,7 +45,10 @@ COMMANDS: dict[str, BatchCommand] = {
     "evaluate": BatchCommand("evaluate", out_file="evaluation.json"),
     "compare": BatchCommand("compare"),
     "info": BatchCommand("info", stdout_file="info.json", fixed=("--json",)),
+    "solve": BatchCommand("solve", layout_argument=True),
 }
+#: batch's own option naming a ``layout_argument`` command's layout (a sidecar's "layout" key)
+LAYOUT_OPTION = "--layout"
 
 #: options batch itself sets for every session: a sidecar or the batch line may not
 CONTROLLED = ("--out", "--force", "--quiet", "--json", "--help")
@@ -119,6 +125,14 @@ def split_batch_line(command: str, tokens: list[str], *, base: Path) -> tuple[li
             continue
         name, eq, value = token.partition("=")
         param = table.get(name)
+        if param is None and name == LAYOUT_OPTION and COMMANDS[command].layout_argument:
+            if not eq:
+                if i >= len(tokens):
+                    raise OptionError(f"option {name} needs a value")
+                value = tokens[i]
+                i += 1
+            options += [name, _absolute(value, base)]
+            continue
         if param is None:
             raise OptionError(f"mocaptk {command} has no option {name} (see mocaptk {command} --help)")
         if _controlled(param):
@@ -140,6 +154,8 @@ def check_command_line(command: str, options: list[str]) -> None:
     bad value fails once, before any cluster starts, instead of once per session."""
     import typer
 
+    if COMMANDS[command].layout_argument and LAYOUT_OPTION not in options:
+        options = [*options, LAYOUT_OPTION, "layout.json"]  # a sidecar may give each session's
     argv = _command_argv(command, Path("session"), Path("out"), options)
     try:
         click_command(command).make_context(command, argv[1:])
@@ -175,6 +191,9 @@ def _sidecar_tokens(command: str, path: Path) -> list[str]:
         if name not in known:
             raise InputFileError(path, f"unknown option {key!r} (no batch command has {name})")
         param = own.get(name)
+        if param is None and name == LAYOUT_OPTION and COMMANDS[command].layout_argument:
+            tokens += [name, _absolute(str(value), path.parent)]
+            continue
         if param is None:
             continue
         if _controlled(param):
@@ -219,6 +238,13 @@ def session_argv(command: str, session: Path, out_dir: Path, options: list[str])
 def _command_argv(command: str, session: Path, out_dir: Path, tokens: list[str]) -> list[str]:
     spec = COMMANDS[command]
     argv = [command, str(session), *tokens, *spec.fixed]
+    if spec.layout_argument:  # solve LAYOUT CAPTURE: the last --layout given (a sidecar's) wins
+        at = [i for i, token in enumerate(tokens) if token == LAYOUT_OPTION]
+        if not at:
+            raise InputFileError(session, f"no layout for it: give batch {LAYOUT_OPTION} L.json, or "
+                                          f"\"layout\" in {session.stem}{SIDECAR_SUFFIX} beside it")
+        rest = [t for i, t in enumerate(tokens) if i not in at and i - 1 not in at]
+        argv = [command, tokens[at[-1] + 1], str(session), *rest, *spec.fixed]
     if command == "evaluate" and "--layout" not in tokens:  # default: the layout a cluster batch wrote
         argv += ["--layout", str(out_dir / "layout.json")]
     if spec.stdout_file is None:
@@ -230,6 +256,8 @@ def input_files(command: str, argv: list[str], session: Path) -> list[Path]:
     """Files the run reads: the session, its sidecars and every existing path-valued option."""
     table = _option_table(click_command(command))
     files = [session, *sidecars(session)]
+    if COMMANDS[command].layout_argument and Path(argv[1]).is_file():
+        files.append(Path(argv[1]))
     for name, value in zip(argv, argv[1:]):
         param = table.get(name)
         if param is not None and not _controlled(param) and _is_path(param) and Path(value).is_file():

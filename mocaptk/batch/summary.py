@@ -2,7 +2,7 @@
 
 A *record* is one session under one command: ``session`` (stem), ``path``, ``command``,
 ``status`` (done / skipped / failed), ``error`` (the command's one-line message), ``warnings``,
-``seconds``, ``metrics`` (markers, layout markers, held-out RMSE mm, read from the session's
+``seconds`` (wall), ``cpu_seconds`` (the runner's CPU for it), ``metrics`` (markers, layout markers, held-out RMSE mm, read from the session's
 outputs), and for re-runs ``key`` (hash of argv + input hashes), ``inputs`` and ``outputs``
 (file → SHA-256). ``batch.json`` keeps the latest record of every (session, command), so a
 cluster batch and a later evaluate batch into the same DIR share one summary.
@@ -35,6 +35,10 @@ def session_metrics(folder: Path) -> dict[str, Any]:
     if isinstance(layout, dict) and isinstance(layout.get("clusters"), list):
         metrics["layout_markers"] = len(layout["clusters"])
         metrics["markers"] = layout.get("source", {}).get("markers", metrics.get("markers"))
+    solved = _read(folder / "solve.json")
+    if isinstance(solved, dict) and isinstance(solved.get("model"), dict):
+        metrics |= {"markers": solved["model"].get("dense_markers"),
+                    "layout_markers": len(solved["model"].get("layout_markers") or [])}
     evaluation = _read(folder / "evaluation.json")
     if isinstance(evaluation, dict) and isinstance(evaluation.get("methods"), dict):
         name, scores = next(iter(evaluation["methods"].items()), (None, {}))

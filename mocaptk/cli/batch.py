@@ -12,7 +12,7 @@ from ..errors import OptionError
 from .app import app
 from .options import Quiet
 
-COMMAND_NAMES = "cluster, evaluate, compare, info"
+COMMAND_NAMES = "cluster, evaluate, compare, info, solve"
 
 
 @app.command(context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
@@ -37,9 +37,10 @@ def batch(
                                "whose outputs are complete (default: skip them)."),
     quiet: Quiet = False,
 ) -> None:
-    """Run cluster / evaluate / compare / info on every matching session (Dask; failures isolated).
+    """Run cluster / evaluate / compare / info / solve on every matching session (Dask; failures isolated).
 
-    A session's own options may sit beside it in <stem>.mocaptk.json (or mocaptk.json for its whole
+    With --do solve the matched files are captures, solved with the layout of --layout L.json (or
+    of "layout" in a capture's sidecar). A session's own options may sit beside it in <stem>.mocaptk.json (or mocaptk.json for its whole
     folder), e.g. {"regions": "anna_regions.json", "rigid": ["HEAD_1", "HEAD_2", "HEAD_3"]}; they
     override the batch line's. Exit code 0 when every session is done or skipped, 1 when some
     failed (see batch.md), 2 for a mistake in the batch itself. See docs/batch.md.
