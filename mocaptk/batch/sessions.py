@@ -125,19 +125,12 @@ def split_batch_line(command: str, tokens: list[str], *, base: Path) -> tuple[li
             continue
         name, eq, value = token.partition("=")
         param = table.get(name)
-        if param is None and name == LAYOUT_OPTION and COMMANDS[command].layout_argument:
-            if not eq:
-                if i >= len(tokens):
-                    raise OptionError(f"option {name} needs a value")
-                value = tokens[i]
-                i += 1
-            options += [name, _absolute(value, base)]
-            continue
-        if param is None:
+        layout = param is None and name == LAYOUT_OPTION and COMMANDS[command].layout_argument
+        if param is None and not layout:
             raise OptionError(f"mocaptk {command} has no option {name} (see mocaptk {command} --help)")
-        if _controlled(param):
+        if not layout and _controlled(param):
             raise OptionError(f"{name} is set by batch for every session; give it to batch itself")
-        if param.is_flag or param.count:
+        if not layout and (param.is_flag or param.count):
             options.append(token)
             continue
         if not eq:
@@ -145,7 +138,7 @@ def split_batch_line(command: str, tokens: list[str], *, base: Path) -> tuple[li
                 raise OptionError(f"option {name} needs a value")
             value = tokens[i]
             i += 1
-        options += [name, _absolute(value, base) if _is_path(param) else value]
+        options += [name, _absolute(value, base) if layout or _is_path(param) else value]
     return patterns, options
 
 
