@@ -75,21 +75,30 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
     n_markers = disp.shape[1]
     _check_count(n_markers, count)
     feats = np.nan_to_num(disp, nan=0.0).transpose(1, 0, 2).reshape(n_markers, -1)
+    # the iterations run on coordinates with the same dot products: (markers, markers) for a long
+    # session, one pass over its frames instead of one per centre
+    coords = _gram_coordinates(feats) if feats.shape[1] > n_markers else feats
     rng = np.random.default_rng(seed)
-    sq_norms = np.einsum("ij,ij->i", feats, feats)
 
-    def sq_dist(centres: np.ndarray) -> np.ndarray:
-        d = sq_norms[:, None] - 2.0 * feats @ centres.T + np.einsum("ij,ij->i", centres, centres)[None]
+    def sq_dist_to(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        d = np.einsum("ij,ij->i", points, points)[:, None] - 2.0 * points @ centres.T \
+            + np.einsum("ij,ij->i", centres, centres)[None]
         return np.maximum(d, 0.0)
 
+    def sq_dist(centres: np.ndarray) -> np.ndarray:
+        return sq_dist_to(coords, centres)
+
     # k-means++ initialisation
-    centres = [feats[rng.integers(n_markers)]]
+    first = int(rng.integers(n_markers))
+    centres = [coords[first]]
     closest = sq_dist(np.array(centres))[:, 0]
+    made_of = [np.arange(n_markers) == first]  # the markers each centre is the mean of
     for _ in range(count - 1):
         total = closest.sum()
         pick = int(rng.choice(n_markers, p=closest / total)) if total > 0 else int(rng.integers(n_markers))
-        centres.append(feats[pick])
-        closest = np.minimum(closest, sq_dist(feats[pick][None])[:, 0])
+        centres.append(coords[pick])
+        made_of.append(np.arange(n_markers) == pick)
+        closest = np.minimum(closest, sq_dist(coords[pick][None])[:, 0])
     centres_arr = np.array(centres)
     assign = np.full(n_markers, -1)
     for _ in range(iterations):
@@ -100,10 +109,13 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
         for k in range(count):
             members = assign == k
             if members.any():
-                centres_arr[k] = feats[members].mean(axis=0)
+                centres_arr[k] = coords[members].mean(axis=0)
+                made_of[k] = members
+    # the member nearest each centre in the trajectories themselves: a two-member cluster's tie
+    # is decided by the same rounding whatever coordinates the iterations used
+    dist = sq_dist_to(feats, np.array([feats[m].mean(axis=0) for m in made_of]))
     # one distinct marker per cluster: the member nearest the centre; empty clusters are filled
     # with the markers worst represented by the chosen ones
-    dist = sq_dist(centres_arr)
     chosen: list[int] = []
     for k in range(count):
         members = np.flatnonzero(assign == k)
@@ -115,3 +127,10 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
         extra = remaining[np.argsort(-worst, kind="stable")[: count - len(chosen)]]
         chosen.extend(int(i) for i in extra)
     return np.sort(np.array(chosen, dtype=np.intp))
+
+
+def _gram_coordinates(feats: np.ndarray) -> np.ndarray:
+    """(n, n) coordinates ``V sqrt(L)`` of the Gram matrix of ``feats`` (n, d): the same pairwise
+    dot products (to rounding) in n columns."""
+    values, vectors = np.linalg.eigh(feats @ feats.T)
+    return vectors * np.sqrt(np.clip(values, 0.0, None))
