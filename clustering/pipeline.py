@@ -225,7 +225,9 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         if frames.size < MIN_SAMPLES:
             raise source_error(file, f"region {name!r}: only {frames.size} frames sampled with --step "
                                      f"{options.step}; use a smaller step")
-        region_disp = max_displacement(traj.positions[all_frames(segments[name])][:, idx], neutral[idx])
+        whole = segments[name] == [(0, traj.n_frames)]  # the session's own displacement: no copy
+        region_disp = displacement[idx] if whole else max_displacement(
+            traj.positions[all_frames(segments[name])][:, idx], neutral[idx])
         corr = consolidated_correlation(traj.positions[frames][:, idx])
         static = [regions[name][i] for i in np.flatnonzero(corr.static)]
         static_markers.extend(static)

@@ -224,15 +224,16 @@ def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray, *,
     return snapped
 
 
-def dense_cloud(layout: Layout, session: Trajectories, *,
-                rotation: np.ndarray | None = None) -> DenseCloud:
+def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray | None = None,
+                neutral: np.ndarray | None = None) -> DenseCloud:
     """The session's markers (+ mirrored ones the layout needs), rotated into the rig frame.
 
     ``rotation`` (3, 3) session -> rig; default: :func:`rig_frame_rotation` of the session.
-    Markers never seen are left out.
+    ``neutral`` (markers, 3) mm: the session's :func:`neutral_pose` when the caller has it (one
+    pass over the frames less). Markers never seen are left out.
     """
     positions = np.asarray(session.positions, dtype=float)
-    neutral = neutral_pose(positions)
+    neutral = neutral_pose(positions) if neutral is None else np.asarray(neutral, dtype=float)
     seen = np.isfinite(neutral).all(axis=1)
     labels = [label for label, ok in zip(session.labels, seen) if ok]
     positions, neutral = positions[:, seen], neutral[seen]

@@ -24,7 +24,8 @@ def write_cluster_report(result, build, path: Path, *, summary: str) -> str:
     layout = result.layout
     title = (f"mocaptk cluster: {layout.source.get('path', '')} · factor "
              f"{layout.parameters.get('factor')} · {len(layout.clusters)} layout markers")
-    data = cluster_report(layout, result.trajectories, build=build, summary=summary, title=title)
+    data = cluster_report(layout, result.trajectories, build=build, summary=summary, title=title,
+                          neutral=result.neutral)
     written, size = write_report(path, data)
     line = report_line(written, size, data["clips"])
     write_text(path.with_name("summary.txt"), summary + line + "\n")

@@ -119,10 +119,11 @@ def _mm(summary: dict, key: str) -> str:
 
 
 def cluster_report(layout: Layout, session: Trajectories, *, build: RigBuild | None,
-                   summary: str, title: str) -> dict:
+                   summary: str, title: str, neutral: np.ndarray | None = None) -> dict:
     """Page data of ``mocaptk cluster``: the layout on its rig's face (or the dense marker
-    surface without a rig), the session replay and the clustering summary."""
-    cloud = build.cloud if build is not None else dense_cloud(layout, session)
+    surface without a rig), the session replay and the clustering summary (``neutral``: the
+    session's neutral pose, if known)."""
+    cloud = build.cloud if build is not None else dense_cloud(layout, session, neutral=neutral)
     data = scene_data(cloud, layout=layout, build=build)
     data.update(kind="cluster", title=title, summary=summary,
                 clips=session_clips(cloud, session.rate), tables=_rig_tables(build))
