@@ -8,6 +8,7 @@ workers of a farm read the same files (shared storage) whatever their working fo
 
 from __future__ import annotations
 
+import functools
 import glob
 import hashlib
 import os
@@ -58,13 +59,13 @@ def _controlled(param) -> bool:
     return any(name in CONTROLLED for name in param.opts)
 
 
+@functools.lru_cache(maxsize=None)
 def click_command(name: str):
-    """The click command behind ``mocaptk NAME`` (its parameters drive option parsing)."""
-    import typer.main
+    """The click command behind ``mocaptk NAME``, built as the CLI builds it for a call of that
+    command (only its module imported; its parameters drive option parsing)."""
+    from ..cli import command_line
 
-    from ..cli import app
-
-    return typer.main.get_command(app).commands[name]
+    return command_line([name]).commands[name]
 
 
 def _option_table(command) -> dict[str, Any]:
