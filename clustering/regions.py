@@ -98,7 +98,8 @@ def face_frame(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
     completes a right-handed frame (lateral × up = forward), i.e. points to the subject's left.
     """
     pts = neutral - neutral.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts, full_matrices=True)  # full: 3 axes even for < 3 markers
+    # full only for < 3 markers (3 axes even then): a full U is (M, M), 0.8 GB at 10,000 markers
+    _, _, vt = np.linalg.svd(pts, full_matrices=len(pts) < 3)
     up, side, forward = vt[0], vt[1], vt[2]
     heights = pts @ up
     if np.ptp(displacement) > 0 and np.ptp(heights) > 0 and np.corrcoef(heights, displacement)[0, 1] > 0:
