@@ -61,6 +61,11 @@ def summary_text(result) -> str:
     lines = [f"mocaptk cluster: {layout.source.get('path')}  method {method}  factor {params['factor']:g}  "
              f"step {params['step']}  stabilized {params['stabilized']}  mirror {params['mirror']}",
              f"regions from: {params['regions_from']}"]
+    actors = layout.source.get("actors")
+    if actors:  # one layout for several actors (clustering/multi_actor.py)
+        lines.append("actors (evidence pooled): " + ", ".join(
+            f"{a['actor']} by {a['by']} (scale {a['scale']:.3f}, residual {a['residual_mm']:.2f} mm)"
+            for a in actors))
     if method != "paper":
         count = (f"--markers {params['markers']}" if "markers" in params
                  else f"the paper's rule at factor {params['factor']:g}")
@@ -126,7 +131,9 @@ def write_cluster_pictures(result, folder: Path) -> list[Path]:
 
 @app.command()
 def cluster(
-    session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
+    sessions: list[Path] = typer.Argument(..., metavar="SESSION...", help="Dense session file (C3D, "
+                                          "Vicon CSV, TRC, generic CSV, npz); several: one actor each, "
+                                          "one layout for all (registered to the first)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
                                  "region mean correlation; larger gives more markers."),
     method: str = typer.Option("hybrid", "--method", help="Layout method choosing the measured markers: "
@@ -168,6 +175,8 @@ def cluster(
 
     Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json,
     summary.txt, report.html, pictures, rig files and guide.pdf (--formats none: the first three).
+    With several sessions (actors), the layout is chosen on all of them pooled; the rig and
+    pictures are the first actor's.
     """
     from rich.console import Console
 
@@ -175,6 +184,7 @@ def cluster(
     from ..clustering.regions import read_regions
     from ..clustering.takes import read_takes
 
+    session = sessions[0]
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
@@ -182,7 +192,16 @@ def cluster(
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
-    traj, source = load_session(session, rate=rate, units=units)
+    if len(sessions) > 1:
+        from ..errors import OptionError
+        if rig is not None:
+            raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
+        from ..clustering.multi_actor import load_actors
+        actors, _, _, actor_sources = load_actors(sessions, None, stabilized=not no_stabilize, rate=rate,
+                                                  units=units, rigid=rigid_labels(rigid))
+        traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
+    else:
+        traj, source = load_session(session, rate=rate, units=units)
     warn_unless_face(traj, session, regions_given=regions is not None)
     options = ClusterOptions(
         factor=factor, method=method, markers=markers, step=step, stabilize=not no_stabilize,
@@ -190,8 +209,13 @@ def cluster(
         regions=read_regions(regions, traj.labels) if regions else None,
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:
-        result = cluster_session(traj, options=options, source=source,
-                                 progress=lambda text: status.update(text))
+        if len(sessions) > 1:
+            from ..clustering.multi_actor import cluster_actors
+            result = cluster_actors(actors, actor_sources, options=options, source=source,
+                                    progress=lambda text: status.update(text))
+        else:
+            result = cluster_session(traj, options=options, source=source,
+                                     progress=lambda text: status.update(text))
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:

@@ -25,10 +25,12 @@ def parse_counts(text: str) -> list[int]:
 
 @app.command()
 def compare(
-    session: Path = typer.Argument(..., help="Dense session file (C3D, Vicon CSV, TRC, generic CSV, npz)."),
-    test: Path = typer.Option(None, "--test", help="Held-out performance (same markers): every method "
-                              "runs on the whole session and is scored on it. Default: leave one take "
-                              "of the session out at a time."),
+    sessions: list[Path] = typer.Argument(..., metavar="SESSION...", help="Dense session file (C3D, "
+                                          "Vicon CSV, TRC, generic CSV, npz); several: one actor each, "
+                                          "one shared layout (registered to the first)."),
+    tests: list[Path] = typer.Option(None, "--test", help="Held-out performance (same markers): every "
+                                     "method runs on the whole session and is scored on it; one per "
+                                     "session. Default: leave one take of the session out at a time."),
     counts: str = typer.Option("20,30,40,60", "--counts", help="Marker counts to compare (comma-separated; "
                                "counts not below the session's marker count are skipped)."),
     methods: str = typer.Option(None, "--methods", help="Comma-separated methods (default: paper, random, "
@@ -51,7 +53,9 @@ def compare(
 
     Layout statistics (Zell & McDonnell, ε = 0.3 and 0.7): % of layout markers where no extreme
     frame of the session moves ≥ ε, and how many extreme frames no layout marker sees move ≥ ε.
-    Writes compare.md, compare.json, rmse_vs_markers.png, layouts.png and report.html.
+    Writes compare.md, compare.json, rmse_vs_markers.png, layouts.png and report.html. With several
+    sessions (actors): per actor the held-out error of one layout chosen on all actors' evidence
+    beside the actor's own layout (compare.md, compare.json).
     """
     from rich.console import Console
 
@@ -73,7 +77,17 @@ def compare(
     if rig is not None:
         from ..clustering.pipeline import check_rig
         check_rig(rig, methods=())
+    session, test = sessions[0], tests[0] if tests else None
     folder = out or session.with_name(session.stem + "_compare")
+    if len(sessions) > 1:
+        if rig is not None:
+            raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
+        return compare_actors_command(sessions, tests or None, folder, counts=count_list,
+                                      methods=method_list, seed=seed, restarts=restarts,
+                                      stabilized=not no_stabilize, rigid=rigid_labels(rigid), rate=rate,
+                                      units=units, force=force, quiet=quiet)
+    if tests and len(tests) > 1:
+        raise OptionError(f"give one --test per session (1 session, {len(tests)} --test)")
     targets = [folder / name for name in ("compare.md", "compare.json", "rmse_vs_markers.png", "layouts.png",
                                             "report.html")]
     from .cluster import OUT_HINT
@@ -102,9 +116,51 @@ def compare(
     layout_gallery(rows, neutral, max_displacement(traj.positions, neutral), targets[3])
     report = write_compare_report(targets[4], traj, rows, test=perf, protocol=protocol,
                                   summary=rows_as_markdown(rows, times=False))
+    finish(rows, table, f"wrote {folder}/ ({report})", quiet=quiet)
+
+
+def compare_actors_command(sessions: list[Path], tests: list[Path] | None, folder: Path, *, counts: list[int],
+                           methods: list[str], seed: int, restarts: int, stabilized: bool, rigid, rate, units,
+                           force: bool, quiet: bool) -> None:
+    """``compare`` of several actors: the shared layout against each actor's own (compare.md/.json)."""
+    from rich.console import Console
+
+    from ..atomic import claim_output, write_text
+    from ..clustering.multi_actor import actor_rows_as_json, actor_rows_as_markdown, compare_actors, load_actors
+    from ..jsonio import write_json
+    from .cluster import OUT_HINT
+
+    targets = [folder / "compare.md", folder / "compare.json"]
+    for target in targets:
+        claim_output(target, force=force, hint=OUT_HINT)
+    actors, held, registrations, sources = load_actors(sessions, tests, stabilized=stabilized, rate=rate,
+                                                       units=units, rigid=rigid)
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("comparing") as status:
+        rows = compare_actors(actors, list(registrations), tests=held, counts=counts, methods=methods,
+                              seed=seed, options={"thin-shell": {"restarts": restarts}},
+                              progress=lambda text: status.update(f"comparing: {text}"))
+    protocol = ("layouts chosen on the sessions, scored on each actor's --test" if tests
+                else "leave one take of an actor out (the shared layout sees every other take of every actor)")
+    registered = "; ".join(f"{name} by {r.by} (scale {r.transform.scale:.3f}, residual {r.residual_mm:.2f} mm)"
+                           for name, r in registrations.items())
+    table = actor_rows_as_markdown(rows)
+    write_text(targets[0], f"# One layout for {len(actors)} actors\n\nProtocol: {protocol}; per actor, the "
+               "held-out ridge reconstruction of every dense marker (mm), fitted on that actor's training "
+               "frames: the shared layout (chosen on every actor's training data pooled) / the actor's own "
+               f"layout (the same method on that actor alone).\n\nRegistered to {sessions[0].name}: "
+               f"{registered}.\n\n" + table)
+    data = actor_rows_as_json(rows, actors[0].labels, registrations=registrations, protocol=protocol)
+    data["source"] = sources
+    write_json(targets[1], data)
+    finish(rows, table, f"wrote {folder}/", quiet=quiet)
+
+
+def finish(rows, table: str, wrote: str, *, quiet: bool) -> None:
+    """A warning per row a method could not produce, then the table and what was written."""
     for row in rows:
         if row.error is not None:
             typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)
     if not quiet:
         typer.echo(table, nl=False)
-        typer.echo(f"wrote {folder}/ ({report})")
+        typer.echo(wrote)

@@ -55,6 +55,8 @@ def synth(
                             help="Capture through a head-mounted 4-camera rig (cara), a room "
                                  "ring (room), or directly with noise only (none)."),
     seed: int = typer.Option(0, "--seed", help="Random seed (layout, expressions, noise)."),
+    layout_seed: int = typer.Option(None, "--layout-seed", help="Seed of the dense marker layout "
+                                    "alone (default: --seed); one layout for several actors."),
     noise: float = typer.Option(0.3, "--noise", metavar="MM",
                                 help="Detection noise in mm at the face (per camera in px "
                                      "through the rig; per axis with --rig none)."),
@@ -130,7 +132,8 @@ def synth(
     identity_coefficients = _parse_identity(identity, len(model.identity_names))
     camera_rig = None if rig == "none" else RIG_PRESETS[rig]()
     rate = rate or (camera_rig.rate if camera_rig is not None and camera_rig.rate else 60.0)
-    layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing, seed=seed)
+    layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing,
+                          seed=seed if layout_seed is None else layout_seed)
     motion = {"head_motion": head_motion, "rotation_deg": rotation, "translation_mm": translation}
     sessions = {"session": ss.dense_session(
         model, layout, seed=seed, identity_coefficients=identity_coefficients, rate=rate,

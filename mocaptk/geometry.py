@@ -1,0 +1,51 @@
+"""Shared geometry: similarity transforms (rotation, translation, uniform scale) between point sets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import OptionError
+
+__all__ = ["Similarity", "similarity_transform"]
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """``x -> scale * rotation @ x + translation`` (rotation (3, 3) proper, translation (3,) mm)."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Transform points (..., 3)."""
+        return self.scale * np.asarray(points, dtype=float) @ self.rotation.T + self.translation
+
+    def then(self, other: Similarity) -> Similarity:
+        """The transform applying ``self`` first, then ``other``."""
+        return Similarity(other.scale * self.scale, other.rotation @ self.rotation,
+                          other.scale * other.rotation @ self.translation + other.translation)
+
+
+def similarity_transform(source: np.ndarray, target: np.ndarray, *,
+                         with_scale: bool = True) -> Similarity:
+    """Least-squares similarity mapping ``source`` (N, 3) onto ``target`` (N, 3) (Umeyama 1991).
+
+    Needs N >= 3 points not all on a line.
+    """
+    src = np.asarray(source, dtype=float)
+    dst = np.asarray(target, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise OptionError(f"need matching (N >= 3, 3) point sets, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    u, sing, vt = np.linalg.svd(b.T @ a / len(src))
+    if sing[1] <= 1e-12 * max(sing[0], 1e-300):
+        raise OptionError("the corresponding points are collinear; alignment is undefined")
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rotation = u @ fix @ vt
+    var = float(np.sum(a ** 2) / len(src))
+    scale = float(np.trace(np.diag(sing) @ fix) / var) if with_scale else 1.0
+    return Similarity(scale, rotation, mu_d - scale * rotation @ mu_s)
