@@ -37,7 +37,8 @@ from scipy.spatial import Delaunay, cKDTree
 __all__ = [
     "MeshQuality", "SurfaceMesh", "boundary_edges", "cut_openings", "face_normals",
     "front_direction", "marker_spacing",
-    "marker_surface_mesh", "mesh_edges", "mesh_quality", "triangle_angles", "vertex_normals",
+    "marker_surface_mesh", "mesh_edges", "mesh_quality", "remove_triangles", "triangle_angles",
+    "vertex_normals",
 ]
 
 
@@ -258,17 +259,25 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
     corners = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1),
                       axis=2)
     index = np.vectorize(lambda a, b: key[int(a) * n + int(b)])(corners[..., 0], corners[..., 1])
-    face_stretch = stretch[index].max(axis=1)
-    drop = cut[index].any(axis=1)
-    kept = np.zeros(n, bool)
+    return remove_triangles(faces, cut[index].any(axis=1), cost=stretch[index].max(axis=1),
+                            n_vertices=n), edges[cut]
+
+
+def remove_triangles(faces: np.ndarray, drop: np.ndarray, *, cost: np.ndarray,
+                     n_vertices: int) -> np.ndarray:
+    """``faces`` (T, 3) without the ``drop`` (T,) ones, except that a vertex losing all its
+    triangles keeps its dropped one of least ``cost`` (T,) (no marker is peeled off the
+    surface); bow-ties are then repaired. Returns the kept triangles (same order)."""
+    drop = np.asarray(drop, bool).copy()
+    kept = np.zeros(n_vertices, bool)
     kept[faces[~drop].ravel()] = True
-    for v in np.unique(faces[drop].ravel()):  # never peel a marker off the surface
+    for v in np.unique(faces[drop].ravel()):
         if not kept[v]:
             around = np.flatnonzero(drop & (faces == v).any(axis=1))
-            best = around[np.argmin(face_stretch[around])]
+            best = around[np.argmin(cost[around])]
             drop[best] = False
             kept[faces[best]] = True
-    return _repair_bowties(faces[~drop], n), edges[cut]
+    return _repair_bowties(faces[~drop], n_vertices)
 
 
 def front_direction(points: np.ndarray) -> np.ndarray:

@@ -37,6 +37,7 @@ from ..clustering.symmetry import SagittalPlane, mirror_label, side_tag
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
+from .eye_openings import cut_eye_openings, template_eye_loops
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .rig import Rig
@@ -271,17 +272,25 @@ def _weight_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
     """(vertex mirror (V,), joint mirror (J,) over the clusters) for a mirrored layout on a
     mirror-symmetric mesh (every vertex's image within 5 % of the marker spacing), else None."""
     clusters = layout.clusters
-    if not any(c.mirrored_from for c in clusters):
+    vertex = _vertex_mirror(layout, cloud, vertices, spacing)
+    if vertex is None:
         return None
     by_label = {c.representative: i for i, c in enumerate(clusters)}
     joints = np.arange(len(clusters))
     for i, c in enumerate(clusters):
         if c.mirrored_from in by_label:
             joints[i], joints[by_label[c.mirrored_from]] = by_label[c.mirrored_from], i
+    return vertex, joints
+
+
+def _vertex_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
+                   spacing: float) -> np.ndarray | None:
+    """Each vertex's mirror vertex (V,) for a mirrored layout on a mirror-symmetric mesh, else None."""
+    if not any(c.mirrored_from for c in layout.clusters):
+        return None
     plane = _sagittal_plane(layout)
-    vertex = mirror_maps(vertices, cloud.rotation @ plane.point, cloud.rotation @ plane.normal,
-                         tolerance_mm=0.05 * spacing)
-    return None if vertex is None else (vertex, joints)
+    return mirror_maps(vertices, cloud.rotation @ plane.point, cloud.rotation @ plane.normal,
+                       tolerance_mm=0.05 * spacing)
 
 
 def _sagittal_plane(layout: Layout) -> SagittalPlane:
@@ -309,6 +318,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     spacing = marker_spacing(cloud.neutral)
     alignment = None
     cut = np.zeros((0, 2), dtype=np.int64)  # marker pairs across an opening (default mesh)
+    eye_cut = None  # eye apertures cut from the fitted face template (default mesh)
     if mesh is None:
         say("triangulating the marker surface")
         # coincident markers (a duplicated label, a mislabel) share one vertex
@@ -321,6 +331,14 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         firsts = first[order]
         faces, cut = cut_openings(faces, cloud.trajectories[:, firsts], cloud.neutral[firsts])
         cut = firsts[cut]
+        say("opening the eyes")
+        eyes = template_eye_loops(vertices, spacing=spacing)
+        if eyes:
+            before = len(faces)
+            faces = cut_eye_openings(vertices, faces, eyes, depth_mm=2.0 * spacing,
+                                     vertex_mirror=_vertex_mirror(layout, cloud, vertices, spacing))
+            eye_cut = {"method": "ICT-FaceKit face fitted to the markers",
+                       "openings": len(eyes), "triangles_removed": before - len(faces)}
         vertices, faces = _subdivide(vertices, faces, options.subdivisions)
         dense_vertices = rank[np.ravel(dense_vertices)].astype(np.int64)
         mesh_kind = "marker surface"
@@ -372,7 +390,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
                  "subdivisions": options.subdivisions if mesh is None else 0,
-                 "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut]},
+                 "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut],
+                 "eye_openings": eye_cut},
         "alignment": None if alignment is None else {
             "method": alignment.method, "scale": alignment.transform.scale,
             "rms_residual_mm": alignment.rms_mm, "max_residual_mm": alignment.max_mm},
@@ -515,13 +534,18 @@ def _subdivide(vertices: np.ndarray, faces: np.ndarray, times: int) -> tuple[np.
 
 
 def guide_rows(build: RigBuild) -> list[GuideMarker]:
-    """Guide table rows of a built rig (numbers = layout order)."""
+    """Guide table rows of a built rig (numbers = layout order).
+
+    A mirrored marker replaces the mirror images of all its source's members, the midline ones
+    too (the layout file keeps a midline marker in its source cluster only)."""
     clusters = build.layout.clusters
+    source = {c.representative: c for c in clusters}
+    members = [tuple(mirror_label(m) for m in source[c.mirrored_from].members)
+               if c.mirrored_from in source else c.members for c in clusters]
     nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
                          [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],
-                         [c.members for c in clusters], nose,
-                         mirrored_from=[c.mirrored_from for c in clusters])
+                         members, nose, mirrored_from=[c.mirrored_from for c in clusters])
 
 
 def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.PathLike[str], *,

@@ -241,11 +241,58 @@ def test_default_mesh_separates_the_lips(sample):
     cut = {tuple(sorted(pair)) for pair in mesh["opening_edges_cut"]}
     assert ("MOUTH_05_C", "MOUTH_12_C") in cut and len(cut) >= 6
     assert all(a.startswith("MOUTH") and b.startswith("MOUTH") for a, b in cut)
-    assert mesh["boundary_loops"] == 2  # the face's border and the mouth
+    eyes = 2 if mesh["eye_openings"] else 0  # cut when ICT-FaceKit is available
+    assert mesh["boundary_loops"] == 2 + eyes  # the face's border, the mouth (and the eyes)
     labels = build.cloud.labels
     vertex = {label: int(build.dense_vertices[i]) for i, label in enumerate(labels)}
     edges = {tuple(sorted(e)) for e in mesh_edges(build.rig.faces)[0].tolist()}
     assert not any(tuple(sorted((vertex[a], vertex[b]))) in edges for a, b in cut)
+
+
+def test_default_mesh_opens_the_eyes(sample):
+    """No triangle of the marker surface spans an eye of the ICT-FaceKit face the sample was
+    made from; the cut is mirror-symmetric and every marker stays on the surface."""
+    from mocaptk.acquisition.face_model import load_face_model
+    from mocaptk.errors import InputFileError
+    from mocaptk.retarget.eye_openings import eye_loops
+    from mocaptk.surface_mesh import boundary_edges
+
+    try:
+        model = load_face_model()
+    except InputFileError as exc:
+        pytest.skip(str(exc))
+    truth, _, _, build = sample
+    face = model.identity_mesh(truth.identity_coefficients)[:model.face_vertex_count]
+    loops = eye_loops(face, model.face_triangles)
+    assert len(loops) == 2 and build.report["mesh"]["eye_openings"]["openings"] == 2
+    assert build.report["weights"]["mirror_symmetric"]
+    faces, vertices = build.rig.faces, build.rig.vertices
+    centroids = vertices[faces].mean(axis=1)
+    for loop in loops:  # the true eye opening, seen from the front (the eyes look down +Z)
+        rim = face[loop]
+        inner = (np.abs(centroids[:, 0] - rim[:, 0].mean()) < 0.3 * np.ptp(rim[:, 0])) & \
+                (np.abs(centroids[:, 1] - rim[:, 1].mean()) < 0.3 * np.ptp(rim[:, 1]))
+        assert not inner.any()
+        # the opening is a hole in the surface: boundary vertices ring it
+        ring = vertices[np.unique(boundary_edges(faces))]
+        near = np.linalg.norm(ring[:, :2] - rim[:, :2].mean(axis=0), axis=1)
+        assert (near < np.ptp(rim[:, 0])).sum() >= 6
+    assert len(np.unique(faces)) == build.rig.vertex_count
+
+
+def test_mirrored_guide_rows_replace_their_sources_midline_markers_too(sample):
+    from mocaptk.clustering.symmetry import mirror_label
+    from mocaptk.retarget.build import guide_rows
+
+    *_, build = sample
+    rows = {row.label: row for row in guide_rows(build)}
+    mirrored = [c for c in build.layout.clusters if c.mirrored_from]
+    with_midline = 0
+    for c in mirrored:
+        source = rows[c.mirrored_from]
+        assert rows[c.representative].replaces == tuple(mirror_label(m) for m in source.replaces)
+        with_midline += any(m.endswith("_C") for m in source.replaces)
+    assert with_midline >= 1  # the layout file keeps those in the source cluster only
 
 
 def test_mirrored_layout_gives_mirrored_weights_and_names(sample):

@@ -1,0 +1,101 @@
+"""Eye apertures in the marker surface, from the ICT-FaceKit face fitted to the dense markers.
+
+A dense session has no markers on the eyeball, but the marker surface is one sheet that spans
+the eye openings (the marker holes there are no larger than the gaps elsewhere, so no size rule
+finds them). The ICT-FaceKit face (MIT) has open eyes: it is fitted to the neutral markers by the
+same similarity ICP as ``--mesh``, each of its eye boundary loops becomes a planar polygon, and a
+marker-surface triangle whose centroid or edge midpoint falls inside an eye polygon (within
+``depth_mm`` of its plane) is removed. No marker is peeled off the surface
+(:func:`~mocaptk.surface_mesh.remove_triangles`); a mirrored layout's cut is made symmetric.
+Without the face model, or when the fit is poor (not a face), nothing is cut.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocaptk.errors import MocaptkError
+from mocaptk.surface_mesh import boundary_edges, remove_triangles
+
+from .align import align_mesh_to_markers
+
+__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops"]
+
+#: Largest fit residual (RMS, in dense marker spacings) for which the template's eyes are used.
+MAX_FIT_SPACINGS = 0.5
+
+
+def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
+    """Ordered vertex loops (each (K,) int) of the openings above the nose tip: the eyes of a
+    face mesh whose border is its longest boundary loop (Y up, nose tip = largest Z)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    undirected = {tuple(e) for e in boundary_edges(faces).tolist()}
+    following = {int(a): int(b) for a, b in directed if tuple(sorted((int(a), int(b)))) in undirected}
+    loops, seen = [], set()
+    for start in sorted(following):
+        if start in seen:
+            continue
+        loop = [start]
+        while following.get(loop[-1], start) != start and len(loop) <= len(following):
+            loop.append(following[loop[-1]])
+        seen.update(loop)
+        loops.append(np.array(loop, dtype=np.int64))
+    if len(loops) < 2:
+        return []
+    border = max(range(len(loops)), key=lambda i: len(loops[i]))
+    nose_y = vertices[int(np.argmax(vertices[:, 2])), 1]
+    return [loop for i, loop in enumerate(loops)
+            if i != border and vertices[loop, 1].mean() > nose_y and len(loop) >= 4]
+
+
+def template_eye_loops(points: np.ndarray, *, spacing: float) -> list[np.ndarray] | None:
+    """The ICT-FaceKit face's eye loops as point polygons (each (K, 3) mm) fitted to the neutral
+    dense markers ``points`` (N, 3), or None (no face model, or a fit residual RMS above
+    :data:`MAX_FIT_SPACINGS` x ``spacing``)."""
+    from ..acquisition.face_model import load_face_model
+
+    try:
+        model = load_face_model()
+    except MocaptkError:
+        return None
+    face = model.neutral[:model.face_vertex_count]
+    try:
+        fit = align_mesh_to_markers(face, model.face_triangles, points)
+    except MocaptkError:
+        return None
+    if not fit.rms_mm <= MAX_FIT_SPACINGS * spacing:
+        return None
+    placed = fit.transform.apply(face)
+    return [placed[loop] for loop in eye_loops(face, model.face_triangles)]
+
+
+def cut_eye_openings(vertices: np.ndarray, faces: np.ndarray, polygons: list[np.ndarray], *,
+                     depth_mm: float, vertex_mirror: np.ndarray | None = None) -> np.ndarray:
+    """``faces`` (T, 3) without the triangles over the eye ``polygons`` (each (K, 3) mm, ordered
+    around the opening); ``vertex_mirror`` (V,) makes the cut mirror-symmetric."""
+    from matplotlib.path import Path
+
+    faces = np.asarray(faces, dtype=np.int64)
+    corners = np.asarray(vertices, dtype=float)[faces]  # (T, 3, 3)
+    samples = np.concatenate([corners.mean(axis=1, keepdims=True),
+                              (corners + np.roll(corners, -1, axis=1)) / 2], axis=1)  # (T, 4, 3)
+    hits = np.zeros(faces.shape[0])
+    for polygon in polygons:
+        centre = polygon.mean(axis=0)
+        basis = np.linalg.svd(polygon - centre)[2]  # rows: in-plane u, v, then the normal
+        local = (samples - centre) @ basis.T
+        inside = Path((polygon - centre) @ basis[:2].T).contains_points(local[..., :2].reshape(-1, 2))
+        inside = inside.reshape(local.shape[:2]) & (np.abs(local[..., 2]) < depth_mm)
+        hits += inside.sum(axis=1)
+    drop = hits > 0
+    if vertex_mirror is not None and drop.any():
+        key = {tuple(sorted(f)): i for i, f in enumerate(faces.tolist())}
+        for i in np.flatnonzero(drop):
+            twin = key.get(tuple(sorted(np.asarray(vertex_mirror)[faces[i]].tolist())))
+            if twin is not None:
+                drop[twin] = True
+                hits[twin] = max(hits[twin], hits[i])
+    if not drop.any():
+        return faces
+    return remove_triangles(faces, drop, cost=hits, n_vertices=len(vertices))
