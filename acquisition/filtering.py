@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
 from mocaptk.errors import OptionError
 from mocaptk.trajectories import Trajectories
@@ -37,6 +36,8 @@ def lowpass(traj: Trajectories, *, cutoff_hz: float, order: int = 4) -> Trajecto
     shorter than the filter's default padding are filtered with a shorter padding; single frames
     are left as they are.
     """
+    from scipy.signal import butter, sosfiltfilt  # here: scipy.signal costs ~1 CPU-s to import
+
     check_cutoff(cutoff_hz, rate=traj.rate, order=order)
     sos = butter(order, cutoff_hz, fs=traj.rate, output="sos")
     default_pad = 3 * (2 * len(sos) + 1)
