@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -34,7 +36,13 @@ def project_points(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.n
     return pixels.reshape(points.shape[:-1] + (2,)), depth.reshape(points.shape[:-1])
 
 
-def project_markers(rig: CameraRig, points: np.ndarray, *, normals: np.ndarray | None = None,
+#: Frames projected (and random numbers drawn) at a time: bounds the temporaries to a few
+#: (block, M, 3) arrays whatever the session length; results do not depend on it.
+FRAME_BLOCK = 1000
+
+
+def project_markers(rig: CameraRig, points: np.ndarray, *,
+                    normals: np.ndarray | Callable[[int, int], np.ndarray] | None = None,
                     pixel_noise: float = 0.0, dropout: float = 0.0, ghost_rate: float = 0.0,
                     min_view_cos: float = 0.0, max_view_angle_deg: float = 50.0,
                     rng: np.random.Generator | int | None = None) -> np.ndarray:
@@ -44,7 +52,8 @@ def project_markers(rig: CameraRig, points: np.ndarray, *, normals: np.ndarray |
     ----------
     rig : CameraRig with C cameras.
     points : (F, M, 3) float, mm; NaN markers are unseen.
-    normals : (F, M, 3) float, optional
+    normals : (F, M, 3) float, or a function ``(start, stop) -> (stop - start, M, 3)`` giving
+        them for :data:`FRAME_BLOCK`-aligned frame ranges (never the whole array), optional
         Outward surface normals at the markers; a marker is hidden from a camera when
         ``cos(normal, direction to camera) <= min_view_cos`` (back-facing / grazing).
     pixel_noise : float
@@ -68,7 +77,7 @@ def project_markers(rig: CameraRig, points: np.ndarray, *, normals: np.ndarray |
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 3 or points.shape[2] != 3:
         raise ValueError(f"points must have shape (frames, markers, 3), got {points.shape}")
-    if normals is not None:
+    if normals is not None and not callable(normals):
         normals = np.asarray(normals, dtype=np.float64)
         if normals.shape != points.shape:
             raise ValueError(f"normals must have shape {points.shape}, got {normals.shape}")
@@ -81,27 +90,41 @@ def project_markers(rig: CameraRig, points: np.ndarray, *, normals: np.ndarray |
     n_frames, n_markers = points.shape[:2]
     observations = np.full((len(rig), n_frames, n_markers, 2), np.nan)
     min_axis_cos = np.cos(np.deg2rad(max_view_angle_deg))
-    for c, camera in enumerate(rig):
-        pixels, depth = project_points(camera, points)
-        with np.errstate(invalid="ignore"):
-            to_camera = camera.center - points
-            distance = np.linalg.norm(to_camera, axis=-1)
-            seen = depth > distance * min_axis_cos  # in front, within the lens field of view
-            width, height = camera.image_size
-            seen &= ((pixels[..., 0] >= -0.5) & (pixels[..., 0] < width - 0.5)
-                     & (pixels[..., 1] >= -0.5) & (pixels[..., 1] < height - 0.5))
-            if normals is not None:
-                facing = np.einsum("fmk,fmk->fm", normals, to_camera)
-                seen &= facing > min_view_cos * distance * np.linalg.norm(normals, axis=-1)
-        observations[c][seen] = pixels[seen]
+    for start, stop in _frame_blocks(n_frames):
+        block = points[start:stop]
+        block_normals = normals(start, stop) if callable(normals) else \
+            None if normals is None else normals[start:stop]
+        for c, camera in enumerate(rig):
+            pixels, depth = project_points(camera, block)
+            with np.errstate(invalid="ignore"):
+                to_camera = camera.center - block
+                distance = np.linalg.norm(to_camera, axis=-1)
+                seen = depth > distance * min_axis_cos  # in front, within the lens field of view
+                width, height = camera.image_size
+                seen &= ((pixels[..., 0] >= -0.5) & (pixels[..., 0] < width - 0.5)
+                         & (pixels[..., 1] >= -0.5) & (pixels[..., 1] < height - 0.5))
+                if block_normals is not None:
+                    facing = np.einsum("fmk,fmk->fm", block_normals, to_camera)
+                    seen &= facing > min_view_cos * distance * np.linalg.norm(block_normals, axis=-1)
+            observations[c, start:stop][seen] = pixels[seen]
+    # random numbers are drawn block by block in the array's order: the same as one draw
+    blocks = [(c, start, stop) for c in range(len(rig)) for start, stop in _frame_blocks(n_frames)]
     if pixel_noise > 0:
-        observations += rng.normal(0.0, pixel_noise, observations.shape)
+        for c, start, stop in blocks:
+            view = observations[c, start:stop]
+            view += rng.normal(0.0, pixel_noise, view.shape)
     visible = np.isfinite(observations[..., 0])
     if ghost_rate > 0:
-        _add_ghosts(observations, visible, ghost_rate, rng)
+        _add_ghosts(observations, visible, ghost_rate, rng, blocks)
     if dropout > 0:
-        observations[visible & (rng.random(visible.shape) < dropout)] = np.nan
+        for c, start, stop in blocks:
+            seen = visible[c, start:stop]
+            observations[c, start:stop][seen & (rng.random(seen.shape) < dropout)] = np.nan
     return observations
+
+
+def _frame_blocks(n_frames: int) -> list[tuple[int, int]]:
+    return [(start, min(start + FRAME_BLOCK, n_frames)) for start in range(0, n_frames, FRAME_BLOCK)]
 
 
 def ellipsoid_markers(frames: int, markers: int, *, max_yaw: float = np.pi,
@@ -123,14 +146,21 @@ def ellipsoid_markers(frames: int, markers: int, *, max_yaw: float = np.pi,
 
 
 def _add_ghosts(observations: np.ndarray, visible: np.ndarray, rate: float,
-                rng: np.random.Generator) -> None:
-    """Replace a fraction ``rate`` of the visible observations in place by wrong positions."""
-    cams, frames, markers = np.nonzero(visible & (rng.random(visible.shape) < rate))
+                rng: np.random.Generator, blocks: list[tuple[int, int, int]]) -> None:
+    """Replace a fraction ``rate`` of the visible observations in place by wrong positions
+    (``blocks``: (camera, start, stop) frame ranges in array order, for the draws)."""
+    if not blocks:
+        return
+    picked = []
+    for c, start, stop in blocks:
+        seen = visible[c, start:stop]
+        frames, markers = np.nonzero(seen & (rng.random(seen.shape) < rate))
+        picked.append((np.full(frames.size, c), frames + start, markers))
+    cams, frames, markers = (np.concatenate(column).astype(np.intp) for column in zip(*picked))
     if cams.size == 0:
         return
-    clean = observations.copy()
     other = rng.integers(0, observations.shape[2], cams.size)
-    swapped = clean[cams, frames, other]
-    random_offset = clean[cams, frames, markers] + rng.uniform(-200.0, 200.0, (cams.size, 2))
+    swapped = observations[cams, frames, other]  # gathered (copies) before any is replaced
+    random_offset = observations[cams, frames, markers] + rng.uniform(-200.0, 200.0, (cams.size, 2))
     use_swap = (rng.random(cams.size) < 0.5) & np.isfinite(swapped[:, 0]) & (other != markers)
     observations[cams, frames, markers] = np.where(use_swap[:, None], swapped, random_offset)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -109,14 +109,27 @@ class GroundTruth:
     @property
     def head_relative_positions(self) -> np.ndarray:
         """(F, M, 3) noise-free positions without the rigid head motion, mm."""
-        return self.marker_neutral + np.tensordot(self.weights, self.marker_blendshapes, axes=1)
+        return self._head_relative(0, self.n_frames)
 
     @property
     def positions(self) -> np.ndarray:
         """(F, M, 3) noise-free marker positions, mm."""
-        local = self.head_relative_positions - self.head_pivot
-        return np.einsum("fij,fmj->fmi", self.head_rotations, local) \
-            + self.head_pivot + self.head_translations[:, None, :]
+        return self.positions_between(0, self.n_frames)
+
+    def _head_relative(self, start: int, stop: int) -> np.ndarray:
+        out = np.tensordot(self.weights[start:stop], self.marker_blendshapes, axes=1)
+        out += self.marker_neutral  # in place: one (F, M, 3) array, not two
+        return out
+
+    def positions_between(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, M, 3) noise-free marker positions of frames ``start`` to ``stop - 1``, mm."""
+        local = self._head_relative(start, stop)
+        local -= self.head_pivot
+        out = np.einsum("fij,fmj->fmi", self.head_rotations[start:stop], local)
+        del local
+        out += self.head_pivot
+        out += self.head_translations[start:stop, None, :]
+        return out
 
     def regions_dict(self) -> dict[str, list[str]]:
         """``{region: [labels]}`` (the regions-file content)."""
@@ -382,8 +395,9 @@ def observed(truth: GroundTruth, *, noise_mm: float = 0.0, gaps_per_minute: floa
                                   "format": "synthetic", "original_units": "mm"})
 
 
-def marker_normals(model: FaceModel, truth: GroundTruth, *, chunk: int = 1000) -> np.ndarray:
-    """Outward unit surface normals at the markers, ``(F, M, 3)``, posed like the truth.
+def marker_normals(model: FaceModel, truth: GroundTruth) -> Callable[[int, int], np.ndarray]:
+    """Outward unit surface normals at the markers, posed like the truth: a function
+    ``(start, stop) -> (stop - start, M, 3)`` of a frame range (for a projection block by block).
 
     The normal of a marker is the area-weighted normal of the face triangles around its vertex,
     recomputed per frame from only those triangles' deformed corners.
@@ -399,16 +413,16 @@ def marker_normals(model: FaceModel, truth: GroundTruth, *, chunk: int = 1000) -
     local = local.reshape(tris.shape)
     base = model.identity_mesh(truth.identity_coefficients)[used]
     shapes = model.blendshapes[:, used]
-    normals = np.empty((truth.n_frames, len(truth.labels), 3))
-    for start in range(0, truth.n_frames, chunk):
-        stop = min(start + chunk, truth.n_frames)
+
+    def normals(start: int, stop: int) -> np.ndarray:
         mesh = base + np.tensordot(truth.weights[start:stop], shapes, axes=1)  # (f, U, 3)
         corner = mesh[:, local]  # (f, K, 3, 3)
         tri_normals = np.cross(corner[:, :, 1] - corner[:, :, 0], corner[:, :, 2] - corner[:, :, 0])
         summed = (gather @ tri_normals.transpose(1, 0, 2).reshape(len(owner), -1))
         summed = summed.reshape(len(ring), stop - start, 3).transpose(1, 0, 2)
         summed = np.einsum("fij,fmj->fmi", truth.head_rotations[start:stop], summed)
-        normals[start:stop] = summed / np.linalg.norm(summed, axis=2, keepdims=True)
+        return summed / np.linalg.norm(summed, axis=2, keepdims=True)
+
     return normals
 
 
@@ -437,19 +451,21 @@ def camera_capture(model: FaceModel, truth: GroundTruth, rig: Any, *, noise_mm: 
     """
     if noise_mm < 0:
         raise OptionError(f"noise must be ≥ 0 mm, got {noise_mm}")
-    points = truth.positions
-    return capture_points(rig, points, marker_normals(model, truth),
-                          pixel_noise=detection_noise_px(rig, points, noise_mm), labels=truth.labels,
-                          rate=truth.rate, dropout=dropout, ghost_rate=ghost_rate, seed=seed,
-                          outlier_threshold_px=outlier_threshold_px,
+    pixel_noise = detection_noise_px(rig, truth.positions, noise_mm)
+    # the positions are passed on unnamed (computed twice), so capture_points can let them go
+    return capture_points(rig, truth.positions, marker_normals(model, truth), pixel_noise=pixel_noise,
+                          labels=truth.labels, rate=truth.rate, dropout=dropout,
+                          ghost_rate=ghost_rate, seed=seed, outlier_threshold_px=outlier_threshold_px,
                           spike_threshold_mm=spike_threshold_mm, takes=truth.takes)
 
 
-def capture_points(rig: Any, points: np.ndarray, normals: np.ndarray, *, pixel_noise: float,
+def capture_points(rig: Any, points: np.ndarray,
+                   normals: np.ndarray | Callable[[int, int], np.ndarray], *, pixel_noise: float,
                    labels: Sequence[str], rate: float, dropout: float = 0.01,
                    ghost_rate: float = 0.002, seed: int = 0, outlier_threshold_px: float = 4.0,
                    spike_threshold_mm: float = 4.0, takes: Sequence[Take] = ()) -> Trajectories:
-    """Capture markers ``points (F, M, 3)`` mm with outward ``normals (F, M, 3)`` through ``rig``.
+    """Capture markers ``points (F, M, 3)`` mm with outward ``normals (F, M, 3)`` (or a function
+    of a frame range giving them, see :func:`~.projection.project_markers`) through ``rig``.
 
     A camera misses a marker whose normal is more than :data:`MAX_VIEW_NORMAL_DEG` from the
     direction to it, that is outside its image or field of view, or that randomly drops out
@@ -466,8 +482,10 @@ def capture_points(rig: Any, points: np.ndarray, normals: np.ndarray, *, pixel_n
                                    dropout=dropout, ghost_rate=ghost_rate,
                                    min_view_cos=np.cos(np.deg2rad(MAX_VIEW_NORMAL_DEG)),
                                    rng=np.random.default_rng([seed, 5]))
+    del points, normals  # the (C, F, M, 2) detections and the triangulation are the peak
     traj = triangulate(rig, observations, labels=labels, rate=rate,
                        outlier_threshold_px=outlier_threshold_px)
+    del observations
     spikes = spike_mask(traj.positions, threshold_mm=spike_threshold_mm)
     positions = np.where(spikes[..., None], np.nan, traj.positions)
     residuals = np.where(spikes, np.nan, traj.residuals)
@@ -476,6 +494,10 @@ def capture_points(rig: Any, points: np.ndarray, normals: np.ndarray, *, pixel_n
     meta.update({"takes": list(takes), "source": f"synthetic capture ({rig.name})", "format": "synthetic",
                  "original_units": "mm", "pixel_noise": pixel_noise})
     return traj.replace(positions=positions, residuals=residuals, metadata=meta)
+
+
+#: Values (frames x markers x 3) of one block of :func:`spike_mask` (8 M: 64 MB per copy).
+SPIKE_BLOCK_VALUES = 8_000_000
 
 
 def spike_mask(positions: np.ndarray, *, threshold_mm: float = 4.0, window: int = 7) -> np.ndarray:
@@ -487,18 +509,23 @@ def spike_mask(positions: np.ndarray, *, threshold_mm: float = 4.0, window: int 
     """
     from scipy.ndimage import median_filter
 
-    n_frames = positions.shape[0]
+    n_frames, n_markers = positions.shape[:2]
     frames = np.arange(n_frames)
-    bridged = positions.copy()
-    for marker in range(positions.shape[1]):
-        seen = np.isfinite(positions[:, marker, 0])
-        if 0 < seen.sum() < n_frames:
-            for axis in range(3):
-                bridged[~seen, marker, axis] = np.interp(frames[~seen], frames[seen],
-                                                         positions[seen, marker, axis])
-    median = median_filter(np.nan_to_num(bridged), size=(window, 1, 1), mode="nearest")
-    with np.errstate(invalid="ignore"):
-        return np.linalg.norm(positions - median, axis=2) > threshold_mm
+    spikes = np.empty((n_frames, n_markers), dtype=bool)
+    step = max(1, SPIKE_BLOCK_VALUES // max(3 * n_frames, 1))
+    for lo in range(0, n_markers, step):  # markers are independent: blocks bound the copies
+        part = positions[:, lo:lo + step]
+        bridged = part.copy()
+        for marker in range(part.shape[1]):
+            seen = np.isfinite(part[:, marker, 0])
+            if 0 < seen.sum() < n_frames:
+                for axis in range(3):
+                    bridged[~seen, marker, axis] = np.interp(frames[~seen], frames[seen],
+                                                             part[seen, marker, axis])
+        median = median_filter(np.nan_to_num(bridged), size=(window, 1, 1), mode="nearest")
+        with np.errstate(invalid="ignore"):
+            spikes[:, lo:lo + step] = np.linalg.norm(part - median, axis=2) > threshold_mm
+    return spikes
 
 
 def dense_session(model: FaceModel, layout: MarkerLayout, *, seed: int = 0,
@@ -554,6 +581,18 @@ def _session(model: FaceModel, layout: MarkerLayout, weights: np.ndarray, takes:
     traj = observed(truth, noise_mm=noise_mm, gaps_per_minute=gaps_per_minute, seed=seed,
                     name=f"synthetic {kind}")
     return SyntheticSession(traj, truth)
+
+
+def truth_errors(traj: Trajectories, truth: GroundTruth, *, block: int = 4096) -> tuple[float, int]:
+    """(sum of squared distances mm², count) of the present positions of ``traj`` from the
+    noise-free ``truth`` (same frames and markers), by blocks of frames (no (F, M, 3) copy)."""
+    squared, count = 0.0, 0
+    for start in range(0, truth.n_frames, block):
+        stop = min(start + block, truth.n_frames)
+        err = np.sum((traj.positions[start:stop] - truth.positions_between(start, stop)) ** 2, axis=2)
+        seen = np.isfinite(err)
+        squared, count = squared + float(err[seen].sum()), count + int(seen.sum())
+    return squared, count
 
 
 # -- files ----------------------------------------------------------------------------------

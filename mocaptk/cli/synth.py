@@ -98,7 +98,6 @@ def synth(
     quiet: Quiet = False,
 ) -> None:
     """Simulate a dense facial marker capture (per-region takes) with ground truth."""
-    import numpy as np
     from rich.console import Console
 
     from ..acquisition import synth_session as ss
@@ -135,35 +134,40 @@ def synth(
     layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing,
                           seed=seed if layout_seed is None else layout_seed)
     motion = {"head_motion": head_motion, "rotation_deg": rotation, "translation_mm": translation}
-    sessions = {"session": ss.dense_session(
+    makers = {"session": lambda: ss.dense_session(
         model, layout, seed=seed, identity_coefficients=identity_coefficients, rate=rate,
         expressions_per_take=expressions, rest_seconds=rest, expression_seconds=hold,
         noise_mm=noise, gaps_per_minute=gaps, **motion)}
     if performance > 0:
-        sessions["performance"] = ss.performance_session(
+        makers["performance"] = lambda: ss.performance_session(
             model, layout, seed=seed, seconds=performance, identity_coefficients=identity_coefficients,
             rate=rate, noise_mm=noise, gaps_per_minute=gaps, **motion)
-    for role, synthetic in sessions.items():
+    truths = {}
+    for role, make in makers.items():  # one session in memory at a time
+        synthetic = make()
+        truth = truths[role] = synthetic.truth
         traj = synthetic.trajectories
         if camera_rig is not None:
+            del synthetic, traj  # the direct observation is replaced by the capture: free it first
             with console.status(f"capturing the {role} through the {rig} rig "
-                                f"({synthetic.truth.n_frames} frames)..."), compile_notice(
+                                f"({truth.n_frames} frames)..."), compile_notice(
                     lambda message: console.print(f"mocaptk: {message}", highlight=False,
                                                   soft_wrap=True)):
-                traj = ss.camera_capture(model, synthetic.truth, camera_rig, noise_mm=noise,
+                traj = ss.camera_capture(model, truth, camera_rig, noise_mm=noise,
                                          dropout=dropout, ghost_rate=ghosts, seed=seed)
             if max_gap > 0:
                 traj, report = fill_gaps(traj, max_gap=max_gap, method="cubic")
                 typer.echo(f"{role}: short gaps filled: {report.summary()}")
         write_trajectories(traj, paths[role], fmt=fmt, force=force)
-        ss.save_ground_truth(synthetic.truth, paths[f"{role}_truth"], force=force)
-        err = np.linalg.norm(traj.positions - synthetic.truth.positions, axis=2)
-        seen = np.isfinite(err)
-        rmse = float(np.sqrt(np.mean(err[seen] ** 2))) if seen.any() else float("nan")
+        ss.save_ground_truth(truth, paths[f"{role}_truth"], force=force)
+        squared, seen = ss.truth_errors(traj, truth)
+        rmse = (squared / seen) ** 0.5 if seen else float("nan")
         typer.echo(f"wrote {paths[role]} ({traj.n_markers} markers, {traj.n_frames} frames, "
-                   f"{traj.rate:g} Hz, {len(traj.takes)} takes); {1 - seen.mean():.2%} missing, "
+                   f"{traj.rate:g} Hz, {len(traj.takes)} takes); "
+                   f"{1 - seen / max(traj.n_frames * traj.n_markers, 1):.2%} missing, "
                    f"RMSE vs truth {rmse:.3f} mm")
-    truth = sessions["session"].truth
+        del traj
+    truth = truths["session"]
     ss.write_regions_file(truth, paths["regions"], force=force)
     ss.write_takes_file(truth.takes, paths["takes"], force=force)
     counts = ", ".join(f"{region} {len(labels)}" for region, labels in truth.regions_dict().items())
