@@ -133,3 +133,17 @@ def test_constraints_symmetry_boundary_multiresolution():
     coarse = select_layout(problem, 4, method="thin-shell", restarts=1, iterations=3).layout
     fine = thin_shell_layout(problem, 9, fixed=coarse, restarts=1, iterations=3)
     assert set(coarse.tolist()) <= set(fine.layout.tolist()) and fine.layout.size == 9
+
+
+def test_one_factorization_per_problem_gives_the_same_layouts():
+    """compare runs the optimizer at several counts on one problem: the second and later runs
+    reuse the problem's factorization (``ThinShellWeights.fresh``) and must find exactly what a
+    run on a problem of their own finds, with the same solve counts."""
+    verts, faces = wavy_grid(11)
+    shared = grid_problem(verts, faces)
+    runs = [thin_shell_layout(shared, count, restarts=2, iterations=3) for count in (6, 9, 6)]
+    assert len([k for k in shared.cache if k[0] == "thin-shell-solver"]) == 1
+    for count, run in zip((6, 9, 6), runs):
+        alone = thin_shell_layout(grid_problem(verts, faces), count, restarts=2, iterations=3)
+        assert np.array_equal(run.layout, alone.layout) and run.rmse_mm == alone.rmse_mm
+        assert run.solves == alone.solves and run.evaluations == alone.evaluations

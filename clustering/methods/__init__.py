@@ -46,25 +46,32 @@ def _farthest_point(problem: LayoutProblem, count: int, *, seed: int = 0) -> tup
 
 
 def _kmeans(problem: LayoutProblem, count: int, *, seed: int = 0) -> tuple[np.ndarray, dict]:
-    cand = problem.candidate_points()
-    return cand[kmeans_layout(problem.displacements[:, cand], count, seed=seed)], {}
+    return kmeans_points(problem, count, seed=seed), {}
+
+
+def kmeans_points(problem: LayoutProblem, count: int, *, seed: int = 0) -> np.ndarray:
+    """The k-means layout (sorted point indices), computed once per problem, count and seed."""
+    def compute() -> np.ndarray:
+        cand = problem.candidate_points()
+        return np.sort(cand[kmeans_layout(problem.displacements[:, cand], count, seed=seed)])
+    return problem.cached(("kmeans", count, seed), compute)
 
 
 def _paper(problem: LayoutProblem, count: int, *, seed: int = 0, step: int = 5) -> tuple[np.ndarray, dict]:
     from .paper import paper_layout
-    result = paper_layout(problem, count, step=step)
+    result = problem.cached(("paper", count, step), lambda: paper_layout(problem, count, step=step))
     return result.layout, {"factor": result.factor}
 
 
 def _qr(problem: LayoutProblem, count: int, *, seed: int = 0) -> tuple[np.ndarray, dict]:
     from .reconstruction import pivoted_qr_layout
-    return pivoted_qr_layout(problem, count), {}
+    return problem.cached(("qr", count), lambda: pivoted_qr_layout(problem, count)), {}
 
 
 def _greedy(problem: LayoutProblem, count: int, *, seed: int = 0, swap: bool = False,
             candidates_per_swap: int = 8) -> tuple[np.ndarray, dict]:
     from .reconstruction import greedy_layout, swap_refine
-    layout = greedy_layout(problem, count)
+    layout = problem.cached(("greedy", count), lambda: greedy_layout(problem, count))
     if not swap:
         return layout, {}
     refined, cv = swap_refine(problem, layout, candidates_per_swap=candidates_per_swap)

@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from ...errors import OptionError
-from ..baselines import kmeans_layout
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
@@ -111,7 +110,7 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
     layouts: dict[str, np.ndarray] = {}
     if "clusters" in contenders:
         try:
-            paper = paper_layout(problem, count)
+            paper = problem.cached(("paper", count, 5), lambda: paper_layout(problem, count, step=5))
         except OptionError:
             paper = None
         if paper is not None:
@@ -128,12 +127,12 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
         layouts["thin-shell"] = thin_shell_layout(problem, count, restarts=1, seed=seed,
                                                   initial=None if start is None else list(start)).layout
     if "qr" in contenders:
-        layouts["qr"] = pivoted_qr_layout(problem, count)
+        layouts["qr"] = problem.cached(("qr", count), lambda: pivoted_qr_layout(problem, count))
     if "greedy" in contenders:
-        layouts["greedy"] = greedy_layout(problem, count)
+        layouts["greedy"] = problem.cached(("greedy", count), lambda: greedy_layout(problem, count))
     if "kmeans" in contenders:
-        cand = problem.candidate_points()
-        layouts["kmeans"] = np.sort(cand[kmeans_layout(problem.displacements[:, cand], count, seed=seed)])
+        from . import kmeans_points
+        layouts["kmeans"] = kmeans_points(problem, count, seed=seed)
     if not layouts:
         raise OptionError("no hybrid contender could produce a layout")
     return layouts

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -92,6 +92,14 @@ class LayoutProblem:
     def positions(self) -> np.ndarray:
         """(frames, N, 3) mm: neutral + displacements."""
         return self.neutral[None] + self.displacements
+
+    def cached(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """``compute()`` once per problem and ``key``: what several methods compute alike (the
+        hybrid's contenders are the k-means, QR, greedy and paper layouts of the same problem,
+        which ``compare`` also runs on their own); treat the result as read-only."""
+        if key not in self.cache:
+            self.cache[key] = compute()
+        return self.cache[key]
 
     def candidate_points(self) -> np.ndarray:
         """(K,) intp: the points a layout may use."""

@@ -18,6 +18,7 @@ refactorization.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -76,6 +77,19 @@ class ThinShellWeights:
         self.anchors = anchors
         self._factor = _cholesky(op + self.rho * (basis @ basis.T))
         self._anchor_green = self._solve(basis.toarray())  # K⁻¹U (V, c)
+        self._setup_solves = self.solves
+        self._reset()
+
+    def fresh(self) -> ThinShellWeights:
+        """A solver with this one's operator and factorization and nothing else (no resident
+        columns, cached entries or bound data): as if built anew, without refactoring."""
+        other = copy.copy(self)
+        other.solves, other.evaluations = self._setup_solves, 0
+        other._reset()
+        return other
+
+    def _reset(self) -> None:
+        n = self._anchor_green.shape[0]
         self._slot_of = np.full(n, -1, dtype=np.intp)  # resident vertex -> its column in _g / _h
         self._members: list[int] = []  # resident vertices by column
         self._g = np.empty((n, 0))  # K⁻¹e_v of the resident vertices
@@ -642,7 +656,9 @@ def thin_shell_layout(problem: LayoutProblem, count: int, *, ks: float = 1.0, kb
     """
     faces = problem.surface_faces()
     t0 = time.perf_counter()
-    solver = ThinShellWeights(thin_shell_operator(problem.neutral, faces, ks=ks, kb=kb))
+    # one factorization per problem: compare runs the optimizer at every count, and the hybrid too
+    solver = problem.cached(("thin-shell-solver", ks, kb), lambda: ThinShellWeights(
+        thin_shell_operator(problem.neutral, faces, ks=ks, kb=kb))).fresh()
     factor_seconds = time.perf_counter() - t0
     disp = problem.complete_frames()
     mirror = None
