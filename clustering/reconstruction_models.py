@@ -54,8 +54,8 @@ from .neutral import neutral_pose
 
 __all__ = [
     "DEFAULT_KIND", "DEFAULT_RIDGE", "MODEL_FORMAT", "MODEL_KINDS", "MODEL_VERSION", "FaceModel",
-    "Prediction", "ReconstructionModel", "check_frames", "fit_model", "fit_reconstruction", "load_model",
-    "model_from_arrays", "row_patterns", "save_model",
+    "Prediction", "ReconstructionModel", "batched_ridge", "check_frames", "fit_model",
+    "fit_reconstruction", "load_model", "model_from_arrays", "row_patterns", "save_model",
 ]
 
 #: Default ridge strength, relative to the mean diagonal of the input Gram matrix.
@@ -128,6 +128,16 @@ def ridge_fit(inputs: np.ndarray, targets: np.ndarray, ridge: float) -> tuple[np
         coef[:, cols] = solution[:n_in]
         intercept[cols] = solution[n_in] - shift @ solution[:n_in]
     return coef, intercept
+
+
+def batched_ridge(gram: np.ndarray, cross: np.ndarray, ridge: float) -> np.ndarray:
+    """Ridge coefficients (N, K, C) from centred Gram matrices (N, K, K) and cross products
+    (N, K, C); the strength is relative to each Gram matrix's mean diagonal (scale-free)."""
+    k = gram.shape[1]
+    gram = gram.copy()
+    lam = ridge * np.maximum(np.einsum("nii->n", gram) / k, 1e-12)
+    gram[:, np.arange(k), np.arange(k)] += lam[:, None]
+    return np.linalg.solve(gram, cross)
 
 
 @dataclass
@@ -392,11 +402,9 @@ class LocalRidgeModel(RidgeModel):
             dist = np.linalg.norm(neutral[:, None] - neutral[present][None], axis=2)
             near = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (M, k)
             cols = (3 * present[near][..., None] + np.arange(3)).reshape(self.n_markers, 3 * k)
-            gram = self.cov[cols[:, :, None], cols[:, None, :]]  # (M, 3k, 3k)
-            lam = self.ridge * np.maximum(np.einsum("mii->m", gram) / (3 * k), 1e-12)
-            gram[:, np.arange(3 * k), np.arange(3 * k)] += lam[:, None]
             targets = 3 * np.arange(self.n_markers)[:, None] + np.arange(3)  # (M, 3)
-            coef = np.linalg.solve(gram, self.cov[cols[:, :, None], targets[:, None, :]])
+            coef = batched_ridge(self.cov[cols[:, :, None], cols[:, None, :]],
+                                 self.cov[cols[:, :, None], targets[:, None, :]], self.ridge)
             offset = self.mean[targets] - np.einsum("mk,mkc->mc", self.mean[cols], coef)
             full = np.linalg.norm(neutral[:, None] - neutral[self.layout][None], axis=2).min(axis=1)
             lost = dist.min(axis=1) > LOCAL_REACH * np.maximum(full, 1e-9)

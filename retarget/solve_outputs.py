@@ -11,6 +11,7 @@ Everything is written into a staging folder and moved into place at the end.
 from __future__ import annotations
 
 import io
+import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from mocaptk.trajectories import Trajectories
 
 from .solve import CHUNK_FRAMES, FaceSolver, MeshMap, head_poses, layout_frames, solve_chunks
 
-__all__ = ["SOLVE_FORMATS", "write_solve_outputs"]
+__all__ = ["SOLVE_FORMATS", "user_mesh", "write_solve_outputs"]
 
 SOLVE_FORMAT, SOLVE_VERSION = "mocaptk.solve", 1
 #: Output kinds ``--formats`` chooses from (``c3d``, the per-frame CSV and solve.json are always written).
@@ -34,11 +35,13 @@ SOLVE_FORMATS = ("npz", "usd", "glb")
 
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
                         staging: Path, *, formats: Sequence[str] = SOLVE_FORMATS,
-                        subdivisions: int = 0, stabilize: bool = True, save_trained: bool = True,
+                        subdivisions: int = 0, mesh_path: str | os.PathLike[str] | None = None,
+                        stabilize: bool = True, save_trained: bool = True,
                         chunk: int = CHUNK_FRAMES, notes: Sequence[str] = (),
                         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Solve ``capture`` and write every output into ``staging`` (a fresh folder); returns the
-    summary written to ``solve.json`` (``notes`` go into it)."""
+    summary written to ``solve.json`` (``notes`` go into it). The mesh is the marker surface
+    (``subdivisions``), or the mesh file ``mesh_path`` aligned to the dense neutral."""
     say = progress or (lambda _: None)
     unknown = [f for f in formats if f not in SOLVE_FORMATS]
     if unknown:
@@ -47,7 +50,12 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     x = layout_frames(solver, capture, path)
     poses = head_poses(solver, capture) if stabilize else None
     n_frames, n_dense = capture.n_frames, len(solver.labels)
-    mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
+    if mesh_path is None:
+        mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
+        mesh_info: dict[str, Any] = {"kind": "marker surface", "subdivisions": subdivisions}
+    else:
+        say(f"aligning {Path(mesh_path).name} to the dense neutral")
+        mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral)
     dense = np.full((n_frames, n_dense, 3), np.nan)
     error = np.full(n_frames, np.nan)
     missing = np.zeros((n_frames, len(solver.layout_labels)), bool)
@@ -102,10 +110,26 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         del frames_file
         if "npz" not in formats:
             (staging / "mesh_frames.npy").unlink()
+    mesh_info.update(vertices=int(mesh.vertices.shape[0]), triangles=int(mesh.faces.shape[0]))
     summary = _summary(solver, capture, capture_source, solved=solved, error=error, missing=missing,
-                       mesh=mesh, head_motion=poses is not None, outputs=sorted(written), notes=notes)
+                       mesh=mesh_info, head_motion=poses is not None, outputs=sorted(written),
+                       notes=notes)
     write_json(staging / "solve.json", summary)
     return summary
+
+
+def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray) -> tuple[MeshMap, dict[str, Any]]:
+    """The mesh file ``path`` (OBJ, PLY, glTF/GLB, STL, OFF; any unit, Y up, facing +Z) aligned
+    to the dense neutral (M, 3) mm and following the dense markers (:meth:`MeshMap.fitted`), and
+    its summary for ``solve.json``."""
+    from .mesh_io import load_mesh
+
+    loaded = load_mesh(path)
+    mesh, alignment, pinned = MeshMap.fitted(loaded.vertices, loaded.faces, neutral)
+    return mesh, {"kind": "user mesh", "source": str(path), "pinned_markers": pinned,
+                  "alignment": {"method": alignment.method, "scale": alignment.transform.scale,
+                                "rms_residual_mm": alignment.rms_mm,
+                                "max_residual_mm": alignment.max_mm}}
 
 
 def _frames_csv(solved: np.ndarray, error: np.ndarray, missing: np.ndarray,
@@ -128,7 +152,7 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
 
 
 def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any], *,
-             solved: np.ndarray, error: np.ndarray, missing: np.ndarray, mesh: MeshMap,
+             solved: np.ndarray, error: np.ndarray, missing: np.ndarray, mesh: dict[str, Any],
              head_motion: bool, outputs: list[str], notes: list[str]) -> dict[str, Any]:
     finite = error[np.isfinite(error)]
     lost_rate = missing.mean(axis=0) if len(missing) else np.zeros(missing.shape[1])
@@ -148,6 +172,6 @@ def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any
         "expected_error_mm": {"mean": float(finite.mean()) if finite.size else None,
                               "p95": float(np.percentile(finite, 95)) if finite.size else None,
                               "max": float(finite.max()) if finite.size else None},
-        "mesh": {"vertices": int(mesh.vertices.shape[0]), "triangles": int(mesh.faces.shape[0])},
+        "mesh": mesh,
         "outputs": outputs, "notes": notes,
     }

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import SAMPLES
+from conftest import SAMPLES, shared_path
 from readers import installed
 
 from mocaptk.acquisition.c3d_read import read_c3d
@@ -230,3 +230,47 @@ def test_blender_imports_and_plays_the_usd_and_gltf_mesh(workspace, tmp_path):
         print(name, json.dumps(report, sort_keys=True))
         assert run.returncode == 0 and report["ok"], report
         assert report["vertices"] == report["expected_vertices"] and report["motion_mm"] > 1.0
+
+
+def test_a_given_mesh_is_aligned_and_follows_the_solve(workspace, tmp_path):
+    """``--mesh``: the ICT-FaceKit head the sample was made from (written in cm: the alignment
+    finds the scale) moves like the true face, the back of the head stays; a coarse MediaPipe
+    face (468 vertices, another face shape) is aligned and animated too."""
+    from scipy.spatial import cKDTree
+
+    from mocaptk.acquisition.face_model import load_face_model
+
+    root, _ = workspace
+    face = load_face_model(shared_path("face_mesh", "ict_facekit", "ict_facekit_FaceXModel_subset.tar.xz"))
+    truth = load_ground_truth(SAMPLES / "dense_halfface_truth.npz")
+    rest = face.identity_mesh(truth.identity_coefficients)
+    lines = [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in rest / 10.0]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in face.faces]
+    (tmp_path / "head.obj").write_text("\n".join(lines) + "\n")
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
+                   tmp_path / "ict", "--formats", "npz", "--mesh", tmp_path / "head.obj")
+    assert done.returncode == 0, done.stderr
+    mesh = json.loads((tmp_path / "ict" / "solve.json").read_text())["mesh"]
+    assert mesh["kind"] == "user mesh" and mesh["vertices"] == len(rest) and mesh["pinned_markers"] == 139
+    assert mesh["alignment"]["rms_residual_mm"] < 0.1 and mesh["alignment"]["scale"] == pytest.approx(10, rel=1e-3)
+    got = np.load(tmp_path / "ict" / "mesh_frames.npy")
+    expected = face.deform(truth.weights[4523:5003], base=rest)
+    motion = np.linalg.norm(expected - rest, axis=2)
+    near = cKDTree(truth.marker_neutral).query(rest)[0] < 8.0  # the markers' half of the face
+    moving = near & (motion.max(axis=0) > 1.0)  # ... that the take moves by > 1 mm
+    err = np.linalg.norm(got - expected, axis=2)
+    assert moving.sum() > 500
+    # measured 0.77 mm RMSE where the true face moves 2.45 mm RMS
+    assert np.sqrt(np.mean(err[:, moving] ** 2)) < 0.5 * np.sqrt(np.mean(motion[:, moving] ** 2))
+    # the back of the head (no marker near) follows the smooth thin-shell extrapolation only
+    back = rest[:, 2] < np.percentile(rest[:, 2], 10)
+    assert np.linalg.norm(got[:, back] - got[:1, back], axis=2).max() < 2.0  # measured 1.2 mm
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
+                   tmp_path / "mp", "--formats", "npz", "--mesh",
+                   shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
+    assert done.returncode == 0, done.stderr
+    mesh = json.loads((tmp_path / "mp" / "solve.json").read_text())["mesh"]
+    assert mesh["vertices"] == 468 and mesh["pinned_markers"] >= 130
+    assert mesh["alignment"]["rms_residual_mm"] < 3.0
+    frames = np.load(tmp_path / "mp" / "mesh_frames.npy")
+    assert np.isfinite(frames).all() and np.linalg.norm(frames - frames[:1], axis=2).max() > 3.0

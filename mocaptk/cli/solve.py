@@ -70,6 +70,9 @@ def solve(
                                 "usd, glb (clips up to 600 frames); dense.c3d is always written."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
                                      "this many times (0-4; 3 gives ~7,700 vertices)."),
+    mesh: Path = typer.Option(None, "--mesh", help="Animate this face mesh (OBJ, PLY, glTF/GLB, STL, "
+                              "OFF; any unit, Y up, facing +Z) instead of the marker surface: "
+                              "aligned to the dense neutral as 'mocaptk rig --mesh' does."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength of the ridge models, relative "
                                 "to the mean input variance."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
@@ -133,7 +136,8 @@ def solve(
             raise OptionError("--rig needs the session (it builds the rig on it): leave out --model")
         with staged_folder(out, force=force) as staging:
             summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
-                                          subdivisions=subdivisions, stabilize=not no_stabilize,
+                                          subdivisions=subdivisions, mesh_path=mesh,
+                                          stabilize=not no_stabilize,
                                           save_trained=model is None, notes=notes, progress=say)
             if rig:
                 say("building the rig and baking the solve onto it")
