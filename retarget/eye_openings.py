@@ -7,10 +7,14 @@ same similarity ICP as ``--mesh``, each of its eye boundary loops becomes a plan
 marker-surface triangle whose centroid or edge midpoint falls inside an eye polygon (within
 ``depth_mm`` of its plane) is removed. No marker is peeled off the surface
 (:func:`~mocaptk.surface_mesh.remove_triangles`); a mirrored layout's cut is made symmetric.
-Without the face model, or when the fit is poor (not a face), nothing is cut.
+The face region ships with the package (``data/ict_face_neutral.npz``, MIT, its licence beside it;
+``scripts/bundle_ict_face.py`` writes it), so the cut is the same on every machine. When the fit
+is poor (not a face), nothing is cut.
 """
 
 from __future__ import annotations
+
+from importlib import resources
 
 import numpy as np
 
@@ -19,7 +23,10 @@ from mocaptk.surface_mesh import boundary_edges, remove_triangles
 
 from .align import align_mesh_to_markers
 
-__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops"]
+__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops", "template_face"]
+
+#: The ICT-FaceKit face region (MIT), packaged with mocaptk.retarget.
+TEMPLATE_FILE = "data/ict_face_neutral.npz"
 
 #: Largest fit residual (RMS, in dense marker spacings) for which the template's eyes are used.
 MAX_FIT_SPACINGS = 0.5
@@ -51,23 +58,24 @@ def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
 
 def template_eye_loops(points: np.ndarray, *, spacing: float) -> list[np.ndarray] | None:
     """The ICT-FaceKit face's eye loops as point polygons (each (K, 3) mm) fitted to the neutral
-    dense markers ``points`` (N, 3), or None (no face model, or a fit residual RMS above
+    dense markers ``points`` (N, 3), or None (a fit residual RMS above
     :data:`MAX_FIT_SPACINGS` x ``spacing``)."""
-    from ..acquisition.face_model import load_face_model
-
+    face, triangles = template_face()
     try:
-        model = load_face_model()
-    except MocaptkError:
-        return None
-    face = model.neutral[:model.face_vertex_count]
-    try:
-        fit = align_mesh_to_markers(face, model.face_triangles, points)
+        fit = align_mesh_to_markers(face, triangles, points)
     except MocaptkError:
         return None
     if not fit.rms_mm <= MAX_FIT_SPACINGS * spacing:
         return None
     placed = fit.transform.apply(face)
-    return [placed[loop] for loop in eye_loops(face, model.face_triangles)]
+    return [placed[loop] for loop in eye_loops(face, triangles)]
+
+
+def template_face() -> tuple[np.ndarray, np.ndarray]:
+    """The bundled ICT-FaceKit neutral face region: vertices (9409, 3) mm, triangles (T, 3)."""
+    with resources.files(__package__).joinpath(TEMPLATE_FILE).open("rb") as handle:
+        with np.load(handle, allow_pickle=False) as data:
+            return data["vertices"], data["triangles"].astype(np.int64)
 
 
 def cut_eye_openings(vertices: np.ndarray, faces: np.ndarray, polygons: list[np.ndarray], *,

@@ -241,12 +241,29 @@ def test_default_mesh_separates_the_lips(sample):
     cut = {tuple(sorted(pair)) for pair in mesh["opening_edges_cut"]}
     assert ("MOUTH_05_C", "MOUTH_12_C") in cut and len(cut) >= 6
     assert all(a.startswith("MOUTH") and b.startswith("MOUTH") for a, b in cut)
-    eyes = 2 if mesh["eye_openings"] else 0  # cut when ICT-FaceKit is available
-    assert mesh["boundary_loops"] == 2 + eyes  # the face's border, the mouth (and the eyes)
+    assert mesh["eye_openings"]["openings"] == 2  # the bundled ICT-FaceKit face: every machine
+    assert mesh["boundary_loops"] == 4  # the face's border, the mouth and the two eyes
     labels = build.cloud.labels
     vertex = {label: int(build.dense_vertices[i]) for i, label in enumerate(labels)}
     edges = {tuple(sorted(e)) for e in mesh_edges(build.rig.faces)[0].tolist()}
     assert not any(tuple(sorted((vertex[a], vertex[b]))) in edges for a, b in cut)
+
+
+def test_bundled_eye_template_is_the_ict_facekit_face():
+    """The packaged face region is ICT-FaceKit's neutral face region, vertex for vertex, so the
+    eye cut does not depend on the data folder beside the repo."""
+    from mocaptk.acquisition.face_model import load_face_model
+    from mocaptk.errors import InputFileError
+    from mocaptk.retarget.eye_openings import eye_loops, template_face
+
+    face, triangles = template_face()
+    assert len(eye_loops(face, triangles)) == 2
+    try:
+        model = load_face_model()
+    except InputFileError as exc:
+        pytest.skip(str(exc))
+    np.testing.assert_array_equal(face, model.neutral[:model.face_vertex_count])
+    np.testing.assert_array_equal(triangles, model.face_triangles)
 
 
 def test_default_mesh_opens_the_eyes(sample):
