@@ -57,6 +57,24 @@ def _loaded(page, seconds: float) -> None:
           f"(1-min load average {os.getloadavg()[0]:.1f})")
 
 
+def _slider_moves_the_layout_markers(browser, layout: dict, trajectories, points: list) -> None:
+    """Slide to the replayed frame (every 2nd) where the measured layout markers of
+    ``trajectories`` move most from frame 0: the page's layout points (at rest: ``points``) move by
+    the recorded amount (int16 0.05 mm steps)."""
+    measured = [k for k, c in enumerate(layout["clusters"]) if c["mirrored_from"] is None]
+    columns = [trajectories.labels.index(layout["clusters"][k]["representative"]) for k in measured]
+    positions = trajectories.positions
+    motion = np.linalg.norm(positions[::2, columns] - positions[0, columns], axis=2)
+    frame = int(np.nanargmax(np.nanmax(motion, axis=1)))
+    browser.evaluate(f"(async () => {{ const s = document.getElementById('time'); s.value = {frame};"
+                     " s.dispatchEvent(new Event('input')); await mocaptkReport.settled(); })()")
+    assert browser.evaluate("mocaptkReport.state.frame") == frame
+    moved = np.array(browser.evaluate(LAYOUT_POINTS), float)
+    shift = np.linalg.norm(moved - np.array(points, float), axis=1)
+    assert np.nanmax(shift) > 5.0
+    np.testing.assert_allclose(shift[measured], motion[frame], atol=0.15)
+
+
 def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     page = sample_report / "report.html"
     layout = json.loads((sample_report / "layout.json").read_text())
@@ -95,17 +113,7 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     clip = browser.evaluate("mocaptkReport.data.clips[0].step")
     slider_max = int(browser.evaluate("document.getElementById('time').max"))
     assert clip == 2 and slider_max == (session.n_frames - 1) // 2  # 60 Hz replayed at 30 Hz
-    measured = [k for k, c in enumerate(layout["clusters"]) if c["mirrored_from"] is None]
-    columns = [session.labels.index(layout["clusters"][k]["representative"]) for k in measured]
-    motion = np.linalg.norm(session.positions[::2, columns] - session.positions[0, columns], axis=2)
-    frame = int(np.nanargmax(np.nanmax(motion, axis=1)))
-    browser.evaluate(f"(async () => {{ const s = document.getElementById('time'); s.value = {frame};"
-                     " s.dispatchEvent(new Event('input')); await mocaptkReport.settled(); })()")
-    assert browser.evaluate("mocaptkReport.state.frame") == frame
-    moved = np.array(browser.evaluate(LAYOUT_POINTS), float)
-    shift = np.linalg.norm(moved - np.array(points, float), axis=1)
-    assert np.nanmax(shift) > 5.0
-    np.testing.assert_allclose(shift[measured], motion[frame], atol=0.15)  # int16 0.05 mm steps
+    _slider_moves_the_layout_markers(browser, layout, session, points)
     assert browser.console == []
 
 
@@ -182,14 +190,5 @@ def test_solve_report_in_headless_chromium(solve_report, sample_report, browser)
 
     solved = read_c3d(solve_report / "dense.c3d")  # head-relative sample: replayed as written
     assert browser.evaluate("mocaptkReport.data.clips[0].step") == 2
-    measured = [k for k, c in enumerate(layout["clusters"]) if c["mirrored_from"] is None]
-    columns = [solved.labels.index(layout["clusters"][k]["representative"]) for k in measured]
-    motion = np.linalg.norm(solved.positions[::2, columns] - solved.positions[0, columns], axis=2)
-    frame = int(np.nanargmax(np.nanmax(motion, axis=1)))
-    browser.evaluate(f"(async () => {{ const s = document.getElementById('time'); s.value = {frame};"
-                     " s.dispatchEvent(new Event('input')); await mocaptkReport.settled(); })()")
-    moved = np.array(browser.evaluate(LAYOUT_POINTS), float)
-    shift = np.linalg.norm(moved - np.array(points, float), axis=1)
-    assert np.nanmax(shift) > 5.0
-    np.testing.assert_allclose(shift[measured], motion[frame], atol=0.15)
+    _slider_moves_the_layout_markers(browser, layout, solved, points)
     assert browser.console == []
