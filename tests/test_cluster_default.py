@@ -43,7 +43,7 @@ def sample(tmp_path_factory) -> Path:
     if not (SAMPLES / "dense_halfface.c3d").is_file():
         pytest.skip("bundled sample missing")
     folder = tmp_path_factory.mktemp("readme") / "sample_c3d"
-    shutil.copytree(SAMPLES, folder)
+    shutil.copytree(SAMPLES, folder, ignore=shutil.ignore_patterns("*_layout", "solved"))  # not a user's earlier outputs
     return folder
 
 
