@@ -29,7 +29,8 @@ def companion_paths(target: Path, *, performance: bool) -> dict[str, Path]:
     return paths
 
 
-def _parse_identity(text: str | None, count: int):
+def _parse_identity(text: str | None):
+    """The --identity numbers, checked before the face model loads (its count is checked after)."""
     import numpy as np
 
     from ..errors import OptionError
@@ -39,9 +40,9 @@ def _parse_identity(text: str | None, count: int):
     try:
         values = np.array([float(v) for v in text.split(",")])
     except ValueError:
-        raise OptionError(f"--identity must be {count} comma-separated numbers, got {text!r}") from None
-    if values.shape != (count,) or not np.isfinite(values).all():
-        raise OptionError(f"--identity must be {count} comma-separated numbers, got {text!r}")
+        raise OptionError(f"--identity must be comma-separated numbers, got {text!r}") from None
+    if not np.isfinite(values).all():
+        raise OptionError(f"--identity must be finite numbers, got {text!r}")
     return values
 
 
@@ -120,6 +121,7 @@ def synth(
     if noise < 0 or gaps < 0 or max_gap < 0 or not 0 <= dropout <= 1 or not 0 <= ghosts <= 1:
         raise OptionError("--noise/--gaps/--max-gap must be ≥ 0 and --dropout/--ghosts within "
                           "[0, 1]")
+    identity_coefficients = _parse_identity(identity)
     fmt = output_format(target)
     paths = companion_paths(target, performance=performance > 0)
     for path in paths.values():
@@ -128,7 +130,9 @@ def synth(
     console = Console(stderr=True, quiet=quiet)
     with console.status("loading the ICT-FaceKit face model..."):
         model = load_face_model(model_path)
-    identity_coefficients = _parse_identity(identity, len(model.identity_names))
+    if identity_coefficients is not None and len(identity_coefficients) != len(model.identity_names):
+        raise OptionError(f"--identity must be {len(model.identity_names)} comma-separated numbers, "
+                          f"got {identity!r}")
     camera_rig = None if rig == "none" else RIG_PRESETS[rig]()
     rate = rate or (camera_rig.rate if camera_rig is not None and camera_rig.rate else 60.0)
     layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing,
