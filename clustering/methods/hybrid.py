@@ -30,7 +30,7 @@ from ...errors import OptionError
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
-from .reconstruction import (CrossValidatedError, gains_given, greedy_layout, pivoted_qr_layout,
+from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, gains_given, gram_jitter, greedy_layout, pivoted_qr_layout,
                              swap_descent, training_frames, training_gram)
 
 
@@ -44,7 +44,7 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
     """
     cand = problem.candidate_points()
     gram = training_gram(problem)
-    jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
+    jitter = gram_jitter(gram)
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[cand] = True
     layout = [int(p) for p in start]
@@ -89,12 +89,14 @@ def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *
     """
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[problem.candidate_points()] = True
-    dist = np.linalg.norm(problem.neutral[:, None] - problem.neutral[None], axis=2)
-    near = np.argsort(dist, axis=1, kind="stable")
+    near: dict[int, np.ndarray] = {}  # per layout point, all points nearest first (rows on demand)
 
     def candidates(slot: int, current: list[int]) -> list[int]:
-        used = set(current)
-        return [int(p) for p in near[current[slot]] if allowed[p] and int(p) not in used][:neighbours]
+        used, point = set(current), current[slot]
+        if point not in near:
+            near[point] = np.argsort(np.linalg.norm(problem.neutral[point] - problem.neutral, axis=1),
+                                     kind="stable")
+        return [int(p) for p in near[point] if allowed[p] and int(p) not in used][:neighbours]
 
     return swap_descent(layout, candidates, score.rmse, max_passes=max_passes)
 
@@ -108,6 +110,7 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
                       contenders: tuple[str, ...] = CONTENDERS) -> dict[str, np.ndarray]:
     """The unrefined contender layouts (sorted point indices) by name."""
     layouts: dict[str, np.ndarray] = {}
+    large = problem.n_points > GRAM_MAX_POINTS  # the whole residual Gram matrix: greedy skipped
     if "clusters" in contenders:
         try:
             paper = problem.cached(("paper", count, 5), lambda: paper_layout(problem, count, step=5))
@@ -121,14 +124,14 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
                 if int(rep) not in kept:
                     clusters[clusters == c] = -1
             layouts["clusters"] = cluster_representatives(problem, clusters, paper.layout)
-    if "thin-shell" in contenders and problem.n_points <= 2000 and problem.has_surface():
+    if "thin-shell" in contenders and problem.n_points <= GRAM_MAX_POINTS and problem.has_surface():
         from .thin_shell_layout import thin_shell_layout
         start = layouts.get("clusters")
         layouts["thin-shell"] = thin_shell_layout(problem, count, restarts=1, seed=seed,
                                                   initial=None if start is None else list(start)).layout
     if "qr" in contenders:
         layouts["qr"] = problem.cached(("qr", count), lambda: pivoted_qr_layout(problem, count))
-    if "greedy" in contenders:
+    if "greedy" in contenders and not large:
         layouts["greedy"] = problem.cached(("greedy", count), lambda: greedy_layout(problem, count))
     if "kmeans" in contenders:
         from . import kmeans_points
@@ -148,10 +151,19 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
     the 1- and 2-nearest local errors (:func:`local_error`).
     """
     layouts = hybrid_contenders(problem, count, seed=seed, contenders=contenders)
+    details: dict[str, Any] = {}
+    if problem.n_points > GRAM_MAX_POINTS:
+        skipped = [name for name in ("thin-shell", "greedy") if name in contenders] + \
+            [name + "+local" for name in refine if name in layouts]
+        refine = ()
+        if skipped:
+            details["notes"] = [f"hybrid: {problem.n_points} points (> {GRAM_MAX_POINTS}): contenders "
+                                f"{', '.join(skipped)} skipped (they do not scale); chosen among "
+                                f"{', '.join(sorted(layouts))}"]
     for name in refine:
         if name in layouts:
             layouts[name + "+local"] = local_swaps(problem, layouts[name], local_error(problem, scales=(2,)))[0]
     score = local_error(problem, scales=(1, 2))
     scores = {name: score.rmse(layout) for name, layout in layouts.items()}
     winner = min(sorted(scores), key=lambda n: scores[n])
-    return layouts[winner], {"winner": winner, "local_rmse_mm": scores}
+    return layouts[winner], {"winner": winner, "local_rmse_mm": scores, **details}

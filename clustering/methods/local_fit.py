@@ -38,10 +38,14 @@ class LocalError:
     neutral: np.ndarray
     scales: tuple[int, ...] = (1, 2)
     measured: np.ndarray | None = None
-    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors, distances
+    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors
 
-    def _squared_errors(self, targets: np.ndarray, near: np.ndarray) -> np.ndarray:
-        """(T,) squared error of each target from its layout points ``near`` (T, k), summed over folds."""
+    def _squared_errors(self, targets: np.ndarray, near: np.ndarray, *, block: int = 2048) -> np.ndarray:
+        """(T,) squared error of each target from its layout points ``near`` (T, k), summed over
+        folds; ``block`` targets at a time (a design-kept Gram gathers (F, block, 3k) columns)."""
+        if targets.size > block:
+            return np.concatenate([self._squared_errors(targets[lo:lo + block], near[lo:lo + block])
+                                   for lo in range(0, targets.size, block)])
         k = near.shape[1]
         dst = 3 * targets[:, None] + np.arange(3)  # (T, 3)
         src = (3 * near[:, :, None] + np.arange(3)).reshape(targets.size, 3 * k)  # (T, 3k)
@@ -59,12 +63,10 @@ class LocalError:
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
         layout = np.unique(np.asarray(layout, dtype=np.intp))
-        if "distance" not in self._cache:
-            self._cache["distance"] = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=2)
         is_target = np.ones(self.neutral.shape[0], dtype=bool)
         is_target[layout] = False
         targets = np.flatnonzero(is_target)
-        dist = self._cache["distance"][np.ix_(targets, layout)]
+        dist = np.linalg.norm(self.neutral[targets][:, None] - self.neutral[layout][None], axis=2)
         order = layout[np.argsort(dist, axis=1, kind="stable")]
         total = 0.0
         for k in self.scales:

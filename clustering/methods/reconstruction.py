@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
@@ -32,12 +33,83 @@ def _design(disp: np.ndarray) -> np.ndarray:
     return flat - flat.mean(axis=0)
 
 
-def training_gram(problem: LayoutProblem) -> np.ndarray:
-    """(3N, 3N) Gram matrix of the centred gap-free training displacements (cached on the problem)."""
+#: Above this many points (and more columns 3N than frames) Gram matrices are kept as their
+#: (F, 3N) design, :class:`DesignGram`: a (3N, 3N) float64 matrix is 7.2 GB at 10,000 points.
+GRAM_MAX_POINTS = 2000
+
+
+def frame_space(frames: int, points: int) -> bool:
+    """Whether Gram products of ``frames`` x ``points`` displacements work on the design."""
+    return points > GRAM_MAX_POINTS and frames < 3 * points
+
+
+@dataclass(frozen=True, eq=False)
+class DesignGram:
+    """The Gram matrix ``Dᵀ D`` of a (F, 3N) design ``D``, kept as ``D``: entries on demand.
+
+    Indexing takes what the layout methods ask of a Gram matrix: ``[:, cols]``, ``[rows]`` and the
+    outer patterns ``[a[..., :, None], b[..., None, :]]`` (``np.ix_`` and batched blocks), each
+    one product over the F frames; :meth:`gains_given` works in the (F, F) frame space.
+    """
+
+    design: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.design.shape[1], self.design.shape[1])
+
+    def trace(self) -> float:
+        return float(np.einsum("fi,fi->", self.design, self.design))
+
+    def diagonal(self) -> np.ndarray:
+        return np.einsum("fi,fi->i", self.design, self.design)
+
+    def __getitem__(self, key: object) -> np.ndarray:
+        if not isinstance(key, tuple):
+            key = (key, slice(None))
+        rows, cols = key
+        if isinstance(rows, slice) or isinstance(cols, slice):
+            return self.design[:, rows].T @ self.design[:, cols]
+        rows, cols = np.asarray(rows), np.asarray(cols)
+        left = np.moveaxis(self.design[:, rows[..., 0]], 0, -1)  # (..., m, F)
+        right = np.moveaxis(self.design[:, cols[..., 0, :]], 0, -2)  # (..., F, n)
+        return left @ right
+
+    @cached_property
+    def frames(self) -> np.ndarray:
+        """(F, F) ``D Dᵀ``."""
+        return self.design @ self.design.T
+
+    def gains_given(self, chosen: Sequence[int], points: np.ndarray, jitter: float) -> np.ndarray:
+        """:func:`gains_given` from the residual of the points' design columns: the residual Gram
+        columns are ``Dᵀ R``, so their squares sum to ``Rᵀ (D Dᵀ) R`` with the (F, F) ``D Dᵀ``."""
+        cols_s, cols_p = _blocks(np.asarray(chosen, dtype=np.intp)), _blocks(points)
+        design = self.design
+        resid = design[:, cols_p]
+        if cols_s.size:
+            d_s = design[:, cols_s]
+            g_ss = d_s.T @ d_s + jitter * np.eye(cols_s.size)
+            resid = resid - d_s @ np.linalg.solve(g_ss, d_s.T @ resid)
+        n_p = len(points)
+        blocks = resid.reshape(-1, n_p, 3)
+        cross = np.einsum("fan,fam->anm", blocks, (self.frames @ resid).reshape(-1, n_p, 3))
+        own = np.einsum("fan,fam->anm", design[:, cols_p].reshape(-1, n_p, 3), blocks) + jitter * np.eye(3)
+        return np.einsum("anm,amn->a", np.linalg.inv(own), cross)
+
+
+def training_gram(problem: LayoutProblem) -> np.ndarray | DesignGram:
+    """(3N, 3N) Gram matrix of the centred gap-free training displacements (cached on the problem);
+    a :class:`DesignGram` above :data:`GRAM_MAX_POINTS` points."""
     if "gram" not in problem.cache:
         design = _design(training_frames(problem)[0])
-        problem.cache["gram"] = design.T @ design
+        problem.cache["gram"] = DesignGram(design) if frame_space(*design.shape[:1], problem.n_points) \
+            else design.T @ design
     return problem.cache["gram"]
+
+
+def gram_jitter(gram: np.ndarray | DesignGram) -> float:
+    """The ridge added to a Gram block before solving: 1e-9 x its mean diagonal."""
+    return 1e-9 * max(float(gram.trace()) / gram.shape[0], 1e-12)
 
 
 def _blocks(points: np.ndarray) -> np.ndarray:
@@ -52,8 +124,12 @@ def pivoted_qr_layout(problem: LayoutProblem, count: int, *, seed: int = 0) -> n
     cols = _blocks(cand)
     # Same pivots as QR of the tall design matrix (D = U·S with U orthonormal), on a square
     # factor S of its Gram matrix: 3N×3N instead of frames×3N.
-    vals, vecs = np.linalg.eigh(training_gram(problem)[np.ix_(cols, cols)])
-    square = np.sqrt(np.maximum(vals, 0.0))[:, None] * vecs.T
+    gram = training_gram(problem)
+    if isinstance(gram, DesignGram):  # the design itself: (F, 3N), F < 3N
+        square = gram.design[:, cols]
+    else:
+        vals, vecs = np.linalg.eigh(gram[np.ix_(cols, cols)])
+        square = np.sqrt(np.maximum(vals, 0.0))[:, None] * vecs.T
     _, piv = sla.qr(square, pivoting=True, mode="r", check_finite=False)
     order = list(dict.fromkeys(int(c) // 3 for c in piv))
     chosen = order[:count]
@@ -84,6 +160,8 @@ def _gains(resid: np.ndarray, jitter: float) -> np.ndarray:
 def gains_given(gram: np.ndarray, chosen: Sequence[int], points: np.ndarray, jitter: float) -> np.ndarray:
     """(len(points),) what :func:`_gains` gives ``points`` after projecting out ``chosen``, from
     their residual columns only (O(3N·3L·3P) instead of the whole residual Gram matrix)."""
+    if isinstance(gram, DesignGram):
+        return gram.gains_given(chosen, points, jitter)
     cols_s, cols_p = _blocks(np.asarray(chosen, dtype=np.intp)), _blocks(points)
     resid = gram[:, cols_p]
     if cols_s.size:
@@ -104,7 +182,7 @@ def greedy_layout(problem: LayoutProblem, count: int, *, fixed: Sequence[int] = 
     _check(count, cand.size)
     cols = _blocks(cand)
     gram = training_gram(problem)[np.ix_(cols, cols)]
-    jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
+    jitter = gram_jitter(gram)
     pos = {int(p): i for i, p in enumerate(cand)}
     chosen = [pos[int(p)] for p in fixed]
     resid = _residual_gram(gram, chosen, jitter)
@@ -127,8 +205,8 @@ class CrossValidatedError:
     layout markers copied) on gap-free frames, at O((3L)²·3N) per layout instead of touching frames.
     """
 
-    train_gram: tuple[np.ndarray, ...]   # centred on the training mean, (3N, 3N) each
-    test_gram: tuple[np.ndarray, ...]    # test frames centred on the training mean
+    train_gram: tuple[np.ndarray | DesignGram, ...]   # centred on the training mean, (3N, 3N) each
+    test_gram: tuple[np.ndarray | DesignGram, ...]    # test frames centred on the training mean
     n_test_points: int
     ridge: float
 
@@ -136,6 +214,14 @@ class CrossValidatedError:
     def from_displacements(cls, disp: np.ndarray, splits: Sequence[tuple[np.ndarray, np.ndarray]], *,
                            ridge: float = DEFAULT_RIDGE) -> CrossValidatedError:
         flat = disp.reshape(disp.shape[0], -1)
+        if frame_space(flat.shape[0], disp.shape[1]):  # each fold's centred design, no (3N, 3N) matrix
+            train_d, test_d = [], []
+            for train, test in splits:
+                mean = flat[train].mean(axis=0)
+                train_d.append(DesignGram(flat[train] - mean))
+                test_d.append(DesignGram(flat[test] - mean))
+            points = sum(test.size for _, test in splits) * disp.shape[1]
+            return cls(tuple(train_d), tuple(test_d), points, float(ridge))
         total_sum, total_gram = flat.sum(axis=0), flat.T @ flat
         train_g, test_g, points = [], [], 0
         for train, test in splits:
@@ -163,7 +249,7 @@ class CrossValidatedError:
             lam = self.ridge * max(float(np.trace(g_ss)) / cols.size, 1e-12)
             coef = np.linalg.solve(g_ss + lam * np.eye(cols.size), gram[np.ix_(cols, rest)])
             t_sr = test[np.ix_(cols, rest)]
-            total += (float(np.diagonal(test)[rest].sum())
+            total += (float(test.diagonal()[rest].sum())
                       + float(np.sum(coef * (test[np.ix_(cols, cols)] @ coef - 2.0 * t_sr))))
         return float(np.sqrt(max(total, 0.0) / self.n_test_points))
 
@@ -207,7 +293,7 @@ def swap_refine(problem: LayoutProblem, layout: Sequence[int] | np.ndarray, *,
     """
     scorer = cv_scorer(problem, ridge=ridge)
     gram = training_gram(problem)
-    jitter = 1e-9 * max(float(np.trace(gram)) / gram.shape[0], 1e-12)
+    jitter = gram_jitter(gram)
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[problem.candidate_points()] = True
     keep = {int(i) for i in fixed}

@@ -76,9 +76,11 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
         parameters["rig"] = rig
     if "winner" in selected.details:  # which contender the hybrid chose
         parameters["winner"] = selected.details["winner"]
+    notes = result.notes + list(selected.details.get("notes", []))  # e.g. contenders skipped
+    extra = dict(layout.extra, notes=notes) if "notes" in layout.extra else layout.extra
     new_layout = dataclasses.replace(layout, parameters=parameters, regions=region_results,
-                                     clusters=tuple(clusters))
-    return dataclasses.replace(result, layout=new_layout)
+                                     clusters=tuple(clusters), extra=extra)
+    return dataclasses.replace(result, layout=new_layout, notes=notes)
 
 
 __all__ = ["relayout"]
