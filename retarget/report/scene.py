@@ -177,14 +177,16 @@ def _mesh(cloud: DenseCloud, build: RigBuild | None, cluster_of: np.ndarray,
             "skin_marker": np.where(skin_index >= 0, skin_index, 0), "skin_weight": np.round(skin_weight, 4)}
 
 
-def _nearest(points: np.ndarray, targets: np.ndarray, *, block: int = 512) -> np.ndarray:
+def _nearest(points: np.ndarray, targets: np.ndarray, *, shortlist: int = 8) -> np.ndarray:
     """(P,) index of the nearest of ``targets`` (T, 3) to each of ``points`` (P, 3), first on a
-    tie; in blocks of rows (a (P, T, 3) temporary is 2.4 GB at 10,000 x 10,000)."""
-    out = np.empty(len(points), dtype=np.intp)
-    for lo in range(0, len(points), block):
-        out[lo:lo + block] = np.argmin(np.linalg.norm(points[lo:lo + block, None] - targets[None], axis=2),
-                                       axis=1)
-    return out
+    tie: a k-d tree's ``shortlist`` nearest, then the exact distances among them (O(P log T))."""
+    from scipy.spatial import cKDTree
+
+    k = min(shortlist, len(targets))
+    near = cKDTree(targets).query(points, k=k)[1].reshape(len(points), k)
+    near = np.sort(near, axis=1)  # lowest index first, so argmin keeps the first of a tie
+    dist = np.linalg.norm(points[:, None] - targets[near], axis=2)
+    return near[np.arange(len(points)), np.argmin(dist, axis=1)]
 
 
 def _outward_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
