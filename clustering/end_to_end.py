@@ -31,7 +31,10 @@ def capture_layout(rig: CameraRig, truth: np.ndarray, normals: np.ndarray, layou
     from ..acquisition.synth_session import capture_points, detection_noise_px
 
     layout = np.asarray(layout, dtype=np.intp)
-    traj = capture_points(rig, truth[:, layout], normals[:, layout],
+    # synth's marker_normals gives normals per frame block, (start, stop) -> (frames, N, 3)
+    layout_normals = ((lambda a, b: normals(a, b)[:, layout]) if callable(normals)
+                      else normals[:, layout])
+    traj = capture_points(rig, truth[:, layout], layout_normals,
                           pixel_noise=detection_noise_px(rig, truth, noise_mm),
                           labels=[f"L{i:03d}" for i in range(layout.size)], rate=rig.rate or 60.0,
                           dropout=dropout, ghost_rate=ghost_rate, seed=seed)
