@@ -30,8 +30,9 @@ from ...errors import OptionError
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
-from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, gains_given, gram_jitter, greedy_layout, pivoted_qr_layout,
-                             swap_descent, training_frames, training_gram)
+from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, gains_given, gram_jitter,
+                             greedy_layout, pivoted_qr_layout, swap_descent, training_frames,
+                             training_gram)
 
 
 def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start: np.ndarray, *,
@@ -110,7 +111,7 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
                       contenders: tuple[str, ...] = CONTENDERS) -> dict[str, np.ndarray]:
     """The unrefined contender layouts (sorted point indices) by name."""
     layouts: dict[str, np.ndarray] = {}
-    large = problem.n_points > GRAM_MAX_POINTS  # the whole residual Gram matrix: greedy skipped
+    large = problem.n_points > GRAM_MAX_POINTS  # thin-shell and greedy need whole (3N, 3N) matrices
     if "clusters" in contenders:
         try:
             paper = problem.cached(("paper", count, 5), lambda: paper_layout(problem, count, step=5))
@@ -124,7 +125,7 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
                 if int(rep) not in kept:
                     clusters[clusters == c] = -1
             layouts["clusters"] = cluster_representatives(problem, clusters, paper.layout)
-    if "thin-shell" in contenders and problem.n_points <= GRAM_MAX_POINTS and problem.has_surface():
+    if "thin-shell" in contenders and not large and problem.has_surface():
         from .thin_shell_layout import thin_shell_layout
         start = layouts.get("clusters")
         layouts["thin-shell"] = thin_shell_layout(problem, count, restarts=1, seed=seed,
