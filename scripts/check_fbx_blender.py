@@ -13,7 +13,8 @@ each vertex by its weight times the joint's displacement. When rig.json names an
 (rig_animation.npz): one action per take with the take's frame range, the scene at the
 capture's frame rate, and at 5 frames the armature-deformed mesh against the rig's own skinning
 of the baked tracks; the world joint positions at those frames are reported (``joint_world_mm``)
-for the caller to compare with the raw capture.
+for the caller to compare with the raw capture, and the bones whose ``bpy.utils.flip_name``
+names no bone (``flip_name_unmatched``: empty when Blender's mirror tools pair every bone).
 """
 
 from __future__ import annotations
@@ -134,6 +135,9 @@ def check(fbx_path: str, rig: dict) -> dict:
         "max_rest_pose_skinning_error_mm": rest_error,
         "moved_joint": names[leaf], "max_moved_joint_error_mm": pose_error,
         "max_bone_length_mm": bone_length_mm, "root_is_armature_object": root_object is not None,
+        # Blender's mirror tools pair bones by flip_name: imported names with no partner
+        "flip_name_unmatched": [b.name for b in bones
+                                if bpy.utils.flip_name(b.name) not in bones],
     }
     if tracks is not None:
         report.update(_check_animation(rig, tracks, mesh_obj, arm_obj, names, expected, to_mm))

@@ -84,6 +84,10 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
                     + head_shift)
         assert np.linalg.norm(root_raw[take] - expected, axis=1).max() < 2.0
     assert np.ptp(root_raw[:, 0]) > 20.0  # a 30 mm sideways sway, not a still root
+    # the second capture has the dense markers: its per-region check and worst case are reported
+    held = report["held_out"][0]
+    assert held["capture"] == "again" and held["regions"]["mouth"]["markers"] > 0
+    assert {"marker", "region", "frame", "error_mm"} <= set(held["max"])
     # renders at rest and at the last capture's widest jaw opening
     assert report["renders"]["jaw_open_frame"] >= FRAMES
     for name in ("rest_front", "rest_profile", "jaw_open_front", "jaw_open_profile"):
@@ -103,7 +107,8 @@ def test_rig_on_the_written_layout_reports_the_same_numbers(moving):
 @pytest.mark.parametrize("name", ["rig.fbx", "rig.glb"])
 def test_blender_plays_the_baked_animation(moving, name):
     """Blender imports FBX and GLB: one action per take at 60 fps, the deformed mesh at 5 frames
-    equals the rig's own skinning (< 0.01 mm), world joints equal the raw capture (< 0.1 mm)."""
+    equals the rig's own skinning (< 0.01 mm), world joints equal the raw capture (< 0.1 mm),
+    bpy.utils.flip_name maps every bone to a bone."""
     from mocaptk.clustering.layout import read_layout
 
     _, out, raw, labels, _ = moving
@@ -116,6 +121,7 @@ def test_blender_plays_the_baked_animation(moving, name):
     print("Blender:", json.dumps(report, sort_keys=True))
     assert done.returncode == 0 and report["ok"], report
     assert report["scene_fps"] == 60.0 and report["max_animated_mesh_error_mm"] < 0.01
+    assert report["flip_name_unmatched"] == []  # Blender's mirror tools pair every bone
     if name == "rig.fbx":
         assert report["max_bone_length_mm"] <= 10.0 + 1e-3
     layout = read_layout(out / "layout.json")

@@ -68,6 +68,27 @@ def test_marker_driven_rmse_on_held_out_performance(sample):
     assert ground_truth_error(blunt, perf, truth.positions, truth.labels).rmse_mm > 1.15 * err.rmse_mm
 
 
+def test_held_out_mouth_error_by_region_and_its_worst_case(sample):
+    """The held-out performance per region: the mouth (the lips cut apart) at most 1.5x the mean
+    of the other regions (issue 11; measured 0.60x here, 1.19x from the observed session in
+    docs/rig-weights.md), and the largest error named by marker, region and frame."""
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.retarget.build import Capture, held_out_check
+
+    _, _, _, build = sample
+    perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
+    held = held_out_check(build, Capture("performance", perf))
+    rmse = {region: r["rmse_mm"] for region, r in held["regions"].items()}
+    assert set(rmse) == {"cheek", "chin", "eye", "forehead_brow", "mouth", "nose"}
+    others = np.mean([v for region, v in rmse.items() if region != "mouth"])
+    assert rmse["mouth"] <= 1.5 * others, rmse
+    worst = held["max"]
+    assert worst["error_mm"] == max(r["max_mm"] for r in held["regions"].values())
+    region_of = {m: c.region for c in build.layout.clusters for m in c.members}
+    assert worst["region"] == region_of[worst["marker"]] and 0 <= worst["frame"] < perf.n_frames
+    assert worst["layout_distance_mm"] > 0  # not a layout marker: those are exact
+
+
 def _rig_fields(rig):
     return {name: getattr(rig, name) for name in (
         "vertices", "faces", "joint_names", "joint_parents", "joint_positions", "joint_sides",
