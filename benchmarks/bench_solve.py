@@ -95,7 +95,7 @@ def rmse_p95(err: np.ndarray) -> tuple[float, float]:
     return float(np.sqrt(np.mean(e ** 2))), float(np.percentile(e, 95))
 
 
-def accuracy() -> dict:
+def accuracy(kinds: tuple[str, ...] = KINDS) -> dict:
     from mocaptk.clustering.evaluation import error_summary, heldout_errors, holdout_splits
     from mocaptk.clustering.reconstruction_models import fit_model
     from mocaptk.clustering.pipeline import load_session
@@ -105,7 +105,7 @@ def accuracy() -> dict:
     session, test, regions = sample_data()
     for count in (20, 40, 80):
         idx = kmeans(session.positions, count)
-        for kind in KINDS:
+        for kind in kinds:
             err = heldout_errors(session.positions, idx, [], test=test.positions, model_kind=kind)
             out[f"sample/{count}/{kind}"] = error_summary(err, regions=regions)
             print("sample", count, kind, round(out[f"sample/{count}/{kind}"]["rmse_mm"], 3), flush=True)
@@ -117,7 +117,7 @@ def accuracy() -> dict:
         learned = ict_learned_map(face, session, rest, faces, folder)
         for count in (20, 40, 80):
             idx = kmeans(session.positions, count)
-            for kind in KINDS:
+            for kind in kinds:
                 model = fit_model(session.positions, idx, kind=kind, expected_error=False)
                 pred = model.predict(test.positions[:, model.layout]).positions
                 # markers: against the noise-free truth (the capture's own noise is not an error)
@@ -141,7 +141,7 @@ def accuracy() -> dict:
         splits = holdout_splits(traj.n_frames, traj.takes, split="takes")
         for count in (3, 6, 8):
             idx = kmeans(traj.positions, count)
-            for kind in KINDS:
+            for kind in kinds:
                 err = heldout_errors(traj.positions, idx, splits, model_kind=kind)
                 out[f"{subject}/{count}/{kind}"] = error_summary(err)
                 print(subject, count, kind, round(out[f"{subject}/{count}/{kind}"]["rmse_mm"], 3), flush=True)
@@ -330,6 +330,8 @@ if __name__ == "__main__":
         maps(Path(sys.argv[2] if len(sys.argv) > 2 else "."))
     elif what == "speed" and len(sys.argv) > 3:  # speed OUT.json KIND,KIND
         Path(sys.argv[2]).write_text(json.dumps(speed(tuple(sys.argv[3].split(","))), indent=1))
+    elif what == "accuracy" and len(sys.argv) > 3:  # accuracy OUT.json KIND,KIND
+        Path(sys.argv[2]).write_text(json.dumps(accuracy(tuple(sys.argv[3].split(","))), indent=1, sort_keys=True))
     elif what == "robustness" and len(sys.argv) > 3:  # robustness OUT.json KIND,KIND STEP
         result = robustness(tuple(sys.argv[3].split(",")), int(sys.argv[4]) if len(sys.argv) > 4 else 1)
         Path(sys.argv[2]).write_text(json.dumps(result, indent=1, sort_keys=True))
