@@ -4,7 +4,7 @@ The markers of a dense facial session sample one skin surface (a cap that wraps 
 face). :func:`marker_surface_mesh` turns them into a triangle mesh whose vertices ARE the
 markers (same order), so anything defined per dense marker is defined per vertex:
 
-1. **Chart.** Fit a sphere to the cloud (the face is a cap around a centre inside the head) and
+1. **Chart.** Unless the caller gives one, fit a sphere to the cloud (the face is a cap around a centre inside the head) and
    map every marker to its (azimuth, elevation) around that centre, scaled to mm; azimuth turns
    around the in-plane axis the face wraps least around (cheek to cheek wraps most). Unlike a flat
    PCA projection this keeps the sides of the face (cheeks, jaw line) from collapsing into
@@ -159,7 +159,8 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray) -> MeshQuality:
 
 
 def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
-                        max_rim_angle_deg: float = 120.0) -> tuple[np.ndarray, np.ndarray]:
+                        max_rim_angle_deg: float = 120.0,
+                        chart: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate a dense neutral marker cloud as one face surface.
 
     Parameters
@@ -172,6 +173,9 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     max_rim_angle_deg : float
         Border triangles whose angle facing the border is wider than this (degrees) are peeled
         (flat slivers between rim markers).
+    chart : (M, 2) float, optional
+        One-to-one 2-D coordinates of the points (mm) to triangulate in, e.g. from a face
+        template (:mod:`mocaptk.retarget.face_template`); default: the sphere chart.
 
     Returns
     -------
@@ -193,7 +197,8 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     if len(np.unique(vertices, axis=0)) < len(vertices):
         raise ValueError("points contain duplicates (two markers at the same position)")
     nearest = cKDTree(vertices).query(vertices, k=2)[0][:, 1]
-    chart, front = _face_chart(vertices)
+    own_chart, front = _face_chart(vertices)
+    chart = own_chart if chart is None else np.asarray(chart, dtype=float)
     try:
         faces = Delaunay(chart).simplices.astype(np.int64)
     except Exception as exc:  # scipy raises QhullError for collinear clouds

@@ -38,6 +38,7 @@ from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .eye_openings import cut_eye_openings, template_eye_loops
+from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .rig import Rig
@@ -319,6 +320,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     alignment = None
     cut = np.zeros((0, 2), dtype=np.int64)  # marker pairs across an opening (default mesh)
     eye_cut = None  # eye apertures cut from the fitted face template (default mesh)
+    chart_kind = None  # what the default mesh was triangulated in
     if mesh is None:
         say("triangulating the marker surface")
         # coincident markers (a duplicated label, a mislabel) share one vertex
@@ -327,12 +329,16 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         order = np.argsort(first)  # keep the markers' order for the vertices
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
-        vertices, faces = marker_surface_mesh(unique[order])
+        template = fit_template(unique[order], spacing=spacing)
+        mirror = _vertex_mirror(layout, cloud, unique[order], spacing)
+        chart = None if template is None else template.chart(unique[order], mirror=mirror)
+        vertices, faces = marker_surface_mesh(unique[order], chart=chart)
+        chart_kind = "sphere" if chart is None else "ICT-FaceKit face fitted to the markers"
         firsts = first[order]
         faces, cut = cut_openings(faces, cloud.trajectories[:, firsts], cloud.neutral[firsts])
         cut = firsts[cut]
         say("opening the eyes")
-        eyes = template_eye_loops(vertices, spacing=spacing)
+        eyes = template_eye_loops(template) if template is not None else []
         if eyes:
             before = len(faces)
             faces = cut_eye_openings(vertices, faces, eyes, depth_mm=2.0 * spacing,
@@ -389,7 +395,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
-                 "subdivisions": options.subdivisions if mesh is None else 0,
+                 "subdivisions": options.subdivisions if mesh is None else 0, "chart": chart_kind,
                  "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut],
                  "eye_openings": eye_cut},
         "alignment": None if alignment is None else {

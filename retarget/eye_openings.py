@@ -2,34 +2,23 @@
 
 A dense session has no markers on the eyeball, but the marker surface is one sheet that spans
 the eye openings (the marker holes there are no larger than the gaps elsewhere, so no size rule
-finds them). The ICT-FaceKit face (MIT) has open eyes: it is fitted to the neutral markers by the
-same similarity ICP as ``--mesh``, each of its eye boundary loops becomes a planar polygon, and a
+finds them). The ICT-FaceKit face (MIT) has open eyes: fitted to the neutral markers
+(:mod:`~mocaptk.retarget.face_template`), each of its eye boundary loops becomes a planar polygon, and a
 marker-surface triangle whose centroid or edge midpoint falls inside an eye polygon (within
 ``depth_mm`` of its plane) is removed. No marker is peeled off the surface
 (:func:`~mocaptk.surface_mesh.remove_triangles`); a mirrored layout's cut is made symmetric.
-The face region ships with the package (``data/ict_face_neutral.npz``, MIT, its licence beside it;
-``scripts/bundle_ict_face.py`` writes it), so the cut is the same on every machine. When the fit
-is poor (not a face), nothing is cut.
+When the fit is poor (not a face), nothing is cut.
 """
 
 from __future__ import annotations
 
-from importlib import resources
-
 import numpy as np
 
-from mocaptk.errors import MocaptkError
 from mocaptk.surface_mesh import boundary_edges, remove_triangles
 
-from .align import align_mesh_to_markers
+from .face_template import FittedTemplate, template_face
 
-__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops", "template_face"]
-
-#: The ICT-FaceKit face region (MIT), packaged with mocaptk.retarget.
-TEMPLATE_FILE = "data/ict_face_neutral.npz"
-
-#: Largest fit residual (RMS, in dense marker spacings) for which the template's eyes are used.
-MAX_FIT_SPACINGS = 0.5
+__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops"]
 
 
 def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
@@ -56,26 +45,10 @@ def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
             if i != border and vertices[loop, 1].mean() > nose_y and len(loop) >= 4]
 
 
-def template_eye_loops(points: np.ndarray, *, spacing: float) -> list[np.ndarray] | None:
-    """The ICT-FaceKit face's eye loops as point polygons (each (K, 3) mm) fitted to the neutral
-    dense markers ``points`` (N, 3), or None (a fit residual RMS above
-    :data:`MAX_FIT_SPACINGS` x ``spacing``)."""
+def template_eye_loops(template: FittedTemplate) -> list[np.ndarray]:
+    """The fitted template face's eye loops as point polygons (each (K, 3) mm, markers' frame)."""
     face, triangles = template_face()
-    try:
-        fit = align_mesh_to_markers(face, triangles, points)
-    except MocaptkError:
-        return None
-    if not fit.rms_mm <= MAX_FIT_SPACINGS * spacing:
-        return None
-    placed = fit.transform.apply(face)
-    return [placed[loop] for loop in eye_loops(face, triangles)]
-
-
-def template_face() -> tuple[np.ndarray, np.ndarray]:
-    """The bundled ICT-FaceKit neutral face region: vertices (9409, 3) mm, triangles (T, 3)."""
-    with resources.files(__package__).joinpath(TEMPLATE_FILE).open("rb") as handle:
-        with np.load(handle, allow_pickle=False) as data:
-            return data["vertices"], data["triangles"].astype(np.int64)
+    return [template.vertices[loop] for loop in eye_loops(face, triangles)]
 
 
 def cut_eye_openings(vertices: np.ndarray, faces: np.ndarray, polygons: list[np.ndarray], *,
