@@ -88,6 +88,10 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
     held = report["held_out"][0]
     assert held["capture"] == "again" and held["regions"]["mouth"]["markers"] > 0
     assert {"marker", "region", "frame", "error_mm"} <= set(held["max"])
+    summary = (out / "summary.txt").read_text()  # and in the summary, as `mocaptk rig` prints it
+    assert "held-out again: RMSE" in summary and "largest error on again:" in summary
+    assert summary.count("  mouth            RMSE") == 2  # the session and the held-out capture
+    assert summary.count("  mouth / mean of the other regions: ") == 2
     # renders at rest and at the last capture's widest jaw opening
     assert report["renders"]["jaw_open_frame"] >= FRAMES
     for name in ("rest_front", "rest_profile", "jaw_open_front", "jaw_open_profile"):

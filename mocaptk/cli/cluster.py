@@ -188,7 +188,8 @@ def cluster(
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
-    from .rig import animation_summary, cluster_rig_outputs, parse_formats, rig_options
+    from .rig import (animation_summary, check_summary, cluster_rig_outputs, parse_formats,
+                      rig_options)
 
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
@@ -223,12 +224,14 @@ def cluster(
         build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
                                     formats=formats, quiet=quiet, session=traj,
                                     animate=animate or [])
-        report = write_cluster_report(result, build, folder / "report.html", summary=summary_text(result))
+        summary = summary_text(result)
+        if build is not None:  # the rig's check (per region, held-out captures) after the header
+            summary += "\n".join([f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
+                                  f"{build.check.rmse_mm:.2f} mm; guide.pdf written",
+                                  check_summary(build.report),
+                                  animation_summary(build.report["animation"])]) + "\n"
+        report = write_cluster_report(result, build, folder / "report.html", summary=summary)
     if not quiet:
-        typer.echo(summary_text(result), nl=False)
-        if build is not None:  # after the summary's header, not before it
-            typer.echo(f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
-                       f"{build.check.rmse_mm:.2f} mm; guide.pdf written")
-            typer.echo(animation_summary(build.report["animation"]))
+        typer.echo(summary, nl=False)
         typer.echo(report)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

@@ -136,21 +136,33 @@ def rig(
                        f"{build.alignment.rms_mm:.2f} mm, max {build.alignment.max_mm:.2f} mm")
         typer.echo(f"marker-driven skinning check: RMSE {check.rmse_mm:.2f} mm, 95th percentile "
                    f"{check.p95_mm:.2f} mm ({check.vertices} dense markers, {check.frames} frames)")
-        typer.echo(region_summary(build.report["skinning_check"], "the session"))
-        for held in build.report.get("held_out", []):
-            typer.echo(f"held-out {held['capture']}: RMSE {held['rmse_mm']:.2f} mm, max "
-                       f"{held['max_mm']:.2f} mm")
-            typer.echo(region_summary(held, held["capture"]))
+        typer.echo(check_summary(build.report))
         if "animation" in build.report:
             typer.echo(animation_summary(build.report["animation"]))
         for path in written.values():
             typer.echo(f"wrote {path}")
 
 
+def check_summary(report: dict) -> str:
+    """The skinning check per region on the session and on every held-out capture of a rig
+    report (``RigBuild.report``), each with its largest error."""
+    lines = [region_summary(report["skinning_check"], "the session")]
+    for held in report.get("held_out", []):
+        lines.append(f"held-out {held['capture']}: RMSE {held['rmse_mm']:.2f} mm, max "
+                     f"{held['max_mm']:.2f} mm")
+        lines.append(region_summary(held, held["capture"]))
+    return "\n".join(lines)
+
+
 def region_summary(check: dict, what: str) -> str:
     """Per-region RMSE lines and where the largest error is (which marker, which frame)."""
+    regions = check["regions"]
     lines = [f"  {region:<16} RMSE {r['rmse_mm']:.2f} mm, max {r['max_mm']:.2f} mm "
-             f"({r['markers']} markers)" for region, r in check["regions"].items()]
+             f"({r['markers']} markers)" for region, r in regions.items()]
+    others = [r["rmse_mm"] for name, r in regions.items() if name != "mouth"]
+    if "mouth" in regions and sum(others) > 0:  # the weak region of a face rig (issue 11)
+        lines.append(f"  mouth / mean of the other regions: "
+                     f"{regions['mouth']['rmse_mm'] * len(others) / sum(others):.2f}x")
     worst = check["max"]
     lines.append(f"  largest error on {what}: {worst['error_mm']:.1f} mm at {worst['marker']} "
                  f"({worst['region']}), frame {worst['frame']}; "
