@@ -381,6 +381,8 @@ def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarra
     keys = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1),
                    axis=2)
     keys = keys[:, :, 0] * n + keys[:, :, 1]  # (T, 3) edge facing vertex k, as one integer
+    edge_keys, edge = np.unique(keys, return_inverse=True)
+    edge = edge.reshape(keys.shape)  # (T, 3) edge index: counts are updated, not re-sorted
     tri = vertices[faces]
     longest = np.max(np.stack([np.linalg.norm(tri[:, (k + 1) % 3] - tri[:, k], axis=1)
                                for k in range(3)]), axis=0)
@@ -388,21 +390,33 @@ def _peel_border(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarra
     wide = triangle_angles(vertices, faces) > max_rim_angle  # (T, 3) angle facing edge k
     keep = np.ones(len(faces), bool)
     kept_for_marker = np.zeros(len(faces), bool)
+    uses = np.bincount(edge.ravel(), minlength=len(edge_keys))  # kept triangles on each edge
     while True:
-        live_keys, counts = np.unique(keys[keep], return_counts=True)
-        on_border = np.isin(keys, live_keys[counts == 1])  # (T, 3)
+        on_border = uses[edge] == 1  # (T, 3)
         drop = keep & ~kept_for_marker & ((on_border.any(axis=1) & too_long) | (on_border & wide).any(axis=1))
         if not drop.any():
             return faces[keep]
         referenced = np.zeros(n, bool)
         referenced[faces[keep & ~drop].ravel()] = True
-        for v in np.unique(faces[drop].ravel()):
+        owner, starts = _vertex_triangles(faces, n, np.flatnonzero(drop))
+        for v in np.flatnonzero(np.diff(starts)):  # every vertex of a dropped triangle
             if not referenced[v]:
-                candidates = np.flatnonzero(drop & (faces == v).any(axis=1))
+                candidates = owner[starts[v]:starts[v + 1]]
+                candidates = candidates[drop[candidates]]
                 best = candidates[np.argmin(longest[candidates])]
                 drop[best], kept_for_marker[best] = False, True
                 referenced[faces[best]] = True
         keep &= ~drop
+        uses -= np.bincount(edge[drop].ravel(), minlength=len(edge_keys))
+
+
+def _vertex_triangles(faces: np.ndarray, n_vertices: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Incidence of the triangles ``faces[rows]`` (``rows`` ascending): those holding vertex v
+    are ``owner[starts[v]:starts[v + 1]]``, ascending (one sort instead of a scan per vertex)."""
+    corner = faces[rows].ravel()
+    by_vertex = np.argsort(corner, kind="stable")
+    starts = np.searchsorted(corner[by_vertex], np.arange(n_vertices + 1))
+    return np.repeat(rows, 3)[by_vertex], starts
 
 
 def _flip_bad_edges(vertices: np.ndarray, faces: np.ndarray, chart: np.ndarray,
@@ -471,8 +485,10 @@ def _repair_bowties(faces: np.ndarray, n_vertices: int) -> np.ndarray:
         if len(bad) == 0:
             return faces
         drop = np.zeros(len(faces), bool)
+        owner, starts = _vertex_triangles(faces, n_vertices, np.arange(len(faces)))
         for v in bad:
-            around = np.flatnonzero(np.any(faces == v, axis=1) & ~drop)
+            around = owner[starts[v]:starts[v + 1]]
+            around = around[~drop[around]]
             if len(around) == 0:  # every fan went with an earlier vertex's small fans
                 continue
             fans = _fans_around(faces[around], int(v))
@@ -485,13 +501,13 @@ def _fans_around(ring: np.ndarray, v: int) -> np.ndarray:
     """Label (K,) the fans of triangles ``ring`` (K, 3) around vertex ``v``: triangles sharing
     an edge through ``v`` are in the same fan."""
     label = np.arange(len(ring))
-    others = ring[ring != v].reshape(len(ring), 2)
+    others = [set(pair) for pair in ring[ring != v].reshape(len(ring), 2).tolist()]
     changed = True
     while changed:  # propagate the smallest label across shared neighbours (tiny K)
         changed = False
         for i in range(len(ring)):
             for j in range(i + 1, len(ring)):
-                if label[i] != label[j] and np.intersect1d(others[i], others[j]).size:
+                if label[i] != label[j] and others[i] & others[j]:
                     label[i] = label[j] = min(label[i], label[j])
                     changed = True
     return np.unique(label, return_inverse=True)[1]
