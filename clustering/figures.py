@@ -54,6 +54,9 @@ def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.
         ax.hlines(bounds, -0.5, n - 0.5, color="k", lw=0.6)  # one artist for all lines: cheap to draw
         ax.vlines(bounds, -0.5, n - 0.5, color="k", lw=0.6)
     fig.colorbar(image, ax=ax, label="consolidated correlation Cx+Cy+Cz")
+    if n > HEATMAP_MAX_CELLS:  # say that a cell is not one marker pair
+        title += (f"\n{n} markers drawn as block means on a {HEATMAP_MAX_CELLS} x "
+                  f"{HEATMAP_MAX_CELLS} grid (~{n / HEATMAP_MAX_CELLS:.1f} markers a cell side)")
     ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
