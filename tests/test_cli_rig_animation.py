@@ -137,6 +137,7 @@ def test_blender_plays_the_baked_animation(moving, name):
                 captured = raw[frame % FRAMES, labels.index(cluster.representative)] @ rotation.T
                 if np.isfinite(captured).all():
                     errors.append(np.linalg.norm(world[row, joint] - captured))
+    print(f"{name}: Blender's world joints vs the raw capture: max {max(errors):.2g} mm")
     assert max(errors) < 0.1
 
 
