@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..errors import OptionError
 from ..trajectories import Trajectories
@@ -93,6 +94,8 @@ def _gap_free(positions: np.ndarray) -> np.ndarray:
     return kept[::step]
 
 
+# thousands of small solves (scores, lost markers): BLAS threads only contend (17x the CPU at 60 markers)
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                     counts: Sequence[int] = DEFAULT_COUNTS, methods: Sequence[str] = DEFAULT_METHODS,
                     regions: Mapping[str, Sequence[int]] | None = None, seed: int = 0,
