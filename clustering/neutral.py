@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Frames per block of :func:`max_displacement` (a few MB of temporaries at 200 markers).
+BLOCK_FRAMES = 4096
+
 
 def neutral_pose(positions: np.ndarray, *, rest_frames: np.ndarray | slice | None = None) -> np.ndarray:
     """Per-marker neutral position, mm.
@@ -43,7 +46,15 @@ def max_displacement(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     (markers,) float
         0 for a marker with no valid frame.
     """
-    dist = np.linalg.norm(np.asarray(positions, dtype=np.float64) - neutral[None], axis=2)
-    dist = np.where(np.isfinite(dist), dist, -np.inf)
-    out = dist.max(axis=0, initial=-np.inf)
-    return np.where(np.isfinite(out), out, 0.0)
+    pos = np.asarray(positions, dtype=np.float64)
+    squared = np.full(pos.shape[1], -np.inf)
+    for start in range(0, pos.shape[0], BLOCK_FRAMES):  # blocks: no (frames, markers, 3) temporaries
+        d = pos[start:start + BLOCK_FRAMES] - neutral[None]
+        d *= d
+        sq = d[..., 0] + d[..., 1]  # the sum np.linalg.norm takes, in its order
+        sq += d[..., 2]
+        sq[sq == np.inf] = np.nan  # an infinite sample is no valid frame
+        np.fmax(squared, np.fmax.reduce(sq, axis=0, initial=-np.inf), out=squared)
+    seen = squared > -np.inf
+    # sqrt is monotonic and correctly rounded: the root of the largest square is the largest norm
+    return np.where(seen, np.sqrt(np.where(seen, squared, 0.0)), 0.0)
