@@ -157,7 +157,8 @@ def check_options(options: ClusterOptions, n_frames: int, *, source: str | None 
 
 def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOptions(),
                     source: dict[str, Any] | None = None,
-                    progress: Callable[[str], None] | None = None) -> ClusterResult:
+                    progress: Callable[[str], None] | None = None,
+                    neutral: np.ndarray | None = None) -> ClusterResult:
     """Compute the layout of a dense session.
 
     Parameters
@@ -169,6 +170,9 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         ``path``/``sha256`` of the input file, stored in the layout's ``source``.
     progress : callable, optional
         Called with a short description as each region is processed.
+    neutral : (markers, 3) float, optional
+        :func:`neutral_pose` of ``traj`` as given, mm, when the caller has it (the face check's):
+        one median pass over the frames less unless the head motion is removed.
     """
     file = traj.metadata.get("source")  # errors about the session's data name it
     check_options(options, traj.n_frames, source=file)
@@ -180,6 +184,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         notes.append(f"{len(excluded)} markers have no data at all and are left out: "
                      + ", ".join(excluded[:8]) + (" ..." if len(excluded) > 8 else ""))
         traj = traj.select([label for label, ok in zip(traj.labels, seen) if ok])
+        neutral = None if neutral is None else np.asarray(neutral)[seen]
     if traj.n_markers < 2:
         raise source_error(file, f"need at least 2 markers with data, the session has {traj.n_markers}")
     stabilization: dict[str, Any] = {}
@@ -188,7 +193,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
             progress("stabilizing")
         traj, stabilization = stabilize(traj, rigid=options.rigid)  # not applied: see stabilization_note
     labels = list(traj.labels)
-    neutral = neutral_pose(traj.positions)
+    if neutral is None or stabilization.get("applied"):
+        neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
 
     if options.regions is not None:

@@ -136,8 +136,9 @@ def check_face(labels: Sequence[str], neutral: np.ndarray, *, mm_per_file_unit: 
     return FaceCheck(span, advice, "; ".join(reasons) or None)
 
 
-def check_session(traj: Trajectories) -> FaceCheck:
-    """:func:`check_face` of a session as read (its neutral pose; units from its metadata)."""
+def check_session(traj: Trajectories, *, neutral: np.ndarray | None = None) -> FaceCheck:
+    """:func:`check_face` of a session as read (its neutral pose, ``neutral`` (markers, 3) mm
+    when the caller has it; units from its metadata)."""
     from ..acquisition.text_io import mm_per_unit
     from .neutral import neutral_pose
 
@@ -147,8 +148,9 @@ def check_session(traj: Trajectories) -> FaceCheck:
         scale = mm_per_unit(units)
     except MocaptkError:  # "mixed" units of a Vicon CSV: no advice in file units
         scale = 1.0
-    with np.errstate(all="ignore"):
-        neutral = neutral_pose(traj.positions)
+    if neutral is None:
+        with np.errstate(all="ignore"):
+            neutral = neutral_pose(traj.positions)
     return check_face(traj.labels, neutral, mm_per_file_unit=scale, units=units,
                       assumed=bool(meta.get("units_assumed")),
                       text_file=meta.get("format") in ("trc", "vicon_csv", "generic_csv"))

@@ -29,13 +29,14 @@ def default_out_dir(session: Path) -> Path:
     return session.with_name(f"{session.stem}_layout")
 
 
-def warn_unless_face(traj, session: Path, *, regions_given: bool) -> None:
+def warn_unless_face(traj, session: Path, *, regions_given: bool, neutral=None) -> None:
     """Refuse a session that is no face capture (a warning only with ``--regions``); warn when its
-    size says the units are wrong (see clustering/sanity.py)."""
+    size says the units are wrong (see clustering/sanity.py; ``neutral``: the session's neutral
+    pose, if known)."""
     from ..clustering.sanity import check_session
     from ..errors import InputFileError
 
-    check = check_session(traj)
+    check = check_session(traj, neutral=neutral)
     if check.not_a_face:
         problem = (f"not a face capture: {check.not_a_face}; cluster lays out facial markers (regions, "
                    "sides and guide assume a face): give a facial session, or --regions FILE to cluster "
@@ -203,7 +204,14 @@ def cluster(
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
         traj, source = load_session(session, rate=rate, units=units)
-    warn_unless_face(traj, session, regions_given=regions is not None)
+    neutral = None
+    if len(sessions) == 1:  # one median pass for the face check and the layout
+        import numpy as np
+
+        from ..clustering.neutral import neutral_pose
+        with np.errstate(all="ignore"):
+            neutral = neutral_pose(traj.positions)
+    warn_unless_face(traj, session, regions_given=regions is not None, neutral=neutral)
     options = ClusterOptions(
         factor=factor, method=method, markers=markers, step=step, stabilize=not no_stabilize,
         mirror=mirror, rigid=rigid_labels(rigid), rig=rig,
@@ -215,7 +223,7 @@ def cluster(
             result = cluster_actors(actors, actor_sources, options=options, source=source,
                                     progress=lambda text: status.update(text))
         else:
-            result = cluster_session(traj, options=options, source=source,
+            result = cluster_session(traj, options=options, source=source, neutral=neutral,
                                      progress=lambda text: status.update(text))
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
