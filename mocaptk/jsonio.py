@@ -14,13 +14,20 @@ from .atomic import write_text
 from .errors import InputFileError, unreadable
 
 
+#: Types :func:`to_plain` returns unchanged (exact types: subclasses take the slow path).
+_UNCHANGED = (str, int, bool, type(None))
+#: Types the C encoder writes as :func:`dumps` does.
+_SCALARS = (*_UNCHANGED, float)
+
+
 def to_plain(value: Any, *, digits: int = 6) -> Any:
     """Convert numpy scalars/arrays, tuples and paths to JSON types; round floats.
 
     Non-finite floats become ``None`` (JSON has no NaN).
     """
-    if isinstance(value, dict):
-        return {str(k): to_plain(v, digits=digits) for k, v in value.items()}
+    if isinstance(value, dict):  # plain values without a call each (tens of thousands of gap records)
+        return {str(k): v if type(v) in _UNCHANGED else to_plain(v, digits=digits)
+                for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_plain(v, digits=digits) for v in value]
     if isinstance(value, np.ndarray):
@@ -67,6 +74,10 @@ def _encode(value: Any, indent: str) -> str:
                  for key in sorted(value))
         return "{\n" + ",\n".join(items) + "\n" + indent + "}"
     if isinstance(value, list) and any(isinstance(v, (dict, list)) for v in value):
+        if all(type(v) is dict and all(type(x) in _SCALARS for x in v.values()) for v in value):
+            # records of scalars: the C encoder's indented layout is this one (one item a line)
+            return json.dumps(value, ensure_ascii=False, allow_nan=False, indent=2, sort_keys=True,
+                              separators=(",", ": ")).replace("\n", "\n" + indent)
         inner = indent + "  "
         return "[\n" + ",\n".join(inner + _encode(v, inner) for v in value) + "\n" + indent + "]"
     return json.dumps(value, ensure_ascii=False, allow_nan=False, separators=(", ", ": "))
