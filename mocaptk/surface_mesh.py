@@ -249,9 +249,8 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
     edges, _ = mesh_edges(faces)
     if len(edges) == 0:
         return faces, edges
-    traj = np.asarray(trajectories, dtype=float)
     rest = np.linalg.norm(neutral[edges[:, 0]] - neutral[edges[:, 1]], axis=1)
-    length = np.linalg.norm(traj[:, edges[:, 0]] - traj[:, edges[:, 1]], axis=2)
+    length = edge_lengths(trajectories, edges)
     seen = np.isfinite(length).any(axis=0)
     stretch = np.ones(len(edges))
     with np.errstate(invalid="ignore"):
@@ -266,6 +265,26 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
     index = np.vectorize(lambda a, b: key[int(a) * n + int(b)])(corners[..., 0], corners[..., 1])
     return remove_triangles(faces, cut[index].any(axis=1), cost=stretch[index].max(axis=1),
                             n_vertices=n), edges[cut]
+
+
+#: Frames per block of :func:`edge_lengths` (its (frames, edges, 3) gathers stay in cache).
+EDGE_BLOCK_FRAMES = 256
+
+
+def edge_lengths(trajectories: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Length (F, E) mm of each edge ``edges`` (E, 2) in each frame of ``trajectories`` (F, M, 3)
+    mm (NaN where an end is missing); the values of ``np.linalg.norm`` (same sum order)."""
+    traj = np.asarray(trajectories, dtype=float)
+    length = np.empty((traj.shape[0], len(edges)))
+    for start in range(0, traj.shape[0], EDGE_BLOCK_FRAMES):
+        block = traj[start:start + EDGE_BLOCK_FRAMES]
+        d = block[:, edges[:, 0]] - block[:, edges[:, 1]]
+        d *= d
+        out = length[start:start + EDGE_BLOCK_FRAMES]
+        np.add(d[..., 0], d[..., 1], out=out)
+        out += d[..., 2]
+        np.sqrt(out, out=out)
+    return length
 
 
 def remove_triangles(faces: np.ndarray, drop: np.ndarray, *, cost: np.ndarray,
