@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["SkinningError", "skin_vertices", "skinning_error"]
+__all__ = ["SkinningError", "distance_error", "skin_vertices", "skinning_error"]
 
 
 def skin_vertices(rest: np.ndarray, weight_index: np.ndarray, weight_value: np.ndarray,
@@ -57,7 +57,12 @@ def skinning_error(predicted: np.ndarray, truth: np.ndarray) -> SkinningError:
 
     ``predicted`` and ``truth`` (F, V, 3) mm; pairs with NaN in either are left out.
     """
-    dist = np.linalg.norm(np.asarray(predicted) - np.asarray(truth), axis=2)
+    return distance_error(np.linalg.norm(np.asarray(predicted) - np.asarray(truth), axis=2))
+
+
+def distance_error(dist: np.ndarray) -> SkinningError:
+    """:func:`skinning_error` of the distances ``dist`` (F, V) mm between predicted and true
+    positions (NaN: left out)."""
     ok = np.isfinite(dist)
     if not ok.any():
         return SkinningError(float("nan"), float("nan"), float("nan"), 0, 0)

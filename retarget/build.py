@@ -35,7 +35,7 @@ from ..clustering.neutral import max_displacement, neutral_pose
 from ..clustering.regions import face_frame
 from ..clustering.symmetry import SagittalPlane, mirror_label, side_tag
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
-from .animate import SkinningError, skin_vertices, skinning_error
+from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
@@ -196,8 +196,8 @@ def held_out_check(build: RigBuild, capture: Capture) -> dict[str, Any] | None:
         return None
     if missing:
         return None
-    check = marker_driven_error(build, cloud)
-    return {"capture": capture.name, **check.as_dict(), **skinning_by_region(build, cloud)}
+    check, by_region = skinning_check(build, cloud)
+    return {"capture": capture.name, **check.as_dict(), **by_region}
 
 
 def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray, *,
@@ -305,14 +305,16 @@ def _sagittal_plane(layout: Layout) -> SagittalPlane:
 
 def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None = None,
               landmarks: dict[str, int] | None = None, options: RigOptions = RigOptions(),
-              progress: Callable[[str], None] | None = None) -> RigBuild:
+              progress: Callable[[str], None] | None = None,
+              neutral: np.ndarray | None = None) -> RigBuild:
     """Skinned rig of ``layout`` on ``mesh`` (default: the dense marker surface).
 
-    ``session`` must be the (stabilized) session the layout was computed on. ``landmarks``
-    maps marker labels to vertex indices of ``mesh`` for its alignment.
+    ``session`` must be the (stabilized) session the layout was computed on; ``neutral`` its
+    neutral pose (markers, 3) mm when the caller has it. ``landmarks`` maps marker labels to
+    vertex indices of ``mesh`` for its alignment.
     """
     say = progress or (lambda _: None)
-    cloud = dense_cloud(layout, session)
+    cloud = dense_cloud(layout, session, neutral=neutral)
     reps = [c.representative for c in layout.clusters]
     rep_idx = cloud.index(reps)
     members = [cloud.index(c.members) for c in layout.clusters]
@@ -390,7 +392,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     say("checking by animation")
     build = RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment,
                      SkinningError(float("nan"), float("nan"), float("nan"), 0, 0))
-    check = marker_driven_error(build)
+    check, by_region = skinning_check(build)
     quality = mesh_quality(vertices, faces)
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
@@ -411,7 +413,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         "mirrored_dense_markers": int((~cloud.captured).sum()),
         "marker_spacing_mm": spacing,
         "frame_rotation": cloud.rotation,
-        "skinning_check": {**check.as_dict(), **skinning_by_region(build)},
+        "skinning_check": {**check.as_dict(), **by_region},
     }
     return RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment, check,
                     report)
@@ -432,11 +434,13 @@ def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
     return skinning_error(predicted, target)
 
 
-def skinning_by_region(build: RigBuild, cloud: DenseCloud | None = None) -> dict[str, Any]:
-    """The marker-driven check of :func:`marker_driven_error` per region, and its worst case.
+def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
+                   ) -> tuple[SkinningError, dict[str, Any]]:
+    """The marker-driven check of :func:`marker_driven_error`, overall and per region with its
+    worst case, from one skinning pass over the frames.
 
-    Returns ``{"regions": {region: {"rmse_mm", "max_mm", "markers"}}, "worst_markers": [...]``
-    (the 5 dense markers with the largest RMSE: label, region, rmse, max, frame of the max)
+    Returns the overall :class:`SkinningError` and
+    ``{"regions": {region: {"rmse_mm", "max_mm", "markers"}}, "worst_markers": [...]`` (the 5 dense markers with the largest RMSE: label, region, rmse, max, frame of the max)
     ``, "max": {"marker", "region", "frame", "error_mm", "layout_distance_mm"}}``: where the
     largest error happens, and how far that marker is from the nearest layout marker.
     """
@@ -465,11 +469,12 @@ def skinning_by_region(build: RigBuild, cloud: DenseCloud | None = None) -> dict
     row, col = np.unravel_index(int(np.argmax(filled)), filled.shape)
     layout_positions = build.cloud.neutral[build.cloud.index(build.layout.labels)]
     marker_neutral = build.cloud.neutral[build.cloud.index([labels[col]])][0]
-    return {"regions": regions, "worst_markers": worst,
-            "max": {"marker": labels[col], "region": names[col], "frame": int(frames[row]),
-                    "error_mm": float(filled[row, col]),
-                    "layout_distance_mm": float(np.linalg.norm(layout_positions - marker_neutral,
-                                                               axis=1).min())}}
+    summary = {"regions": regions, "worst_markers": worst,
+               "max": {"marker": labels[col], "region": names[col], "frame": int(frames[row]),
+                       "error_mm": float(filled[row, col]),
+                       "layout_distance_mm": float(np.linalg.norm(layout_positions - marker_neutral,
+                                                                  axis=1).min())}}
+    return distance_error(dist), summary
 
 
 def _marker_prediction(build: RigBuild, cloud: DenseCloud | None,
@@ -559,14 +564,15 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
                       landmarks: dict[str, int] | None = None,
                       options: RigOptions = RigOptions(), formats: Sequence[str] = FORMATS,
                       title: str = "", force: bool = False, captures: Sequence[Capture] = (),
-                      progress: Callable[[str], None] | None = None) -> tuple[RigBuild, dict[str, Path]]:
+                      progress: Callable[[str], None] | None = None,
+                      neutral: np.ndarray | None = None) -> tuple[RigBuild, dict[str, Path]]:
     """Build the rig and write ``rig.json``/``rig.fbx``/``rig.glb`` (as ``formats`` asks),
     ``guide.pdf``, ``guide_front.png``, ``guide_profile.png`` and ``rig_report.json`` into
     ``out_dir``. Existing files are refused unless ``force``.
 
     ``captures`` are baked onto the rig one after the other (their takes become clips) and
     keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
-    lists the takes and every filled gap."""
+    lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known."""
     from mocaptk.atomic import check_writable
     from mocaptk.jsonio import write_json
 
@@ -592,7 +598,7 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         check_writable(target, force=force)
     mesh = load_mesh(mesh_path) if mesh_path is not None else None
     build = build_rig(layout, session, mesh=mesh, landmarks=landmarks, options=options,
-                      progress=progress)
+                      progress=progress, neutral=neutral)
     say = progress or (lambda _: None)
     animation = None
     if captures:

@@ -202,5 +202,6 @@ def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influenc
             layout, result.trajectories, folder, mesh_path=mesh,
             options=rig_options(max_influences, None, False, 1), formats=chosen,
             title=f"{layout.source.get('path', '')} factor {layout.parameters.get('factor')}",
-            force=True, captures=captures, progress=lambda text: status.update(text))
+            force=True, captures=captures, progress=lambda text: status.update(text),
+            neutral=result.neutral)
     return build
