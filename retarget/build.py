@@ -226,6 +226,10 @@ def rig_frame_rotation(neutral: np.ndarray, displacement: np.ndarray, *,
     return snapped
 
 
+#: Frames per block of :func:`dense_cloud` (a few MB of temporaries at a few hundred markers).
+CLOUD_BLOCK_FRAMES = 1024
+
+
 def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray | None = None,
                 neutral: np.ndarray | None = None) -> DenseCloud:
     """The session's markers (+ mirrored ones the layout needs), rotated into the rig frame.
@@ -238,9 +242,11 @@ def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray |
     neutral = neutral_pose(positions) if neutral is None else np.asarray(neutral, dtype=float)
     seen = np.isfinite(neutral).all(axis=1)
     labels = [label for label, ok in zip(session.labels, seen) if ok]
-    positions, neutral = positions[:, seen], neutral[seen]
+    own = np.flatnonzero(seen)
+    neutral = neutral[seen]
     captured = np.ones(len(labels), bool)
     mirrored = [c for c in layout.clusters if c.mirrored_from is not None]
+    src = np.zeros(0, dtype=np.int64)
     if mirrored:
         plane = _sagittal_plane(layout)
         lookup = {label: i for i, label in enumerate(labels)}
@@ -255,17 +261,24 @@ def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray |
                               + ", ".join(unknown[:6]))
         new = sorted(wanted)
         src = np.array([sources[m] for m in new], dtype=np.int64)
-        positions = np.concatenate([positions, plane.mirror(positions[:, src])], axis=1)
         neutral = np.concatenate([neutral, plane.mirror(neutral[src])])
         labels += new
         captured = np.concatenate([captured, np.zeros(len(new), bool)])
+    # filled block by block: no whole-session temporaries (gathers, mirror, concatenation)
+    cloud = np.empty((positions.shape[0], len(labels), 3))
+    for start in range(0, positions.shape[0], CLOUD_BLOCK_FRAMES):
+        block = cloud[start:start + CLOUD_BLOCK_FRAMES]
+        block[:, :own.size] = positions[start:start + CLOUD_BLOCK_FRAMES, own]
+        if src.size:
+            block[:, own.size:] = plane.mirror(block[:, src])
     if rotation is None:
-        plane = layout.extra.get("sagittal_plane")
-        lateral = np.asarray(plane["normal"], float) if isinstance(plane, dict) else None
-        rotation = rig_frame_rotation(neutral, max_displacement(positions, neutral),
-                                      lateral=lateral)
-    return DenseCloud(tuple(labels), positions @ rotation.T, neutral @ rotation.T, captured,
-                      rotation)
+        plane_dict = layout.extra.get("sagittal_plane")
+        lateral = np.asarray(plane_dict["normal"], float) if isinstance(plane_dict, dict) else None
+        rotation = rig_frame_rotation(neutral, max_displacement(cloud, neutral), lateral=lateral)
+    for start in range(0, cloud.shape[0], CLOUD_BLOCK_FRAMES):  # each frame's product as before
+        block = cloud[start:start + CLOUD_BLOCK_FRAMES]
+        block[...] = block @ rotation.T
+    return DenseCloud(tuple(labels), cloud, neutral @ rotation.T, captured, rotation)
 
 
 def _weight_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
