@@ -11,7 +11,8 @@ Pages (A4 portrait; the 1:1 page grows to A3 if the face does not fit):
    (a leader line joins a label moved away from a crowded marker);
 4+. the marker table, pairs together: name, rig joint, label, region, side, position from the
    nose tip (mm right/left of the midline, above/below the tip, in front/behind) and every dense
-   marker it replaces (its cluster; the count, then the labels, wrapped).
+   marker it replaces (its cluster; the count, then the labels, wrapped; past
+   :data:`REPLACES_MAX_LINES` lines the first labels and how many more).
 
 Names: a marker and its mirror image share a number, told apart by side (``16L`` / ``16R``), so a
 technician places pairs together; other markers have a plain number. Numbers follow the layout
@@ -45,6 +46,8 @@ BARS_ZONE = 75.0
 #: 1:1 page: marker dot radius and the label font size (pt; a digit is ~1.4 mm wide, 2.6 mm high).
 DOT_MM = 1.5
 LABEL_PT = 7
+#: Table rows list at most this many lines of replaced dense markers (the rest is counted).
+REPLACES_MAX_LINES = 40
 #: Creation date written into the PDF, fixed so the same input gives the same bytes.
 _FIXED_DATE = datetime.datetime(2024, 1, 1, tzinfo=datetime.timezone.utc)
 
@@ -343,8 +346,7 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
         while rows:
             m = rows[0]
             lateral, vertical, depth = _describe(m.from_nose)
-            shown = f"{len(m.replaces)}: " + ", ".join(m.replaces) if m.replaces else "-"
-            lines = _wrap(pdf, _ascii(shown), cols[-1][1] - 1)
+            lines = _replaces_lines(pdf, m.replaces, cols[-1][1] - 1)
             row_h = line_h * len(lines) + 1.2
             if y + row_h > height - MARGIN:
                 break
@@ -362,6 +364,28 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
                 pdf.set_xy(x, y + 0.6 + i * line_h)
                 pdf.cell(cols[-1][1], line_h, line)
             y += row_h
+
+
+def _replaces_lines(pdf, replaces: Sequence[str], width: float, *,
+                    max_lines: int = REPLACES_MAX_LINES) -> list[str]:
+    """The 'replaces' cell: count and labels wrapped to ``width`` mm; past ``max_lines`` lines the
+    first labels, then how many more (a row taller than a page would never be placed)."""
+    if not replaces:
+        return ["-"]
+    lines = _wrap(pdf, _ascii(f"{len(replaces)}: " + ", ".join(replaces)), width)
+    if len(lines) <= max_lines:
+        return lines
+    shown = [""]
+    for k, label in enumerate(replaces):  # whole labels, filling max_lines - 1 lines
+        word = (f"{len(replaces)}: " if k == 0 else "") + _ascii(label) + ","
+        trial = f"{shown[-1]} {word}" if shown[-1] else word
+        if pdf.get_string_width(trial) <= width or not shown[-1]:
+            shown[-1] = trial
+        elif len(shown) < max_lines - 1:
+            shown.append(word)
+        else:
+            return shown + [f"... and {len(replaces) - k} more (layout.json lists them all)"]
+    return shown
 
 
 def _wrap(pdf, text: str, width: float) -> list[str]:

@@ -190,3 +190,22 @@ def test_regions_picture_keeps_its_axis_labels_inside(tmp_path):
     image = mpimg.imread(tmp_path / "regions.png")[..., :3].mean(axis=2)
     assert (image[:, :3] > 0.95).all() and (image[:, -3:] > 0.95).all()  # nothing cut at the edges
     assert (image[:, 3:40] < 0.5).any()  # and the y label is there
+
+
+def test_replaces_column_of_a_huge_cluster_is_cut_with_a_count(tmp_path, guide):
+    """A 10,000-marker session's cluster replaces over 1,000 markers: its row must still fit a
+    page (it used to be retried on new pages forever)."""
+    folder, _, rows = guide
+    many = tuple(f"DENSE_MARKER_{k:04d}_L" for k in range(2000))
+    first = dataclasses.replace(rows[0], replaces=many)
+    pdf = write_guide_pdf(tmp_path / "g.pdf", [first, *rows[1:]], front_png=folder / "front.png",
+                          profile_png=folder / "profile.png", outline=np.array([r.position for r in rows]),
+                          title="huge")
+    if shutil.which("pdftotext") is None:
+        pytest.skip("poppler-utils (pdftotext) not installed")
+    text = subprocess.run(["pdftotext", str(pdf), "-"], capture_output=True, text=True,
+                          check=True).stdout
+    shown = [label for label in many if label in text]
+    assert 50 < len(shown) < len(many) and shown == list(many[:len(shown)])
+    assert f"and {len(many) - len(shown)} more (layout.json lists them all)" in text
+    assert text.count("\f") < 12  # a handful of pages, not one per retry
