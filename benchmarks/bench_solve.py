@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 ICT = SHARED / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
 BLENDERFACE = SHARED / "facial_mocap" / "blenderface"
-KINDS = ("ridge", "local-ridge", "thin-shell", "pdm-linear", "pdm-biquadratic")
+KINDS = ("ridge", "local-ridge", "tapered-ridge", "thin-shell", "pdm-linear", "pdm-biquadratic")
 
 
 def kmeans(positions: np.ndarray, count: int) -> np.ndarray:

@@ -23,6 +23,13 @@ Kinds (``MODEL_KINDS``):
   local model cannot (docs/solve.md measures it). A marker whose neighbourhood is lost (its nearest
   present layout marker more than 2x farther than its nearest layout marker) falls back to the
   global ridge.
+- ``tapered-ridge`` (ours, default): ``ridge`` from a covariance localised by marker distance, as
+  ensemble Kalman filters do: each 3x3 block of the training covariance is multiplied by the
+  Gaspari–Cohn taper (compact support, positive definite in 3-D) of the two markers' neutral
+  distance, so far markers stop explaining each other smoothly instead of at a hard neighbour
+  count. The taper length is chosen by leave-one-block-out cross-validation on the training
+  frames (``CV_BLOCKS`` contiguous blocks: a session records its takes one after another), from
+  ``TAPER_RADII`` times the neutral's RMS radius and no taper (= ``ridge``).
 
 Every prediction carries a per-frame expected error (mm): the model's RMS error over the dense
 markers on (up to 200) training frames with every layout marker present, plus, per missing layout
@@ -54,20 +61,24 @@ from .neutral import neutral_pose
 
 __all__ = [
     "DEFAULT_KIND", "DEFAULT_RIDGE", "MODEL_FORMAT", "MODEL_KINDS", "MODEL_VERSION", "FaceModel",
-    "Prediction", "ReconstructionModel", "batched_ridge", "check_frames", "fit_model",
-    "fit_reconstruction", "load_model", "model_from_arrays", "row_patterns", "save_model",
+    "Prediction", "ReconstructionModel", "TaperedRidgeModel", "batched_ridge", "check_frames", "fit_model",
+    "fit_reconstruction", "gaspari_cohn", "load_model", "model_from_arrays", "row_patterns", "save_model",
 ]
 
 #: Default ridge strength, relative to the mean diagonal of the input Gram matrix.
 DEFAULT_RIDGE = 1e-3
-MODEL_KINDS = ("ridge", "local-ridge", "thin-shell", "pdm-linear", "pdm-biquadratic")
+MODEL_KINDS = ("ridge", "local-ridge", "tapered-ridge", "thin-shell", "pdm-linear", "pdm-biquadratic")
 #: The kind ``mocaptk solve`` uses without ``--model-kind`` (the best on held-out data, docs/solve.md).
-DEFAULT_KIND = "local-ridge"
+DEFAULT_KIND = "tapered-ridge"
 #: Layout markers each dense marker is solved from in ``local-ridge``.
 LOCAL_NEIGHBOURS = 4
 #: ... unless its nearest present one is this many times farther than its nearest layout marker.
 LOCAL_REACH = 2.0
 MODEL_FORMAT, MODEL_VERSION = "mocaptk.model", 1
+#: ``tapered-ridge``: taper lengths tried (times the neutral's RMS radius; inf = no taper) and
+#: the contiguous blocks of training frames each left out once to choose among them.
+TAPER_RADII = (0.5, 0.8, 1.2, 1.6, 2.4, 3.2, np.inf)
+CV_BLOCKS = 6
 #: Ridge strength of the detail polynomials, relative to the mean diagonal of their Gram matrix.
 DETAIL_RIDGE = 1e-2
 #: Training frames used to measure the expected error (evenly subsampled).
@@ -355,14 +366,15 @@ class RidgeModel(FaceModel):
 
     def submodel(self, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(W (3K, 3M), b (3M,)) from the present layout markers ``pattern`` (L,) bool."""
-        def make() -> tuple[np.ndarray, np.ndarray]:
-            cols = (3 * self.layout[pattern][:, None] + np.arange(3)).ravel()
-            gram = self.cov[np.ix_(cols, cols)].copy()
-            lam = self.ridge * max(float(np.trace(gram)) / cols.size, 1e-12)
-            gram[np.diag_indices_from(gram)] += lam
-            coef = np.linalg.solve(gram, self.cov[cols])
-            return coef, self.mean - self.mean[cols] @ coef
-        return self._cache.get_or(b"global" + pattern.tobytes(), make)
+        return self._cache.get_or(b"global" + pattern.tobytes(), lambda: self._pattern_ridge(self.cov, pattern))
+
+    def _pattern_ridge(self, cov: np.ndarray, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cols = (3 * self.layout[pattern][:, None] + np.arange(3)).ravel()
+        gram = cov[np.ix_(cols, cols)].copy()
+        lam = self.ridge * max(float(np.trace(gram)) / cols.size, 1e-12)
+        gram[np.diag_indices_from(gram)] += lam
+        coef = np.linalg.solve(gram, cov[cols])
+        return coef, self.mean - self.mean[cols] @ coef
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         return _affine(x, *self.submodel(pattern), self.n_markers)
@@ -370,6 +382,15 @@ class RidgeModel(FaceModel):
     def _arrays(self) -> dict[str, np.ndarray]:
         return {"mean": self.mean, "cov": self.cov, "frames": np.array(self.frames),
                 "ridge": np.array(self.ridge)}
+
+
+def _beyond_reach(neutral: np.ndarray, layout: np.ndarray, pattern: np.ndarray) -> np.ndarray:
+    """(M,) bool: dense markers whose nearest present layout marker (``pattern`` (L,) bool) is
+    more than ``LOCAL_REACH`` times farther than their nearest layout marker (neutral (M, 3) mm):
+    their neighbourhood is lost, a local model has nothing near to read."""
+    points = np.nan_to_num(neutral, nan=np.inf)
+    dist = np.linalg.norm(points[:, None] - points[layout][None], axis=2)
+    return dist[:, pattern].min(axis=1) > LOCAL_REACH * np.maximum(dist.min(axis=1), 1e-9)
 
 
 class LocalRidgeModel(RidgeModel):
@@ -406,9 +427,7 @@ class LocalRidgeModel(RidgeModel):
             coef = batched_ridge(self.cov[cols[:, :, None], cols[:, None, :]],
                                  self.cov[cols[:, :, None], targets[:, None, :]], self.ridge)
             offset = self.mean[targets] - np.einsum("mk,mkc->mc", self.mean[cols], coef)
-            full = np.linalg.norm(neutral[:, None] - neutral[self.layout][None], axis=2).min(axis=1)
-            lost = dist.min(axis=1) > LOCAL_REACH * np.maximum(full, 1e-9)
-            return near, coef, offset, lost
+            return near, coef, offset, _beyond_reach(self.neutral, self.layout, pattern)
         return self._cache.get_or(pattern.tobytes(), make)
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -421,6 +440,92 @@ class LocalRidgeModel(RidgeModel):
 
     def _arrays(self) -> dict[str, np.ndarray]:
         return {**super()._arrays(), "neighbours": np.array(self.neighbours)}
+
+
+def gaspari_cohn(distance: np.ndarray, length: float) -> np.ndarray:
+    """Gaspari & Cohn's (1999) compactly supported correlation (5th-order piecewise rational) of
+    ``distance`` (any shape, mm): 1 at 0, 0 beyond ``2 * length``; ``length`` inf gives 1."""
+    z = np.abs(distance) / length
+    out = np.zeros_like(z, dtype=np.float64)
+    near, far = z <= 1, (z > 1) & (z < 2)
+    a, b = z[near], z[far]
+    out[near] = -0.25 * a ** 5 + 0.5 * a ** 4 + 0.625 * a ** 3 - 5 / 3 * a ** 2 + 1
+    out[far] = b ** 5 / 12 - 0.5 * b ** 4 + 0.625 * b ** 3 + 5 / 3 * b ** 2 - 5 * b + 4 - 2 / (3 * b)
+    return out
+
+
+class TaperedRidgeModel(RidgeModel):
+    """``ridge`` on the training covariance ``cov`` tapered by marker distance (``taper_mm``,
+    chosen by cross-validation on the training frames; ``cv_rmse_mm`` per tried length). A dense
+    marker whose neighbourhood is lost (as in ``local-ridge``) is solved by the untapered ridge:
+    the taper has cut the far markers that still carry it (the jaw when the lower lip is gone)."""
+
+    kind = "tapered-ridge"
+
+    def __init__(self, *, taper_mm: float, cv_lengths_mm: np.ndarray, cv_rmse_mm: np.ndarray,
+                 **stats: Any) -> None:
+        super().__init__(**stats)
+        self.taper_mm = float(taper_mm)
+        self.cv_lengths_mm, self.cv_rmse_mm = cv_lengths_mm, cv_rmse_mm
+        self.tapered = self.cov * self.taper(self.neutral, self.taper_mm)
+
+    def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+        coef, offset = self._cache.get_or(b"tapered" + pattern.tobytes(),
+                                          lambda: self._pattern_ridge(self.tapered, pattern))
+        out = _affine(x, coef, offset, self.n_markers)
+        lost = self._cache.get_or(b"reach" + pattern.tobytes(),
+                                  lambda: _beyond_reach(self.neutral, self.layout, pattern))
+        if lost.any():
+            out[:, lost] = super()._solve(pattern, x)[:, lost]
+        return out
+
+    @staticmethod
+    def taper(neutral: np.ndarray, length: float) -> np.ndarray:
+        """(3M, 3M) taper of the neutral markers (M, 3) mm at ``length`` mm (per 3x3 block)."""
+        points = np.nan_to_num(neutral, nan=0.0)
+        distance = np.linalg.norm(points[:, None] - points[None], axis=2)
+        return np.kron(gaspari_cohn(distance, length), np.ones((3, 3)))
+
+    @classmethod
+    def fit(cls, train: np.ndarray, layout: np.ndarray, *, ridge: float) -> TaperedRidgeModel:
+        stats = RidgeModel.fit(train, layout, ridge=ridge)
+        seen = stats.neutral[np.isfinite(stats.neutral).all(axis=1)]
+        radius = float(np.sqrt(np.mean(np.sum((seen - seen.mean(axis=0)) ** 2, axis=1))))
+        lengths = np.array(TAPER_RADII) * radius
+        scores = _taper_cv(train, layout, stats.neutral, lengths, ridge)
+        best = float(lengths[int(np.argmin(scores))])
+        return cls(layout=layout, neutral=stats.neutral, mean=stats.mean, cov=stats.cov,
+                   frames=stats.frames, ridge=ridge, taper_mm=best, cv_lengths_mm=lengths,
+                   cv_rmse_mm=scores)
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {**super()._arrays(), "taper_mm": np.array(self.taper_mm),
+                "cv_lengths_mm": self.cv_lengths_mm, "cv_rmse_mm": self.cv_rmse_mm}
+
+
+def _taper_cv(train: np.ndarray, layout: np.ndarray, neutral: np.ndarray, lengths: np.ndarray,
+              ridge: float) -> np.ndarray:
+    """RMSE (mm, every dense marker) per taper length of leaving each of ``CV_BLOCKS`` contiguous
+    blocks of the gap-free training frames out (fitted on the rest, every layout marker present)."""
+    flat = train.reshape(train.shape[0], -1)
+    data = flat[np.isfinite(flat).all(axis=1)]
+    bounds = np.linspace(0, len(data), min(CV_BLOCKS, len(data) // 2) + 1).astype(int)
+    cols = (3 * layout[:, None] + np.arange(3)).ravel()
+    tapers = [TaperedRidgeModel.taper(neutral, length)[cols] for length in lengths]
+    squared = np.zeros(len(lengths))
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        kept = np.r_[data[:start], data[stop:]]
+        mean = kept.mean(axis=0)
+        centred = kept - mean
+        cross = centred[:, cols].T @ centred  # (3L, 3M): all the ridge solve needs
+        held = data[start:stop]
+        for i, taper in enumerate(tapers):
+            tapered = cross * taper
+            gram = tapered[:, cols]
+            lam = ridge * max(float(np.trace(gram)) / cols.size, 1e-12)
+            coef = np.linalg.solve(gram + lam * np.eye(cols.size), tapered)
+            squared[i] += np.sum(((held[:, cols] - mean[cols]) @ coef + mean - held) ** 2)
+    return np.sqrt(squared / (len(data) * neutral.shape[0]))
 
 
 class ThinShellModel(FaceModel):
@@ -667,6 +772,8 @@ def fit_model(train: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *, kind
         model = ThinShellModel.fit(train, layout)
     elif kind == "local-ridge":
         model = LocalRidgeModel.fit(train, layout, ridge=ridge, neighbours=neighbours)
+    elif kind == "tapered-ridge":
+        model = TaperedRidgeModel.fit(train, layout, ridge=ridge)
     elif kind in ("pdm-linear", "pdm-biquadratic"):
         model = DetailModel.fit(kind, train, layout)
     else:
@@ -689,6 +796,9 @@ def model_from_arrays(kind: str, arrays: Mapping[str, np.ndarray]) -> FaceModel:
         model: FaceModel = RidgeModel(**stats)
     elif kind == "local-ridge":
         model = LocalRidgeModel(**stats, neighbours=int(a["neighbours"]))
+    elif kind == "tapered-ridge":
+        model = TaperedRidgeModel(**stats, taper_mm=float(a["taper_mm"]),
+                                  cv_lengths_mm=a["cv_lengths_mm"], cv_rmse_mm=a["cv_rmse_mm"])
     elif kind in ("thin-shell", "pdm-linear", "pdm-biquadratic"):
         surface = ThinShellModel(layout=layout, neutral=neutral, faces=a["faces"].astype(np.intp))
         if kind == "thin-shell":

@@ -9,8 +9,9 @@ from mocaptk.acquisition.formats import read_trajectories
 from mocaptk.clustering.baselines import kmeans_layout
 from mocaptk.clustering.evaluation import evaluate_layout
 from mocaptk.clustering.neutral import neutral_pose
-from mocaptk.clustering.reconstruction_models import (MODEL_KINDS, fit_model, fit_reconstruction,
-                                                      load_model, save_model)
+from mocaptk.clustering.reconstruction_models import (DEFAULT_KIND, MODEL_KINDS, TaperedRidgeModel,
+                                                      fit_model, fit_reconstruction, load_model,
+                                                      save_model)
 from mocaptk.errors import InputFileError
 
 from conftest import SAMPLES
@@ -73,6 +74,22 @@ def test_every_kind_solves_the_held_out_performance(sample, models):
     assert scores["pdm-linear"] < scores["thin-shell"]
     assert scores["pdm-biquadratic"] < scores["thin-shell"]
     assert scores["local-ridge"] < 0.9 * scores["ridge"]
+    assert scores[DEFAULT_KIND] < 0.9 * scores["ridge"]
+
+
+def test_tapered_ridge_chooses_a_finite_taper_by_cross_validation(sample, models):
+    train, test, layout = sample
+    model = models["tapered-ridge"]
+    # the training frames' own cross-validation localises (no taper = the global ridge loses)
+    assert np.isfinite(model.taper_mm) and model.cv_rmse_mm.min() < 0.95 * model.cv_rmse_mm[-1]
+    assert not np.isfinite(model.cv_lengths_mm[-1])
+    # without a taper the model is the global ridge
+    untapered = TaperedRidgeModel(layout=model.layout, neutral=model.neutral, mean=model.mean,
+                                  cov=models["ridge"].cov,
+                                  frames=model.frames, ridge=model.ridge, taper_mm=np.inf,
+                                  cv_lengths_mm=model.cv_lengths_mm, cv_rmse_mm=model.cv_rmse_mm)
+    np.testing.assert_allclose(untapered.predict_positions(test[:, layout]),
+                               models["ridge"].predict_positions(test[:, layout]), atol=1e-9)
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)

@@ -64,8 +64,9 @@ def solve(
                                  "one recorded in layout.json, looked up beside it)."),
     model: Path = typer.Option(None, "--model", help="A model.npz saved by an earlier solve "
                                "(must come from the layout's session)."),
-    model_kind: str = typer.Option(None, "--model-kind", help="ridge, local-ridge (default, the "
-                                   "best on held-out data), thin-shell, pdm-linear, pdm-biquadratic."),
+    model_kind: str = typer.Option(None, "--model-kind", help="ridge, local-ridge, tapered-ridge "
+                                   "(default, the best on held-out data), thin-shell, pdm-linear, "
+                                   "pdm-biquadratic."),
     formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
                                 "usd, glb (clips up to 600 frames); dense.c3d is always written."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
