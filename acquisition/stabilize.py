@@ -50,7 +50,8 @@ class StabilizeResult:
     without a pose; ``rotations (F, 3, 3)`` and ``translations (F, 3)`` mm with
     ``x_f = R_f x_ref + t_f`` (NaN where fewer than 3 consistent rigid markers are seen);
     ``rigid_labels``: the markers used; ``rms_residual_mm (F,)``: RMS distance of the rigid
-    markers from the fitted rigid body; ``reference_frame``: index of the reference frame.
+    markers from the fitted rigid body; ``reference_frame``: index of the reference frame (-1: a
+    given reference shape).
     """
 
     trajectories: Trajectories
@@ -341,7 +342,8 @@ def _reference_frame(traj: Trajectories, rigid: np.ndarray, visible: np.ndarray,
 
 def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = None,
                    outlier_mm: float = 2.0, max_pose_gap: int = 10,
-                   pose_cutoff_hz: float | None = POSE_CUTOFF_HZ) -> StabilizeResult:
+                   pose_cutoff_hz: float | None = POSE_CUTOFF_HZ,
+                   reference: np.ndarray | None = None) -> StabilizeResult:
     """Remove rigid head motion: fit the rigid marker set in every frame, express all markers in head coordinates.
 
     Parameters
@@ -361,6 +363,10 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         (zero-phase Butterworth, :func:`~mocaptk.acquisition.filtering.lowpass`); ``None``, or a
         frame rate not above twice the cut-off: fitted to the raw markers. The stabilized output is
         never filtered, only the pose.
+    reference : (K, 3) mm, optional
+        The rigid markers' positions (``rigid_labels`` order) in the head frame to express the
+        output in, e.g. the training session's, so that a test or production capture lands in the
+        frame its models were made in; its ``reference_frame`` is then -1.
 
     Each frame uses only its visible rigid markers (≥ 3). The reference shape is the rigid set in the
     reference frame (the first clean frame with the most rigid markers, in a "neutral" take if
@@ -383,8 +389,16 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     visible = ~np.isnan(rigid).any(axis=2)
     if not visible.any():
         raise OptionError("the rigid markers are never visible")
-    ref_frame = _reference_frame(traj, rigid, visible, outlier_mm)
-    reference = rigid[ref_frame].copy()
+    given = reference is not None
+    if given:
+        reference = np.array(reference, dtype=float)
+        if reference.shape != (len(labels), 3) or not np.isfinite(reference).all():
+            raise OptionError(f"the stabilization reference must be ({len(labels)}, 3) finite mm, "
+                              f"got shape {reference.shape}")
+        ref_frame = -1
+    else:
+        ref_frame = _reference_frame(traj, rigid, visible, outlier_mm)
+        reference = rigid[ref_frame].copy()
     for _ in range(3):
         known = visible & ~np.isnan(reference).any(axis=1)
         # drop markers that left the rigid body in a frame (sliding skin, mislabels), keep >= 3
@@ -398,6 +412,8 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         rot, trans = kabsch(np.nan_to_num(reference), rigid, weights)
         # reference shape = mean head-relative position of each rigid marker over its inlier frames
         # (outliers are already out; a mean, unlike a per-axis median, does not depend on the axes)
+        if given:
+            break  # the frame to land in is fixed: one round of outlier rejection is all
         rel = _to_head(rigid, rot, trans)
         inlier = weights & ~np.isnan(rel).any(axis=2)
         for m in np.flatnonzero(inlier.any(axis=0)):
@@ -411,7 +427,7 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     rms[np.isnan(rot[:, 0, 0])] = np.nan
     # rotate back to the reference frame's own coordinates
     r0, t0 = rot[ref_frame].copy(), trans[ref_frame].copy()
-    if np.isfinite(r0).all():
+    if not given and np.isfinite(r0).all():
         rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
         trans = trans - np.einsum("fij,j->fi", rot, t0)
     _bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)

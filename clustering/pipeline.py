@@ -88,12 +88,16 @@ HEAD_RELATIVE_RMS_MM = 1.0
 RIGID_WITHOUT_STABILIZING = "--rigid names the markers to stabilize on; it cannot go with --no-stabilize"
 
 
-def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tuple[Trajectories, dict[str, Any]]:
+def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None,
+              reference: np.ndarray | None = None) -> tuple[Trajectories, dict[str, Any]]:
     """Remove rigid head motion (acquisition stage); returns the session and a report.
 
     ``rigid``: labels of the rigid head markers (default: detected automatically). A session that
     is already head-relative (its rigid set moves less than :data:`HEAD_RELATIVE_RMS_MM`) is
-    returned unchanged; the report says so.
+    returned unchanged; the report says so. ``reference`` (K, 3) mm: the ``rigid`` markers in the
+    head frame to land in (:func:`rigid_reference` of the training session), so that a test or
+    production capture is expressed in that session's frame (left unchanged when its rigid set
+    is already within :data:`HEAD_RELATIVE_RMS_MM` RMS of it).
     """
     try:
         from ..acquisition.stabilize import head_relative_markers, stabilize_head
@@ -104,17 +108,26 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None) -> tupl
     if still is not None:  # recognised before the rigid search and the full-length fit
         return traj, {"rigid_labels": list(still[0]), "applied": False,
                       "rigid_set_motion_rms_mm": still[1], "rms_residual_mm": None}
-    result = stabilize_head(traj, rigid_labels=rigid)
+    result = stabilize_head(traj, rigid_labels=rigid, reference=reference)
     residual = np.asarray(result.rms_residual_mm, dtype=np.float64)
     residual = residual[np.isfinite(residual)]
     rigid = traj.positions[:, traj.index(result.rigid_labels)]
-    offsets = np.linalg.norm(rigid - rigid[result.reference_frame], axis=2)
+    start = rigid[result.reference_frame] if reference is None else np.asarray(reference, float)
+    offsets = np.linalg.norm(rigid - start, axis=2)
     rigid_motion = float(np.sqrt(np.nanmean(offsets ** 2))) if np.isfinite(offsets).any() else 0.0
     applied = rigid_motion >= HEAD_RELATIVE_RMS_MM
     report = {"rigid_labels": list(result.rigid_labels), "applied": applied,
               "rigid_set_motion_rms_mm": rigid_motion,
               "rms_residual_mm": float(residual.mean()) if residual.size else None}
     return (result.trajectories if applied else traj), report
+
+
+def rigid_reference(session: Trajectories, rigid: Sequence[str]) -> np.ndarray:
+    """The ``rigid`` markers' neutral positions (K, 3) mm in ``session`` (stabilized or already
+    head-relative): the head frame a test or production capture is stabilized into."""
+    from .neutral import neutral_pose
+
+    return neutral_pose(session.positions[:, session.index(list(rigid))])
 
 
 def check_layout_options(*, method: str, markers: int | None, rig: str | None = None) -> None:
@@ -392,6 +405,6 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
     if missing:
         raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
     perf = perf.select(traj.labels)
-    if stabilized:
-        perf, _ = stabilize(perf, rigid=rigid)
+    if stabilized:  # into the session's head frame, not the test's own reference frame
+        perf, _ = stabilize(perf, rigid=rigid, reference=rigid_reference(traj, rigid))
     return traj, perf, source

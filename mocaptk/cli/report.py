@@ -94,8 +94,8 @@ def write_solve_report(path: Path, layout, solver, *, solved: Path, rigid, train
     from ..retarget.report import per_marker_rmse, solve_report, write_report
 
     motion = read_c3d(solved)
-    if rigid:
-        motion = stabilize(motion, rigid=rigid)[0]
+    if rigid:  # into the training session's head frame, the face's
+        motion = stabilize(motion, rigid=rigid, reference=solver.rigid_reference)[0]
     error = None if training is None else per_marker_rmse(solver.model.check_residuals(training.positions))
     model, frames, expected = summary["model"], summary["frames"], summary["expected_error_mm"]
     head = summary["head_motion"]

@@ -49,11 +49,14 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
     ``relative`` as the layout was computed on it) and each ``--animate`` file, stabilized on
     the layout's rigid set when the layout's session was (the bake ignores markers other than
     the layout's; the dense ones give the held-out skinning check)."""
-    from ..clustering.pipeline import load_session, stabilize
+    from ..clustering.pipeline import load_session, rigid_reference, stabilize
     from ..retarget.build import Capture
     from .evaluate import layout_rigid_set
 
     stabilized = bool(layout.parameters.get("stabilized")) and not no_stabilize
+    rigid = layout_rigid_set(layout)
+    # the performances land in the session's head frame, the rig's
+    reference = rigid_reference(relative, rigid) if stabilized and rigid else None
     captures = [Capture(Path(str(session.metadata.get("source") or "session")).stem, relative,
                         session if stabilized else None)]
     for path in performances:
@@ -64,7 +67,7 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
         if missing:
             raise InputFileError(path, f"lacks {len(missing)} layout markers: "
                                        f"{', '.join(missing[:5])}")
-        steady = stabilize(perf, rigid=layout_rigid_set(layout))[0] if stabilized else perf
+        steady = stabilize(perf, rigid=rigid, reference=reference)[0] if stabilized else perf
         captures.append(Capture(path.stem, steady, perf if stabilized else None))
     return captures
 

@@ -30,12 +30,14 @@ def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progres
     """``mocaptk rig --animate``'s rig files in ``staging/rig/``, keyed with the solved dense
     markers (``staging/dense.c3d``; head-relative copy when head motion was removed)."""
     from ..acquisition.c3d_read import read_c3d
-    from ..clustering.pipeline import stabilize
+    from ..clustering.pipeline import rigid_reference, stabilize
     from ..retarget.build import Capture, write_rig_outputs
     from .rig import rig_options
 
     solved = read_c3d(staging / "dense.c3d")
-    relative = stabilize(solved, rigid=rigid)[0] if rigid else solved
+    # into the session's head frame, the rig's
+    relative = stabilize(solved, rigid=rigid, reference=rigid_reference(session, rigid))[0] \
+        if rigid else solved
     write_rig_outputs(layout, session, staging / "rig", options=rig_options(4, None, False, 1),
                       formats=("json", "fbx", "glb"), title=f"solve {name}", force=True,
                       captures=[Capture(name, relative, solved if rigid else None)], progress=progress)
