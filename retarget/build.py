@@ -30,7 +30,7 @@ from mocaptk.surface_mesh import (SurfaceMesh, cut_openings, front_direction, ma
                                   marker_surface_mesh, mesh_quality)
 from mocaptk.trajectories import Trajectories
 
-from ..clustering.layout import Layout
+from ..clustering.layout import Cluster, Layout
 from ..clustering.neutral import max_displacement, neutral_pose
 from ..clustering.regions import face_frame
 from ..clustering.symmetry import SagittalPlane, mirror_label, side_tag
@@ -47,7 +47,7 @@ from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, 
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "dense_cloud", "ground_truth_error",
-           "guide_rows", "marker_driven_error", "mesh_ground_truth_error",
+           "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "write_rig_outputs"]
 
 #: Largest angle (degrees) between a face-frame axis and a coordinate axis for snapping.
@@ -330,7 +330,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     cloud = dense_cloud(layout, session, neutral=neutral)
     reps = [c.representative for c in layout.clusters]
     rep_idx = cloud.index(reps)
-    members = [cloud.index(c.members) for c in layout.clusters]
+    members = [cloud.index(m) for m in influence_members(layout.clusters)]
     spacing = marker_spacing(cloud.neutral)
     alignment = None
     cut = np.zeros((0, 2), dtype=np.int64)  # marker pairs across an opening (default mesh)
@@ -386,8 +386,10 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                  kb=options.kb)
     falloff = FALLOFF_SPACINGS * spacing if options.falloff_mm is None else float(options.falloff_mm)
     if not options.pure_thin_shell:
+        member_vertices = [dense_vertices[m] for m in members]
         weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
-                                                         falloff_mm=falloff))
+                                                         falloff_mm=falloff,
+                                                         members=member_vertices))
     nearest = np.argmin(np.linalg.norm(vertices[:, None] - vertices[joint_vertices][None], axis=2),
                         axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing)
@@ -557,15 +559,21 @@ def _subdivide(vertices: np.ndarray, faces: np.ndarray, times: int) -> tuple[np.
     return np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
 
 
-def guide_rows(build: RigBuild) -> list[GuideMarker]:
-    """Guide table rows of a built rig (numbers = layout order).
-
-    A mirrored marker replaces the mirror images of all its source's members, the midline ones
-    too (the layout file keeps a midline marker in its source cluster only)."""
-    clusters = build.layout.clusters
+def influence_members(clusters: Sequence[Cluster]) -> list[tuple[str, ...]]:
+    """Each cluster's dense markers as the rig uses them: a mirrored cluster has the mirror
+    images of all its source's members, the midline ones too (the layout file keeps a midline
+    marker in its source cluster only, so the twins' regions and weights would differ)."""
     source = {c.representative: c for c in clusters}
-    members = [tuple(mirror_label(m) for m in source[c.mirrored_from].members)
-               if c.mirrored_from in source else c.members for c in clusters]
+    return [tuple(mirror_label(m) if side_tag(m) in ("L", "R") else m
+                  for m in source[c.mirrored_from].members)
+            if c.mirrored_from in source else c.members for c in clusters]
+
+
+def guide_rows(build: RigBuild) -> list[GuideMarker]:
+    """Guide table rows of a built rig (numbers = layout order); a mirrored marker replaces its
+    :func:`influence_members`."""
+    clusters = build.layout.clusters
+    members = influence_members(clusters)
     nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
                          [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],

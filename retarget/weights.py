@@ -69,12 +69,15 @@ def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: 
 
 
 def region_masks(graph: sp.csr_matrix, regions: np.ndarray, n_joints: int, *,
-                 falloff_mm: float) -> np.ndarray:
+                 falloff_mm: float, members: list[np.ndarray] | None = None) -> np.ndarray:
     """(V, J) masks: 1 in joint j's main influence region, smoothstep to 0 at ``falloff_mm``
-    (geodesic) past its border."""
+    (geodesic) past its border. ``members[j]`` (vertex indices) are inside j's region too, also
+    where another joint's region took them (a midline marker shared by mirrored twins)."""
     masks = np.zeros((graph.shape[0], n_joints))
     for j in range(n_joints):
         inside = np.flatnonzero(regions == j)
+        if members is not None:
+            inside = np.union1d(inside, np.asarray(members[j], dtype=np.int64))
         if len(inside) == 0:
             continue
         if falloff_mm > 0:

@@ -329,9 +329,42 @@ def test_mirrored_guide_rows_replace_their_sources_midline_markers_too(sample):
     with_midline = 0
     for c in mirrored:
         source = rows[c.mirrored_from]
-        assert rows[c.representative].replaces == tuple(mirror_label(m) for m in source.replaces)
+        assert rows[c.representative].replaces == tuple(
+            m if m.endswith("_C") else mirror_label(m) for m in source.replaces)
         with_midline += any(m.endswith("_C") for m in source.replaces)
     assert with_midline >= 1  # the layout file keeps those in the source cluster only
+
+
+def test_mirrored_clusters_influence_their_sources_midline_markers(sample):
+    """A mirrored cluster's influence region holds its source's midline members (NOSE_20_R,
+    MOUTH_10_R, MOUTH_06_R lacked them): both twins' region masks are 1 there."""
+    from mocaptk.clustering.symmetry import mirror_label
+    from mocaptk.retarget.build import FALLOFF_SPACINGS, influence_members
+    from mocaptk.retarget.influence import edge_graph
+    from mocaptk.retarget.weights import region_masks
+
+    *_, build = sample
+    clusters = build.layout.clusters
+    members = influence_members(clusters)
+    index = {c.representative: i for i, c in enumerate(clusters)}
+    vertex = dict(zip(build.cloud.labels, build.dense_vertices.tolist()))
+    graph = edge_graph(build.rig.vertices, build.rig.faces)
+    masks = region_masks(graph, build.regions, len(clusters),
+                         falloff_mm=FALLOFF_SPACINGS * build.report["marker_spacing_mm"],
+                         members=[[vertex[m] for m in ms] for ms in members])
+    shared = 0
+    for i, c in enumerate(clusters):
+        if c.mirrored_from is None:
+            continue
+        source = index[c.mirrored_from]
+        assert members[i] == tuple(m if m.endswith("_C") else mirror_label(m)
+                                   for m in clusters[source].members)
+        midline = [m for m in clusters[source].members if m.endswith("_C")]
+        assert set(midline) <= set(members[i]) and not set(midline) & set(c.members)
+        for m in midline:
+            assert masks[vertex[m], i] == masks[vertex[m], source] == 1.0
+        shared += len(midline)
+    assert shared >= 3  # NOSE_20_R, MOUTH_10_R, MOUTH_06_R's sources hold midline markers
 
 
 def test_mirrored_layout_gives_mirrored_weights_and_names(sample):
