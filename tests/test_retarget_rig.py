@@ -288,21 +288,29 @@ def test_bundled_eye_template_is_the_ict_facekit_face():
     np.testing.assert_array_equal(triangles, model.face_triangles)
 
 
-def test_default_mesh_opens_the_eyes(sample):
-    """No triangle of the marker surface spans an eye of the ICT-FaceKit face the sample was
-    made from; the cut is mirror-symmetric and every marker stays on the surface."""
+def _true_face(truth) -> tuple[np.ndarray, np.ndarray]:
+    """The ICT-FaceKit face region the sample was made from: vertices (V, 3) mm, triangles (T, 3);
+    skips without ICT-FaceKit (../shared/data)."""
     from mocaptk.acquisition.face_model import load_face_model
     from mocaptk.errors import InputFileError
-    from mocaptk.retarget.eye_openings import eye_loops
-    from mocaptk.surface_mesh import boundary_edges
 
     try:
         model = load_face_model()
     except InputFileError as exc:
         pytest.skip(str(exc))
+    return (model.identity_mesh(truth.identity_coefficients)[:model.face_vertex_count],
+            model.face_triangles)
+
+
+def test_default_mesh_opens_the_eyes(sample):
+    """No triangle of the marker surface spans an eye of the ICT-FaceKit face the sample was
+    made from; the cut is mirror-symmetric and every marker stays on the surface."""
+    from mocaptk.retarget.eye_openings import eye_loops
+    from mocaptk.surface_mesh import boundary_edges
+
     truth, _, _, build = sample
-    face = model.identity_mesh(truth.identity_coefficients)[:model.face_vertex_count]
-    loops = eye_loops(face, model.face_triangles)
+    face, triangles = _true_face(truth)
+    loops = eye_loops(face, triangles)
     assert len(loops) == 2 and build.report["mesh"]["eye_openings"]["openings"] == 2
     assert build.report["weights"]["mirror_symmetric"]
     faces, vertices = build.rig.faces, build.rig.vertices
@@ -406,23 +414,17 @@ def test_default_mesh_does_not_fold_at_the_nostrils(sample):
     skin around the nose (the sphere chart folded it: 46 of the 1,816 triangles face into the
     head there, the worst at 162 degrees from the skin), and a mirrored layout gets a
     mirror-symmetric mesh."""
-    from mocaptk.acquisition.face_model import load_face_model
-    from mocaptk.errors import InputFileError
     from mocaptk.retarget.build import _subdivide, _vertex_mirror
     from mocaptk.surface_mesh import marker_spacing, marker_surface_mesh
 
-    try:
-        model = load_face_model()
-    except InputFileError as exc:
-        pytest.skip(str(exc))
     truth, _, layout, build = sample
-    face = model.identity_mesh(truth.identity_coefficients)[:model.face_vertex_count]
+    face, triangles = _true_face(truth)
     assert build.report["mesh"]["chart"] == "ICT-FaceKit face fitted to the markers"
     rig = build.rig
-    dots = _faces_against(rig.vertices, rig.faces, face, model.face_triangles)
+    dots = _faces_against(rig.vertices, rig.faces, face, triangles)
     sphere = _faces_against(*_subdivide(*marker_surface_mesh(build.cloud.neutral),
                                         build.report["mesh"]["subdivisions"]),
-                            face, model.face_triangles)
+                            face, triangles)
     assert (dots < 0).sum() <= 12 and dots.min() > -0.5  # 10, the worst 103 degrees
     assert (sphere < 0).sum() >= 40 and sphere.min() < -0.9
     mirror = _vertex_mirror(layout, build.cloud, rig.vertices, marker_spacing(build.cloud.neutral))
