@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -67,6 +69,18 @@ def test_hybrid_reports_its_refined_contenders_and_is_deterministic():
     assert scores[first.details["winner"]] == min(scores.values())
     again = select_layout(wave_problem(seed=2), 6, method="hybrid")
     np.testing.assert_array_equal(first.layout, again.layout)  # deterministic
+
+
+def test_with_capture_costs_the_hybrid_never_scores_worse_than_its_camera_blind_choice():
+    blind = wave_problem(seed=3)
+    # capture error growing across the grid (0.2-1.4 mm): one side is triangulated badly
+    error = 0.2 + 0.02 * (blind.neutral[:, 0] + 30.0)
+    aware = dataclasses.replace(blind, measured_error_mm=error, cache={})
+    chosen, camera_blind = (select_layout(p, 8, method="hybrid") for p in (aware, blind))
+    assert {"thin-shell+blind-local", "kmeans+blind-local"} <= set(chosen.details["local_rmse_mm"])
+    assert "kmeans+blind-local" not in camera_blind.details["local_rmse_mm"]
+    charged = local_error(aware, scales=(1, 2))
+    assert charged.rmse(chosen.layout) <= charged.rmse(camera_blind.layout) + 1e-12
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@
 3. **Contenders.** The clustered layout, the thin-shell optimizer (Le et al.) started from it, the
    column-pivoted QR, the greedy and the k-means layouts; the thin-shell and k-means layouts also
    compete refined by swaps with spatial neighbours while their local error (below, 2 nearest
-   markers) drops.
+   markers) drops (with capture costs: refined with and without them).
 4. **Choice by local reconstruction.** A training session moves one region at a time, a
    performance all of them: a layout judged by how well a *global* regression fits the training
    takes is rewarded for cross-region correlations the performance does not have (the previous
@@ -68,16 +68,18 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
     return np.sort(np.array(layout, dtype=np.intp))
 
 
-def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2)) -> LocalError:
+def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2),
+                charged: bool = True) -> LocalError:
     """The local error of the problem's gap-free training frames, fitted and scored in-sample
-    (layout markers charged the problem's ``measured_error_mm``, when it has one)."""
+    (with ``charged``, layout markers charged the problem's ``measured_error_mm``, when it has one)."""
     if "local-fit" not in problem.cache:
         disp, _ = training_frames(problem)
         every = np.arange(disp.shape[0])
         problem.cache["local-fit"] = CrossValidatedError.from_displacements(disp, [(every, every)])
-    key = ("local-error", tuple(scales))
+    charged = charged and problem.measured_error_mm is not None
+    key = ("local-error", tuple(scales), charged)
     if key not in problem.cache:  # shared, so a point's error is computed once per neighbours
-        measured = None if problem.measured_error_mm is None else problem.measured_error_mm ** 2
+        measured = problem.measured_error_mm ** 2 if charged else None
         problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales), measured)
     return problem.cache[key]
 
@@ -149,7 +151,10 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
 
     The ``refine`` contenders also compete after :func:`local_swaps` (``<name>+local``; swaps
     judged with each point from its 2 nearest layout points); all are compared by the mean of
-    the 1- and 2-nearest local errors (:func:`local_error`).
+    the 1- and 2-nearest local errors (:func:`local_error`). With capture costs
+    (``measured_error_mm``) the swaps and the choice charge them, and the camera-blind swaps
+    (``<name>+blind-local``) compete as well, so the choice is never worse under the charged
+    error than the camera-blind hybrid's (on the same candidates).
     """
     layouts = hybrid_contenders(problem, count, seed=seed, contenders=contenders)
     details: dict[str, Any] = {}
@@ -161,9 +166,14 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
             details["notes"] = [f"hybrid: {problem.n_points} points (> {GRAM_MAX_POINTS}): contenders "
                                 f"{', '.join(skipped)} skipped (they do not scale); chosen among "
                                 f"{', '.join(sorted(layouts))}"]
+    charged = problem.measured_error_mm is not None
     for name in refine:
         if name in layouts:
-            layouts[name + "+local"] = local_swaps(problem, layouts[name], local_error(problem, scales=(2,)))[0]
+            start = layouts[name]
+            layouts[name + "+local"] = local_swaps(problem, start, local_error(problem, scales=(2,)))[0]
+            if charged:  # the camera-blind refinement competes too: the choice never scores worse than it
+                layouts[name + "+blind-local"] = local_swaps(
+                    problem, start, local_error(problem, scales=(2,), charged=False))[0]
     score = local_error(problem, scales=(1, 2))
     scores = {name: score.rmse(layout) for name, layout in layouts.items()}
     winner = min(sorted(scores), key=lambda n: scores[n])
