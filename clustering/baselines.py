@@ -80,13 +80,15 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
     coords = _gram_coordinates(feats) if feats.shape[1] > n_markers else feats
     rng = np.random.default_rng(seed)
 
-    def sq_dist_to(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        d = np.einsum("ij,ij->i", points, points)[:, None] - 2.0 * points @ centres.T \
-            + np.einsum("ij,ij->i", centres, centres)[None]
+    def sq_dist_to(points: np.ndarray, centres: np.ndarray, norms: np.ndarray | None = None) -> np.ndarray:
+        norms = np.einsum("ij,ij->i", points, points) if norms is None else norms
+        d = norms[:, None] - 2.0 * points @ centres.T + np.einsum("ij,ij->i", centres, centres)[None]
         return np.maximum(d, 0.0)
 
+    coord_norms = np.einsum("ij,ij->i", coords, coords)  # once, not once per k-means++ pick
+
     def sq_dist(centres: np.ndarray) -> np.ndarray:
-        return sq_dist_to(coords, centres)
+        return sq_dist_to(coords, centres, coord_norms)
 
     # k-means++ initialisation
     first = int(rng.integers(n_markers))
