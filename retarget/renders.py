@@ -3,7 +3,8 @@
 Colours: each facial region has a hue (:data:`REGION_COLOURS`); the influence regions of its
 markers alternate between lighter and darker tints of it, so cluster borders show. Markers are
 drawn over the render (matplotlib) as dots in the region's strong colour with their guide number,
-every label shown (VTK's own label placer hides overlapping ones).
+every label shown (VTK's own label placer hides overlapping ones); past :data:`MAX_NUMBERED`
+markers in a view, dots only and a line saying where the numbers are.
 """
 
 from __future__ import annotations
@@ -34,6 +35,11 @@ VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] 
     "front": ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
     "profile": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
 }
+
+
+#: A view with more layout markers than this shows them as dots without numbers: on a
+#: 1050 x 1200 px view their labels overlap into a blot (and cost ~50 ms of matplotlib each).
+MAX_NUMBERED = 200
 
 
 def region_colour(region: str, *, tint: float = 0.0) -> tuple[float, float, float]:
@@ -141,6 +147,15 @@ def _draw_markers(image: np.ndarray, pixels: np.ndarray, visible: np.ndarray,
     ax.set_xlim(0, width)
     ax.set_ylim(height, 0)
     ax.axis("off")
+    if visible.sum() > MAX_NUMBERED:  # one artist for all dots; numbers only on the guide's pages
+        shown = np.flatnonzero(visible)
+        ax.scatter(pixels[shown, 0], pixels[shown, 1], s=49,
+                   c=[region_colour(cluster_regions[i], tint=-0.35) for i in shown],
+                   edgecolors="white", linewidths=1.2)
+        ax.text(12, 24, f"{len(shown)} markers, too many to number legibly here: guide.pdf names "
+                "them (1:1 page, marker table)", fontsize=10, color="black",
+                bbox={"boxstyle": "round,pad=0.3", "fc": "white", "ec": "none", "alpha": 0.8})
+        visible = np.zeros_like(visible)
     for (x, y), region, number, show in zip(pixels, cluster_regions, numbers, visible):
         if not show:
             continue

@@ -209,3 +209,25 @@ def test_replaces_column_of_a_huge_cluster_is_cut_with_a_count(tmp_path, guide):
     assert 50 < len(shown) < len(many) and shown == list(many[:len(shown)])
     assert f"and {len(many) - len(shown)} more (layout.json lists them all)" in text
     assert text.count("\f") < 12  # a handful of pages, not one per retry
+
+
+def test_view_with_too_many_markers_draws_every_dot_unnumbered(tmp_path):
+    """Past MAX_NUMBERED markers (a 10,000-marker session's 458) the dots are one artist, no
+    numbers: each dot's centre still shows its region's colour."""
+    import matplotlib.image as mpimg
+
+    from mocaptk.retarget.renders import MAX_NUMBERED, _draw_markers, region_colour
+
+    n = MAX_NUMBERED + 1
+    grid = np.array([(40 + 30 * (k % 30), 60 + 30 * (k // 30)) for k in range(n)], float)
+    regions = ["eye", "mouth", "nose"] * n
+    image = np.full((600, 1000, 3), 255, np.uint8)
+    _draw_markers(image, grid, np.ones(n, bool), regions[:n], [str(k) for k in range(n)],
+                  tmp_path / "v.png", force=True)
+    drawn = mpimg.imread(tmp_path / "v.png")[..., :3]
+    centres = drawn[grid[:, 1].astype(int), grid[:, 0].astype(int)]
+    expected = np.array([region_colour(r, tint=-0.35) for r in regions[:n]])
+    assert np.abs(centres - expected).max() < 0.05
+    # and no numbers: the black digits would sit up and right of each dot
+    dark = [(drawn[y - 16:y - 6, x + 8:x + 22] < 0.3).all(axis=2).sum() for x, y in grid.astype(int)]
+    assert max(dark) == 0
