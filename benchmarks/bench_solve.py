@@ -271,7 +271,7 @@ print(capture.n_frames, base, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 def maps(folder: Path) -> None:
-    """Per-marker RMSE on the sample performance (20-marker layout), local-ridge vs ridge, drawn
+    """Per-marker RMSE on the sample performance (20-marker layout), the default model vs ridge, drawn
     on the marker surface; and per-vertex RMSE on the ICT face (40 markers)."""
     import matplotlib
 
@@ -279,14 +279,14 @@ def maps(folder: Path) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.tri import Triangulation
 
-    from mocaptk.clustering.reconstruction_models import fit_model
+    from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, fit_model
     from mocaptk.retarget.solve import MeshMap
 
     folder.mkdir(parents=True, exist_ok=True)
     session, test, _ = sample_data()
     idx = kmeans(session.positions, 20)
     sets = []
-    for kind in ("ridge", "local-ridge"):
+    for kind in ("ridge", DEFAULT_KIND):
         model = fit_model(session.positions, idx, kind=kind)
         err = np.linalg.norm(model.predict(test.positions[:, model.layout]).positions - test.positions, axis=2)
         sets.append((kind, np.sqrt(np.nanmean(err ** 2, axis=0))))
@@ -298,7 +298,7 @@ def maps(folder: Path) -> None:
         rest, faces, true_verts = ict_mesh_truth(face, truth)
         idx = kmeans(session.positions, 40)
         sets = []
-        for kind in ("ridge", "local-ridge"):
+        for kind in ("ridge", DEFAULT_KIND):
             model = fit_model(session.positions, idx, kind=kind)
             pred = model.predict(test.positions[:, model.layout]).positions
             verts = MeshMap.anchored(rest, faces, truth.vertices, model.neutral).apply(pred)
