@@ -455,7 +455,8 @@ def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
     worst case, from one skinning pass over the frames.
 
     Returns the overall :class:`SkinningError` and
-    ``{"regions": {region: {"rmse_mm", "max_mm", "markers"}}, "worst_markers": [...]`` (the 5 dense markers with the largest RMSE: label, region, rmse, max, frame of the max)
+    ``{"regions": {region: {"rmse_mm", "max_mm", "markers"}}, "worst_markers": [...]`` (the 5 dense
+    markers with the largest RMSE: label, region, rmse, max, frame of the max)
     ``, "max": {"marker", "region", "frame", "error_mm", "layout_distance_mm"}}``: where the
     largest error happens, and how far that marker is from the nearest layout marker.
     """

@@ -18,6 +18,12 @@ from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
 from . import LayoutProblem, select_layout
 from .problem import camera_aware
 
+#: The layout method sees at most this many frames of the session; a longer session is sampled
+#: evenly (every k-th frame, the smallest k that fits; a note says so): the method's cost grows
+#: with the frames (k-means passes, Gram products, cross-validation) and this many frames of
+#: facial motion already span the expressions (docs/performance.md).
+METHOD_MAX_FRAMES = 8192
+
 
 def relayout(result: ClusterResult, *, method: str, count: int | None = None, seed: int = 0,
              rig: str | None = None) -> ClusterResult:
@@ -32,8 +38,15 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
     index = {label: i for i, label in enumerate(labels)}
     measured = [c for c in layout.clusters if c.mirrored_from is None]
     regions = {r.name: np.array([index[m] for m in r.markers], dtype=np.intp) for r in layout.regions}
-    problem = LayoutProblem(traj.positions - neutral[None], neutral, labels=traj.labels, regions=regions,
-                            segments=tuple((t.start, t.end) for t in traj.takes))
+    stride = -(-traj.n_frames // METHOD_MAX_FRAMES)
+    kept = np.arange(0, traj.n_frames, stride)
+    segments = tuple((t.start, t.end) for t in traj.takes)
+    if stride > 1:  # the takes in sampled frames
+        segments = tuple((lo, hi) for lo, hi in ((int(np.searchsorted(kept, start)),
+                                                  int(np.searchsorted(kept, end))) for start, end in segments)
+                         if hi > lo)
+    problem = LayoutProblem(traj.positions[::stride] - neutral[None], neutral, labels=traj.labels,
+                            regions=regions, segments=segments)
     plane_info = layout.extra["sagittal_plane"]
     plane = SagittalPlane(np.asarray(plane_info["point"]), np.asarray(plane_info["normal"]))
     if rig is not None:
@@ -77,6 +90,9 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
     if "winner" in selected.details:  # which contender the hybrid chose
         parameters["winner"] = selected.details["winner"]
     notes = result.notes + list(selected.details.get("notes", []))  # e.g. contenders skipped
+    if stride > 1:
+        notes.append(f"the layout method ({method}) used one frame in {stride} of the session's "
+                     f"{traj.n_frames} ({kept.size} frames; at most {METHOD_MAX_FRAMES})")
     extra = dict(layout.extra, notes=notes) if "notes" in layout.extra else layout.extra
     new_layout = dataclasses.replace(layout, parameters=parameters, regions=region_results,
                                      clusters=tuple(clusters), extra=extra)
