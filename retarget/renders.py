@@ -3,8 +3,8 @@
 Colours: each facial region has a hue (:data:`REGION_COLOURS`); the influence regions of its
 markers alternate between lighter and darker tints of it, so cluster borders show. Markers are
 drawn over the render (matplotlib) as dots in the region's strong colour with their guide number,
-every label shown (VTK's own label placer hides overlapping ones); past :data:`MAX_NUMBERED`
-markers in a view, dots only and a line saying where the numbers are.
+every label shown (VTK's own label placer hides overlapping ones), none overlapping another; past
+:data:`MAX_NUMBERED` markers in a view, dots only and a line saying where the numbers are.
 """
 
 from __future__ import annotations
@@ -19,6 +19,9 @@ import numpy as np
 from mocaptk.atomic import atomic_path
 
 __all__ = ["REGION_COLOURS", "VIEWS", "region_colour", "render_view"]
+
+#: Pixels per label-placement unit: the guide's placer works in page mm (dot radius 1.5).
+LABEL_UNIT_PX = 3.0
 
 #: RGB (0-1) of the six facial regions of the method; other region names get a fixed grey-blue.
 REGION_COLOURS: dict[str, tuple[float, float, float]] = {
@@ -133,12 +136,17 @@ def _display_points(plotter, points: np.ndarray, height: int) -> np.ndarray:
 
 def _draw_markers(image: np.ndarray, pixels: np.ndarray, visible: np.ndarray,
                   cluster_regions: list[str], numbers: list[int],
-                  path: str | os.PathLike[str], *, force: bool) -> None:
-    """Markers (region colour) and their numbers over the render, every label drawn."""
+                  path: str | os.PathLike[str], *, force: bool) -> np.ndarray:
+    """Markers (region colour) and their numbers over the render, every label drawn where it
+    overlaps no other label or dot (:func:`~mocaptk.retarget.guide.place_labels`; a leader line
+    joins a label moved away from a crowded marker). Returns the label boxes (N, 4) pixels
+    ``x0, y0, x1, y1`` (y down; NaN for hidden markers)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from .guide import place_labels
 
     height, width = image.shape[:2]
     fig = plt.figure(figsize=(width / 100, height / 100), dpi=100)
@@ -156,14 +164,30 @@ def _draw_markers(image: np.ndarray, pixels: np.ndarray, visible: np.ndarray,
                 "them (1:1 page, marker table)", fontsize=10, color="black",
                 bbox={"boxstyle": "round,pad=0.3", "fc": "white", "ec": "none", "alpha": 0.8})
         visible = np.zeros_like(visible)
-    for (x, y), region, number, show in zip(pixels, cluster_regions, numbers, visible):
-        if not show:
-            continue
-        ax.plot(x, y, "o", ms=7, mfc=region_colour(region, tint=-0.35), mec="white", mew=1.2)
-        ax.annotate(str(number), (x, y), xytext=(5, 4), textcoords="offset points", fontsize=9,
-                    fontweight="bold", color="black",
-                    bbox={"boxstyle": "round,pad=0.12", "fc": "white", "ec": "none",
-                          "alpha": 0.7})
+    shown = np.flatnonzero(visible)
+    texts = [ax.text(0, 0, str(numbers[k]), fontsize=9, fontweight="bold", color="black",
+                     ha="left", va="bottom", bbox={"boxstyle": "square,pad=0.12", "fc": "white",
+                                                   "ec": "none", "alpha": 0.7})
+             for k in shown]
+    renderer = fig.canvas.get_renderer()
+    pad = 0.12 * 9 * 100 / 72  # the bbox pad, pixels
+    sizes = np.array([[t.get_window_extent(renderer).width + 2 * pad,
+                       t.get_window_extent(renderer).height + 2 * pad] for t in texts]).reshape(-1, 2)
+    # place_labels works in page millimetres: one unit = LABEL_UNIT_PX pixels here
+    boxes, leader = place_labels(pixels[shown] / LABEL_UNIT_PX, sizes / LABEL_UNIT_PX,
+                                 bounds=(0.0, 0.0, width / LABEL_UNIT_PX, height / LABEL_UNIT_PX))
+    boxes *= LABEL_UNIT_PX
+    for k, text, box, long in zip(shown, texts, boxes, leader):
+        x, y = pixels[k]
+        if long:  # from the dot to the nearest point of its label
+            near = np.clip([x, y], box[:2], box[2:])
+            ax.plot([x, near[0]], [y, near[1]], "-", color="black", lw=0.8, alpha=0.8)
+        ax.plot(x, y, "o", ms=7, mfc=region_colour(cluster_regions[k], tint=-0.35), mec="white",
+                mew=1.2)
+        text.set_position((box[0] + pad, box[3] - pad))
+    out = np.full((len(pixels), 4), np.nan)
+    out[shown] = boxes
     with atomic_path(path, force=force) as tmp:
         fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
     plt.close(fig)
+    return out

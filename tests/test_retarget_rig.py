@@ -430,3 +430,36 @@ def test_default_mesh_does_not_fold_at_the_nostrils(sample):
     mirror = _vertex_mirror(layout, build.cloud, rig.vertices, marker_spacing(build.cloud.neutral))
     mesh = {tuple(sorted(f)) for f in rig.faces.tolist()}
     assert {tuple(sorted(mirror[f].tolist())) for f in rig.faces} == mesh
+
+
+def test_render_labels_do_not_overlap(sample, tmp_path):
+    """The rig renders' marker numbers (40R and 41R overlapped) are placed clear of every other
+    label and dot; a label moved away gets a leader line."""
+    from mocaptk.retarget.build import guide_rows
+    from mocaptk.retarget.renders import _draw_markers
+
+    *_, build = sample
+    joints = np.asarray(build.rig.joint_positions)[1:]
+    width, height = 1050, 1200  # the front view: x right, y up, framed on the markers like it
+    half = 1.2 * max(np.ptp(joints[:, 1]) / 2, np.ptp(joints[:, 0]) / 2 * height / width) + 8.0
+    scale = height / (2 * half)  # pixels per mm, as render_view's parallel camera
+    pixels = np.column_stack([width / 2 + scale * (joints[:, 0] - joints[:, 0].mean()),
+                              height / 2 - scale * (joints[:, 1] - joints[:, 1].mean())])
+    names = [row.name for row in guide_rows(build)]
+    regions = [c.region for c in build.layout.clusters]
+    # and a crowd like the c3d session's 40R / 41R: markers 8 px from three of them
+    pixels = np.vstack([pixels, pixels[:3] + [6.0, 5.0]])
+    names, regions = names + ["40R", "41R", "99L"], regions + regions[:3]
+    image = np.full((height, width, 3), 255, np.uint8)
+    boxes = _draw_markers(image, pixels, np.ones(len(pixels), bool), regions, names,
+                          tmp_path / "f.png", force=True)
+    assert (tmp_path / "f.png").stat().st_size > 10_000
+    assert np.isfinite(boxes).all()
+    for k, box in enumerate(boxes):
+        others = np.delete(boxes, k, axis=0)
+        overlap = ((box[0] < others[:, 2]) & (others[:, 0] < box[2])
+                   & (box[1] < others[:, 3]) & (others[:, 1] < box[3]))
+        assert not overlap.any(), names[k]
+        dots = np.delete(pixels, k, axis=0)  # 7 pt dots: radius ~5 px
+        near = np.clip(dots, box[:2], box[2:])
+        assert np.linalg.norm(near - dots, axis=1).min() >= 4.5, names[k]
