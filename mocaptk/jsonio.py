@@ -16,7 +16,7 @@ from .errors import InputFileError, unreadable
 
 #: Types :func:`to_plain` returns unchanged (exact types: subclasses take the slow path).
 _UNCHANGED = (str, int, bool, type(None))
-#: Types the C encoder writes as :func:`dumps` does.
+#: Types json's encoder writes as :func:`dumps` does.
 _SCALARS = (*_UNCHANGED, float)
 
 
@@ -74,13 +74,23 @@ def _encode(value: Any, indent: str) -> str:
                  for key in sorted(value))
         return "{\n" + ",\n".join(items) + "\n" + indent + "}"
     if isinstance(value, list) and any(isinstance(v, (dict, list)) for v in value):
-        if all(type(v) is dict and all(type(x) in _SCALARS for x in v.values()) for v in value):
-            # records of scalars: the C encoder's indented layout is this one (one item a line)
-            return json.dumps(value, ensure_ascii=False, allow_nan=False, indent=2, sort_keys=True,
-                              separators=(",", ": ")).replace("\n", "\n" + indent)
         inner = indent + "  "
+        if all(type(v) is dict and all(type(x) in _SCALARS for x in v.values()) for v in value):
+            # records of scalars (tens of thousands of gap records): one C-encoder call each
+            return "[\n" + ",\n".join(inner + _record(v, inner) for v in value) + "\n" + indent + "]"
         return "[\n" + ",\n".join(inner + _encode(v, inner) for v in value) + "\n" + indent + "]"
     return json.dumps(value, ensure_ascii=False, allow_nan=False, separators=(", ", ": "))
+
+
+def _record(value: dict, indent: str) -> str:
+    """:func:`_encode` of a dict of scalars in one call of json's C encoder (an indent makes json
+    use its Python encoder): the item separator carries the line break and indent."""
+    if not value:
+        return "{}"
+    inner = indent + "  "
+    body = json.dumps(value, ensure_ascii=False, allow_nan=False, sort_keys=True,
+                      separators=(",\n" + inner, ": "))
+    return "{\n" + inner + body[1:-1] + "\n" + indent + "}"
 
 
 def write_json(path: str | os.PathLike[str], obj: Any, *, digits: int = 6,
