@@ -15,7 +15,9 @@ markers (same order), so anything defined per dense marker is defined per vertex
    spacing (largest nearest-neighbour distance of its three markers), or flat slivers (angle
    facing the border > ``max_rim_angle_deg``), are removed, repeatedly, from the outside in.
    Interior triangles are kept (holes such as a missing marker stay filled); markers far from
-   all others form separate small patches.
+   all others form separate small patches. Optionally (the rig's mesh), the notches the peel
+   leaves (the border turning inwards by more than ``max_notch_deg`` at a marker, a zigzag top
+   of the forehead) are then filled with the triangle across them.
 4. **Flip** interior edges whose 3-D triangles are badly shaped (improves the smallest angle
    where the chart distorts), and **repair** vertices where two boundary loops touch (bow-ties),
    so the result is an edge-manifold disk.
@@ -35,7 +37,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
 __all__ = [
-    "MeshQuality", "SurfaceMesh", "boundary_edges", "cut_openings", "face_normals",
+    "MeshQuality", "SurfaceMesh", "border_turns", "boundary_edges", "cut_openings", "face_normals",
     "front_direction", "marker_spacing",
     "marker_surface_mesh", "mesh_edges", "mesh_quality", "remove_triangles", "triangle_angles",
     "vertex_normals",
@@ -159,7 +161,7 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray) -> MeshQuality:
 
 
 def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
-                        max_rim_angle_deg: float = 120.0,
+                        max_rim_angle_deg: float = 120.0, max_notch_deg: float | None = None,
                         chart: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate a dense neutral marker cloud as one face surface.
 
@@ -173,6 +175,11 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     max_rim_angle_deg : float
         Border triangles whose angle facing the border is wider than this (degrees) are peeled
         (flat slivers between rim markers).
+    max_notch_deg : float
+        The border turns inwards by at most this much (degrees, in the tangent plane) at a
+        marker: a deeper notch left by the peel is filled with the triangle across it when its
+        new edge is short enough (``max_edge_factor``), so the border (top of the forehead) is
+        smooth rather than a zigzag. None (default): no fill (the layouts' and solve's mesh).
     chart : (M, 2) float, optional
         One-to-one 2-D coordinates of the points (mm) to triangulate in, e.g. from a face
         template (:mod:`mocaptk.retarget.face_template`); default: the sphere chart.
@@ -206,6 +213,9 @@ def marker_surface_mesh(points: np.ndarray, *, max_edge_factor: float = 2.5,
     faces = _orient_in_chart(chart, faces)
     faces = _peel_border(vertices, faces, max_edge=max_edge_factor * nearest,
                          max_rim_angle=max_rim_angle_deg)
+    if max_notch_deg is not None:
+        faces = _fill_notches(vertices, faces, max_edge=max_edge_factor * nearest,
+                              max_turn=max_notch_deg)
     faces = _flip_bad_edges(vertices, faces, chart)
     faces = _repair_bowties(faces, len(vertices))
     faces = _orient_outward(vertices, faces, front)
@@ -436,6 +446,63 @@ def _vertex_triangles(faces: np.ndarray, n_vertices: int, rows: np.ndarray) -> t
     by_vertex = np.argsort(corner, kind="stable")
     starts = np.searchsorted(corner[by_vertex], np.arange(n_vertices + 1))
     return np.repeat(rows, 3)[by_vertex], starts
+
+
+def border_turns(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary vertices (B,) and the border's turn at each (B,) degrees, in the vertex's
+    tangent plane: > 0 turns round the mesh (convex), < 0 into it (a notch). ``faces`` must be
+    an edge-manifold mesh (one border edge in and one out of each boundary vertex)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    vertices = np.asarray(vertices, dtype=float)
+    border = _border_half_edges(faces, len(vertices))
+    ahead = dict(zip(border[:, 0].tolist(), border[:, 1].tolist()))
+    behind = dict(zip(border[:, 1].tolist(), border[:, 0].tolist()))
+    at = np.array(sorted(ahead), dtype=np.int64)
+    prev = np.array([behind[int(b)] for b in at], dtype=np.int64)
+    nxt = np.array([ahead[int(b)] for b in at], dtype=np.int64)
+    normal = vertex_normals(vertices, faces)[at]
+    e1 = vertices[at] - vertices[prev]
+    e2 = vertices[nxt] - vertices[at]
+    e1 -= normal * np.einsum("ij,ij->i", e1, normal)[:, None]
+    e2 -= normal * np.einsum("ij,ij->i", e2, normal)[:, None]
+    turn = np.degrees(np.arctan2(np.einsum("ij,ij->i", np.cross(e1, e2), normal),
+                                 np.einsum("ij,ij->i", e1, e2)))
+    return at, turn
+
+
+def _border_half_edges(faces: np.ndarray, n: int) -> np.ndarray:
+    """Directed border edges (B, 2) ``a -> b`` as in their triangle (the mesh on their left)."""
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return half[~np.isin(half[:, 0] * n + half[:, 1], half[:, 1] * n + half[:, 0])]
+
+
+def _fill_notches(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarray,
+                  max_turn: float, max_passes: int = 10) -> np.ndarray:
+    """Close border notches deeper than ``max_turn`` degrees with the triangle across them, if
+    its new edge is no longer than the larger ``max_edge`` (V,) mm of its ends and not an edge
+    yet. A pass fills all its notches at once (none beside another): a symmetric mesh stays so."""
+    n = len(vertices)
+    for _ in range(max_passes):
+        if len(faces) == 0 or np.bincount(_border_half_edges(faces, n)[:, 0], minlength=n).max() > 1:
+            return faces  # no border, or two border loops touch at a vertex (no single turn)
+        at, turn = border_turns(vertices, faces)
+        border = _border_half_edges(faces, n)
+        ahead = dict(zip(border[:, 0].tolist(), border[:, 1].tolist()))
+        behind = dict(zip(border[:, 1].tolist(), border[:, 0].tolist()))
+        edges, _ = mesh_edges(faces)
+        existing = set((edges[:, 0] * n + edges[:, 1]).tolist())
+        notch = {int(b) for b, t in zip(at, turn) if t < -max_turn}
+        new = []
+        for b in sorted(notch):
+            a, c = behind[b], ahead[b]
+            if a in notch or c in notch or a == c or min(a, c) * n + max(a, c) in existing:
+                continue
+            if np.linalg.norm(vertices[a] - vertices[c]) <= max(max_edge[a], max_edge[c]):
+                new.append((a, c, b))  # holds the reverses of a -> b and b -> c
+        if not new:
+            return faces
+        faces = np.concatenate([faces, np.array(new, dtype=np.int64)])
+    return faces
 
 
 def _flip_bad_edges(vertices: np.ndarray, faces: np.ndarray, chart: np.ndarray,

@@ -110,3 +110,24 @@ def test_bowtie_repair_when_earlier_fans_took_every_triangle_of_a_vertex():
     fans = [[0, 10, 11], [0, 11, 12], [0, 12, 13], [1, 20, 21], [1, 21, 22], [1, 22, 23]]
     faces = np.array(fans + [[0, 5, 6], [1, 5, 7]])
     np.testing.assert_array_equal(_repair_bowties(faces, 24), fans)
+
+
+def test_surface_mesh_border_has_no_zigzag_notches():
+    """The peel left notches along the border (a zigzag top of the forehead): on the sample
+    (median of the first 60 frames) the border turned inwards by up to 54 degrees (CHIN_10_L;
+    44 at FOREHEAD_BROW_07_L); the notches are filled, every turn is within 30 degrees."""
+    from conftest import SAMPLES
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.retarget.build import RIM_NOTCH_DEG
+    from mocaptk.surface_mesh import border_turns
+
+    session = read_c3d(SAMPLES / "dense_halfface.c3d")
+    points = np.nanmedian(session.positions[:60], axis=0)
+    vertices, faces = marker_surface_mesh(points, max_notch_deg=RIM_NOTCH_DEG)
+    _, turn = border_turns(vertices, faces)
+    assert turn.min() >= -RIM_NOTCH_DEG - 1e-9
+    q = mesh_quality(vertices, faces)
+    assert q.boundary_loops == 1 and q.non_manifold_edges == 0 and q.min_angle_deg > 15.0
+    _, old = border_turns(*marker_surface_mesh(points))
+    assert old.min() < -40.0  # without the fill (the layouts' and solve's mesh)
