@@ -161,17 +161,22 @@ def test_one_to_one_page_vertical_scale_bar_is_50_mm(one_to_one_page):
     assert _longest_dark_run(image[:, : image.shape[1] // 4].T) == pytest.approx(500, abs=3)
 
 
-def test_replaces_column_wraps_instead_of_cutting(tmp_path, guide):
+def _text_with_replaces(tmp_path, guide, replaces: tuple[str, ...], *pages: str) -> str:
+    """pdftotext of a guide whose first row replaces ``replaces`` (``pages``: e.g. -f 4 -l 4)."""
     folder, _, rows = guide
-    many = tuple(f"DENSE_MARKER_{k:02d}_L" for k in range(40))
-    first = dataclasses.replace(rows[0], replaces=many)
+    first = dataclasses.replace(rows[0], replaces=replaces)
     pdf = write_guide_pdf(tmp_path / "g.pdf", [first, *rows[1:]], front_png=folder / "front.png",
                           profile_png=folder / "profile.png", outline=np.array([r.position for r in rows]),
-                          title="wrap")
+                          title="replaces")
     if shutil.which("pdftotext") is None:
         pytest.skip("poppler-utils (pdftotext) not installed")
-    text = subprocess.run(["pdftotext", "-f", "4", "-l", "4", str(pdf), "-"], capture_output=True,
-                          text=True, check=True).stdout
+    return subprocess.run(["pdftotext", *pages, str(pdf), "-"], capture_output=True, text=True,
+                          check=True).stdout
+
+
+def test_replaces_column_wraps_instead_of_cutting(tmp_path, guide):
+    many = tuple(f"DENSE_MARKER_{k:02d}_L" for k in range(40))
+    text = _text_with_replaces(tmp_path, guide, many, "-f", "4", "-l", "4")
     assert "..." not in text and all(label in text for label in many)
 
 
@@ -195,16 +200,8 @@ def test_regions_picture_keeps_its_axis_labels_inside(tmp_path):
 def test_replaces_column_of_a_huge_cluster_is_cut_with_a_count(tmp_path, guide):
     """A 10,000-marker session's cluster replaces over 1,000 markers: its row must still fit a
     page (it used to be retried on new pages forever)."""
-    folder, _, rows = guide
     many = tuple(f"DENSE_MARKER_{k:04d}_L" for k in range(2000))
-    first = dataclasses.replace(rows[0], replaces=many)
-    pdf = write_guide_pdf(tmp_path / "g.pdf", [first, *rows[1:]], front_png=folder / "front.png",
-                          profile_png=folder / "profile.png", outline=np.array([r.position for r in rows]),
-                          title="huge")
-    if shutil.which("pdftotext") is None:
-        pytest.skip("poppler-utils (pdftotext) not installed")
-    text = subprocess.run(["pdftotext", str(pdf), "-"], capture_output=True, text=True,
-                          check=True).stdout
+    text = _text_with_replaces(tmp_path, guide, many)
     shown = [label for label in many if label in text]
     assert 50 < len(shown) < len(many) and shown == list(many[:len(shown)])
     assert f"and {len(many) - len(shown)} more (layout.json lists them all)" in text
