@@ -252,7 +252,7 @@ from mocaptk.clustering.neutral import neutral_pose
 idx = np.unique(kmeans_layout(session.positions[::5] - neutral_pose(session.positions)[None], 86, seed=0))
 labels = [session.labels[i] for i in idx]
 class L: labels = labels
-solver = train_solver(L, session, source, kind="local-ridge")
+solver = train_solver(L, session, source)  # the default model kind
 capture = test.select(labels)
 capture = capture.replace(positions=np.tile(capture.positions, (60, 1, 1)), residuals=None, metadata={{}})
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
