@@ -235,12 +235,13 @@ CLOUD_BLOCK_FRAMES = 1024
 
 
 def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray | None = None,
-                neutral: np.ndarray | None = None) -> DenseCloud:
+                neutral: np.ndarray | None = None, frames: slice | None = None) -> DenseCloud:
     """The session's markers (+ mirrored ones the layout needs), rotated into the rig frame.
 
     ``rotation`` (3, 3) session -> rig; default: :func:`rig_frame_rotation` of the session.
     ``neutral`` (markers, 3) mm: the session's :func:`neutral_pose` when the caller has it (one
-    pass over the frames less). Markers never seen are left out.
+    pass over the frames less). ``frames``: the frames the cloud keeps (default all; the rotation
+    is still the one of all frames). Markers never seen are left out.
     """
     positions = np.asarray(session.positions, dtype=float)
     neutral = neutral_pose(positions) if neutral is None else np.asarray(neutral, dtype=float)
@@ -268,17 +269,29 @@ def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray |
         neutral = np.concatenate([neutral, plane.mirror(neutral[src])])
         labels += new
         captured = np.concatenate([captured, np.zeros(len(new), bool)])
-    # filled block by block: no whole-session temporaries (gathers, mirror, concatenation)
-    cloud = np.empty((positions.shape[0], len(labels), 3))
-    for start in range(0, positions.shape[0], CLOUD_BLOCK_FRAMES):
-        block = cloud[start:start + CLOUD_BLOCK_FRAMES]
-        block[:, :own.size] = positions[start:start + CLOUD_BLOCK_FRAMES, own]
+    def filled(block: np.ndarray) -> np.ndarray:  # (b, markers, 3) -> (b, cloud markers, 3)
+        out = np.empty((block.shape[0], len(labels), 3))
+        out[:, :own.size] = block[:, own]
         if src.size:
-            block[:, own.size:] = plane.mirror(block[:, src])
+            out[:, own.size:] = plane.mirror(out[:, src])
+        return out
+
+    kept = positions if frames is None else positions[frames]
+    # block by block: no whole-session temporaries (gathers, mirror, concatenation)
+    cloud = np.empty((kept.shape[0], len(labels), 3))
+    for start in range(0, kept.shape[0], CLOUD_BLOCK_FRAMES):
+        cloud[start:start + CLOUD_BLOCK_FRAMES] = filled(kept[start:start + CLOUD_BLOCK_FRAMES])
     if rotation is None:
         plane_dict = layout.extra.get("sagittal_plane")
         lateral = np.asarray(plane_dict["normal"], float) if isinstance(plane_dict, dict) else None
-        rotation = rig_frame_rotation(neutral, max_displacement(cloud, neutral), lateral=lateral)
+        if frames is None:
+            displacement = max_displacement(cloud, neutral)
+        else:  # over all frames: the largest of each block's (the same maximum)
+            displacement = np.zeros(len(labels))
+            for start in range(0, positions.shape[0], CLOUD_BLOCK_FRAMES):
+                block = filled(positions[start:start + CLOUD_BLOCK_FRAMES])
+                np.maximum(displacement, max_displacement(block, neutral), out=displacement)
+        rotation = rig_frame_rotation(neutral, displacement, lateral=lateral)
     for start in range(0, cloud.shape[0], CLOUD_BLOCK_FRAMES):  # each frame's product as before
         block = cloud[start:start + CLOUD_BLOCK_FRAMES]
         block[...] = block @ rotation.T

@@ -10,7 +10,7 @@ from mocaptk.clustering.layout import Layout
 from mocaptk.trajectories import Trajectories
 
 from ..build import DenseCloud, RigBuild, dense_cloud
-from .scene import replay_clips, scene_data
+from .scene import REPLAY_BUDGET_BYTES, replay_clips, replay_step, scene_data
 
 __all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse", "session_clips",
            "solve_report"]
@@ -123,10 +123,20 @@ def cluster_report(layout: Layout, session: Trajectories, *, build: RigBuild | N
     """Page data of ``mocaptk cluster``: the layout on its rig's face (or the dense marker
     surface without a rig), the session replay and the clustering summary (``neutral``: the
     session's neutral pose, if known)."""
-    cloud = build.cloud if build is not None else dense_cloud(layout, session, neutral=neutral)
+    if build is not None:
+        cloud = build.cloud
+        clips = session_clips(cloud, session.rate)
+    else:  # a cloud of the replayed frames only
+        if neutral is None:
+            from mocaptk.clustering.neutral import neutral_pose
+            neutral = neutral_pose(session.positions)
+        captured = int(np.isfinite(neutral).all(axis=1).sum())
+        step = replay_step(session.rate, session.n_frames, captured, budget_bytes=REPLAY_BUDGET_BYTES)
+        cloud = dense_cloud(layout, session, neutral=neutral, frames=slice(None, None, step))
+        clips = replay_clips([("session", cloud.trajectories[:, :captured])], session.rate,
+                             cloud.neutral[:captured], sampled=(step, session.n_frames))
     data = scene_data(cloud, layout=layout, build=build)
-    data.update(kind="cluster", title=title, summary=summary,
-                clips=session_clips(cloud, session.rate), tables=_rig_tables(build))
+    data.update(kind="cluster", title=title, summary=summary, clips=clips, tables=_rig_tables(build))
     return data
 
 

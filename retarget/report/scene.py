@@ -50,23 +50,29 @@ def replay_step(rate_hz: float, frames: int, markers: int, *, budget_bytes: int)
 
 
 def replay_clips(clips: Sequence[tuple[str, np.ndarray]], rate_hz: float, neutral: np.ndarray, *,
-                 budget_bytes: int = REPLAY_BUDGET_BYTES) -> list[dict]:
+                 budget_bytes: int = REPLAY_BUDGET_BYTES,
+                 sampled: tuple[int, int] | None = None) -> list[dict]:
     """Replay clips ``[(name, positions (F, N, 3) mm rig frame of the captured markers)]``, all
     subsampled by one :func:`replay_step` over their total length; stored as base64 little-endian
     int16 offsets from ``neutral`` (N, 3) in :data:`TRACK_MM` steps, -32768 in gaps (and beyond
-    ±1.6 m)."""
+    ±1.6 m). ``sampled`` (step, frames): the one clip is already every step-th of its frames
+    (:func:`replay_step` of them)."""
     neutral = np.round(np.asarray(neutral, dtype=float), DIGITS)  # the page adds its stored neutral
     arrays = [np.asarray(p, dtype=float) for _, p in clips]
     if not arrays:
         return []
-    step = replay_step(rate_hz, sum(a.shape[0] for a in arrays), arrays[0].shape[1],
-                       budget_bytes=budget_bytes)
+    if sampled is None:
+        step = replay_step(rate_hz, sum(a.shape[0] for a in arrays), arrays[0].shape[1],
+                           budget_bytes=budget_bytes)
+        stride, lengths = step, [a.shape[0] for a in arrays]
+    else:
+        step, stride, lengths = sampled[0], 1, [sampled[1]]
     out = []
-    for (name, _), positions in zip(clips, arrays):
-        steps = np.round((positions[::step] - neutral[None]) / TRACK_MM)
+    for (name, _), positions, source_frames in zip(clips, arrays, lengths):
+        steps = np.round((positions[::stride] - neutral[None]) / TRACK_MM)
         kept = np.where(np.isfinite(steps) & (np.abs(steps) <= 32767), steps, _GAP).astype("<i2")
         out.append({"name": name, "source_rate_hz": float(rate_hz), "step": step,
-                    "rate_hz": float(rate_hz) / step, "source_frames": int(positions.shape[0]),
+                    "rate_hz": float(rate_hz) / step, "source_frames": int(source_frames),
                     "frames": int(kept.shape[0]), "resolution_mm": TRACK_MM,
                     "positions": base64.b64encode(kept.tobytes()).decode("ascii")})
     return out
