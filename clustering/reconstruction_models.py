@@ -475,8 +475,10 @@ class TaperedRidgeModel(RidgeModel):
         out = _affine(x, coef, offset, self.n_markers)
         lost = self._cache.get_or(b"reach" + pattern.tobytes(),
                                   lambda: _beyond_reach(self.neutral, self.layout, pattern))
-        if lost.any():
-            out[:, lost] = super()._solve(pattern, x)[:, lost]
+        if lost.any():  # only the lost markers' columns of the untapered ridge
+            coef, offset = self.submodel(pattern)
+            cols = (3 * np.flatnonzero(lost)[:, None] + np.arange(3)).ravel()
+            out[:, lost] = (x.reshape(len(x), -1) @ coef[:, cols] + offset[cols]).reshape(len(x), -1, 3)
         return out
 
     @staticmethod

@@ -454,9 +454,13 @@ def border_turns(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     an edge-manifold mesh (one border edge in and one out of each boundary vertex)."""
     faces = np.asarray(faces, dtype=np.int64)
     vertices = np.asarray(vertices, dtype=float)
-    border = _border_half_edges(faces, len(vertices))
-    ahead = dict(zip(border[:, 0].tolist(), border[:, 1].tolist()))
-    behind = dict(zip(border[:, 1].tolist(), border[:, 0].tolist()))
+    _, ahead, behind = _border_links(faces, len(vertices))
+    return _turns(vertices, faces, ahead, behind)
+
+
+def _turns(vertices: np.ndarray, faces: np.ndarray, ahead: dict[int, int],
+           behind: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`border_turns` from the border's links (next / previous boundary vertex)."""
     at = np.array(sorted(ahead), dtype=np.int64)
     prev = np.array([behind[int(b)] for b in at], dtype=np.int64)
     nxt = np.array([ahead[int(b)] for b in at], dtype=np.int64)
@@ -476,6 +480,13 @@ def _border_half_edges(faces: np.ndarray, n: int) -> np.ndarray:
     return half[~np.isin(half[:, 0] * n + half[:, 1], half[:, 1] * n + half[:, 0])]
 
 
+def _border_links(faces: np.ndarray, n: int) -> tuple[np.ndarray, dict[int, int], dict[int, int]]:
+    """The directed border edges (B, 2) and, per boundary vertex, the next and previous one."""
+    border = _border_half_edges(faces, n)
+    return (border, dict(zip(border[:, 0].tolist(), border[:, 1].tolist())),
+            dict(zip(border[:, 1].tolist(), border[:, 0].tolist())))
+
+
 def _fill_notches(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarray,
                   max_turn: float, max_passes: int = 10) -> np.ndarray:
     """Close border notches deeper than ``max_turn`` degrees with the triangle across them, if
@@ -483,12 +494,12 @@ def _fill_notches(vertices: np.ndarray, faces: np.ndarray, *, max_edge: np.ndarr
     yet. A pass fills all its notches at once (none beside another): a symmetric mesh stays so."""
     n = len(vertices)
     for _ in range(max_passes):
-        if len(faces) == 0 or np.bincount(_border_half_edges(faces, n)[:, 0], minlength=n).max() > 1:
-            return faces  # no border, or two border loops touch at a vertex (no single turn)
-        at, turn = border_turns(vertices, faces)
-        border = _border_half_edges(faces, n)
-        ahead = dict(zip(border[:, 0].tolist(), border[:, 1].tolist()))
-        behind = dict(zip(border[:, 1].tolist(), border[:, 0].tolist()))
+        if len(faces) == 0:
+            return faces
+        border, ahead, behind = _border_links(faces, n)
+        if np.bincount(border[:, 0], minlength=n).max() > 1:
+            return faces  # two border loops touch at a vertex (no single turn)
+        at, turn = _turns(vertices, faces, ahead, behind)
         edges, _ = mesh_edges(faces)
         existing = set((edges[:, 0] * n + edges[:, 1]).tolist())
         notch = {int(b) for b, t in zip(at, turn) if t < -max_turn}

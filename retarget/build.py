@@ -362,8 +362,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
         template = fit_template(unique[order], spacing=spacing)
-        mirror = _vertex_mirror(layout, cloud, unique[order], spacing)
-        chart = None if template is None else template.chart(unique[order], mirror=mirror)
+        vertex_mirror = _vertex_mirror(layout, cloud, unique[order], spacing)  # chart and eye cut
+        chart = None if template is None else template.chart(unique[order], mirror=vertex_mirror)
         vertices, faces = marker_surface_mesh(unique[order], chart=chart,
                                               max_notch_deg=RIM_NOTCH_DEG)
         chart_kind = "sphere" if chart is None else "ICT-FaceKit face fitted to the markers"
@@ -375,7 +375,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         if eyes:
             before = len(faces)
             faces = cut_eye_openings(vertices, faces, eyes, depth_mm=2.0 * spacing,
-                                     vertex_mirror=_vertex_mirror(layout, cloud, vertices, spacing))
+                                     vertex_mirror=vertex_mirror)
             eye_cut = {"method": "ICT-FaceKit face fitted to the markers",
                        "openings": len(eyes), "triangles_removed": before - len(faces)}
         vertices, faces = _subdivide(vertices, faces, options.subdivisions)
