@@ -284,7 +284,9 @@ def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray |
     if rotation is None:
         plane_dict = layout.extra.get("sagittal_plane")
         lateral = np.asarray(plane_dict["normal"], float) if isinstance(plane_dict, dict) else None
-        if frames is None:
+        if lateral is not None:  # the displacement only guesses the lateral axis (always finite)
+            displacement = np.zeros(len(labels))
+        elif frames is None:
             displacement = max_displacement(cloud, neutral)
         else:  # over all frames: the largest of each block's (the same maximum)
             displacement = np.zeros(len(labels))

@@ -8,10 +8,13 @@ import warnings
 import numpy as np
 import pytest
 from clustering_synthetic import planted_session
+from conftest import SAMPLES
 
 from mocaptk import InputFileError, OptionError, Take, Trajectories
+from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.clustering.correlation import consolidated_correlation, mean_off_diagonal
 from mocaptk.clustering.layout import read_layout, write_layout
+from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
 from mocaptk.clustering.regions import default_regions, read_regions, regions_from_prefixes
 from mocaptk.clustering.takes import read_takes, region_segments, sample_frames
@@ -51,6 +54,26 @@ def test_gappy_correlation_is_pairwise_complete():
         assert corr.matrix[i, j] == pytest.approx(expected, abs=1e-9)
     assert np.isfinite(corr.matrix).all()
     assert mean_off_diagonal(np.ones((1, 1))) != mean_off_diagonal(np.ones((1, 1)))  # NaN for one marker
+
+
+def test_neutral_pose_is_numpys_nanmedian_bit_for_bit():
+    sample = read_c3d(SAMPLES / "dense_halfface.c3d").positions
+    rng = np.random.default_rng(4)
+    pos = sample[:1501, :130].copy()  # odd and (with gaps) even counts, blocks of 96 columns
+    pos[rng.random(pos.shape[:2]) < 0.2] = np.nan
+    pos[:, 5] = np.nan  # never seen: NaN
+    pos[:700, 6] = np.nan
+    pos[:3, 7, 1] = np.inf  # kept, as np.nanmedian keeps it
+    pos[::2, 8, 2] = np.nan  # one axis missing more often
+    seen = np.isfinite(pos).all(axis=2).any(axis=0)
+    expected = np.full((130, 3), np.nan)
+    expected[seen] = np.nanmedian(pos[:, seen], axis=0)
+    assert np.array_equal(neutral_pose(pos), expected, equal_nan=True)
+    assert np.isnan(neutral_pose(pos)[5]).all() and np.isfinite(neutral_pose(pos)[6]).all()
+    rest = slice(10, 400, 3)
+    assert np.array_equal(neutral_pose(pos, rest_frames=rest), neutral_pose(pos[rest].copy()),
+                          equal_nan=True)
+    assert np.isnan(neutral_pose(pos[:0])).all() and neutral_pose(pos[:, :0]).shape == (0, 3)
 
 
 @pytest.fixture(scope="module")
