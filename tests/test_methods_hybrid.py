@@ -100,3 +100,37 @@ def test_hybrid_beats_kmeans_by_15_percent_on_real_capture(blenderface_subject_0
     rmse = {r.method: r.rmse_mm for r in rows}
     assert rmse["hybrid"] < 0.85 * rmse["kmeans"]
     assert rmse["hybrid"] < rmse["greedy"]  # the best seed method here
+
+
+def _grid_clusters(problem: LayoutProblem, per_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """Square blocks of the wave grid as clusters, and each block's first point as its start."""
+    cells = np.floor((problem.neutral[:, :2] + 30.0) / 60.0 * per_side - 1e-9).clip(0, per_side - 1)
+    clusters = (cells[:, 0] * per_side + cells[:, 1]).astype(np.intp)
+    start = np.array([np.flatnonzero(clusters == c)[0] for c in range(per_side ** 2)])
+    return clusters, start
+
+
+def test_representative_search_is_skipped_when_the_other_representatives_span_the_frames():
+    from mocaptk.clustering.methods.hybrid import cluster_representatives, spans_design
+    from mocaptk.clustering.methods.reconstruction import (GRAM_MAX_POINTS, DesignGram, gains_given,
+                                                           gram_jitter, training_gram)
+
+    # > GRAM_MAX_POINTS points, 30 frames: 15 other representatives' 45 columns span the rank-29 design
+    problem = wave_problem(n_side=46, frames=30)
+    assert problem.n_points > GRAM_MAX_POINTS
+    clusters, start = _grid_clusters(problem, 4)
+    gram = training_gram(problem)
+    assert isinstance(gram, DesignGram) and spans_design(gram, start.size - 1)
+    members = np.flatnonzero(clusters == clusters[start[0]])
+    jitter = gram_jitter(gram)
+    given_others = gains_given(gram, start[1:], members, jitter)
+    alone = gains_given(gram, [], members, jitter)
+    assert np.abs(given_others).max() < 1e-6 * alone.min()  # what the search would rank: rounding
+    assert np.array_equal(cluster_representatives(problem, clusters, start), np.sort(start))
+
+    # with more frames than the others' columns the search still runs and moves representatives
+    problem = wave_problem(n_side=46, frames=120)
+    assert not spans_design(training_gram(problem), start.size - 1)
+    chosen = cluster_representatives(problem, clusters, start)
+    assert chosen.size == start.size and not np.array_equal(chosen, np.sort(start))
+    assert np.array_equal(np.sort(clusters[chosen]), np.arange(16))  # still one per cluster

@@ -6,7 +6,9 @@
 2. **Reconstruction-aware representative per cluster.** Instead of the member with the largest
    displacement, each cluster keeps the member that explains most of *all* markers' motion given
    the other clusters' representatives (coordinate descent over clusters, until no
-   representative changes).
+   representative changes). Skipped when the others' columns already span the few frames'
+   design (:func:`spans_design`, e.g. 229 markers x 3 > 400 frames): the largest-displacement
+   member is kept.
 3. **Contenders.** The clustered layout, the thin-shell optimizer (Le et al.) started from it, the
    column-pivoted QR, the greedy and the k-means layouts; the thin-shell and k-means layouts also
    compete refined by swaps with spatial neighbours while their local error (below, 2 nearest
@@ -30,9 +32,9 @@ from ...errors import OptionError
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
-from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, gains_given, gram_jitter,
-                             greedy_layout, pivoted_qr_layout, swap_descent, training_frames,
-                             training_gram)
+from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, DesignGram, gains_given,
+                             gram_jitter, greedy_layout, pivoted_qr_layout, swap_descent,
+                             training_frames, training_gram)
 
 
 def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start: np.ndarray, *,
@@ -41,10 +43,14 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
 
     Coordinate descent over clusters on the training fit (block Gram–Schmidt gains, see
     :mod:`.reconstruction`) until no representative changes. ``clusters`` (N,) cluster id per
-    point (-1: none); ``start`` (K,) one point per cluster.
+    point (-1: none); ``start`` (K,) one point per cluster. Returned as given (sorted) when the
+    other representatives' 3(K-1) columns can span the centred (F, 3N) design, of rank <= F-1
+    (frame-space Grams only, :func:`spans_design`): every member's residual is then rounding.
     """
     cand = problem.candidate_points()
     gram = training_gram(problem)
+    if spans_design(gram, len(start) - 1):
+        return np.sort(np.asarray(start, dtype=np.intp))
     jitter = gram_jitter(gram)
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[cand] = True
@@ -66,6 +72,13 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
         if not changed:
             break
     return np.sort(np.array(layout, dtype=np.intp))
+
+
+def spans_design(gram: np.ndarray | DesignGram, points: int) -> bool:
+    """Whether ``points`` points' 3 columns each can span a frame-space Gram's centred (F, 3N)
+    design (rank <= F-1): gains given them are then ~1e-8 of a column, ranked by rounding
+    (measured at 10,000 markers x 400 frames); False for a whole (3N, 3N) Gram."""
+    return isinstance(gram, DesignGram) and 3 * points >= gram.design.shape[0] - 1
 
 
 def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2),
