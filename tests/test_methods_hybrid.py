@@ -134,3 +134,31 @@ def test_representative_search_is_skipped_when_the_other_representatives_span_th
     chosen = cluster_representatives(problem, clusters, start)
     assert chosen.size == start.size and not np.array_equal(chosen, np.sort(start))
     assert np.array_equal(np.sort(clusters[chosen]), np.arange(16))  # still one per cluster
+
+
+def test_design_kept_gram_gives_the_gram_blocks_and_the_local_error_of_the_whole_gram():
+    from mocaptk.clustering.methods.reconstruction import DesignGram
+
+    problem = wave_problem(frames=30)  # 49 points: 147 columns > 30 frames
+    flat = problem.displacements.reshape(30, -1)
+    design = flat - flat.mean(axis=0)
+    whole, kept = design.T @ design, DesignGram(design)
+    src = np.array([[0, 1, 2, 9, 10, 11], [30, 31, 32, 3, 4, 5]])
+    dst = np.array([[60, 61, 62], [90, 91, 92]])
+    for rows, cols in ((src, src), (src, dst), (dst, dst)):
+        block = kept[rows[:, :, None], cols[:, None, :]]
+        assert np.allclose(block, whole[rows[:, :, None], cols[:, None, :]], rtol=1e-12, atol=1e-9)
+    assert np.allclose(kept.diagonal(), np.diag(whole), rtol=1e-12)
+    # in-sample folds share one design; the local error is the whole Gram's
+    every = np.arange(30)
+    folds = CrossValidatedError.from_displacements(problem.displacements, [(every, every)])
+    shared = CrossValidatedError((kept,), (kept,), folds.n_test_points, folds.ridge)
+    layout = np.array([3, 10, 24, 30, 44])
+    for scales in ((1,), (2,), (1, 2)):
+        assert LocalError(shared, problem.neutral, scales).rmse(layout) == pytest.approx(
+            LocalError(folds, problem.neutral, scales).rmse(layout), rel=1e-9)
+    big = wave_problem(n_side=46, frames=30).displacements  # > GRAM_MAX_POINTS: kept as designs
+    insample = CrossValidatedError.from_displacements(big, [(every, every)])
+    assert isinstance(insample.train_gram[0], DesignGram) and insample.test_gram[0] is insample.train_gram[0]
+    held_out = CrossValidatedError.from_displacements(big, [(every[:20], every[20:])])
+    assert held_out.test_gram[0] is not held_out.train_gram[0]

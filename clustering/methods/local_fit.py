@@ -55,9 +55,11 @@ class LocalError:
         for gram, test in zip(self.folds.train_gram, self.folds.test_gram):
             g_ss = gram[ss]
             lam = self.folds.ridge * np.maximum(np.trace(g_ss, axis1=1, axis2=2) / (3 * k), 1e-12)
-            coef = np.linalg.solve(g_ss + lam[:, None, None] * eye, gram[sd])  # (T, 3k, 3)
-            own = np.trace(test[dst[:, :, None], dst[:, None, :]], axis1=1, axis2=2)
-            total += own + np.sum(coef * (test[ss] @ coef - 2.0 * test[sd]), axis=(1, 2))
+            g_sd = gram[sd]
+            coef = np.linalg.solve(g_ss + lam[:, None, None] * eye, g_sd)  # (T, 3k, 3)
+            own = test.diagonal()[dst].sum(axis=1)
+            t_ss, t_sd = (g_ss, g_sd) if test is gram else (test[ss], test[sd])  # in-sample: the same blocks
+            total += own + np.sum(coef * (t_ss @ coef - 2.0 * t_sd), axis=(1, 2))
         return total
 
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
