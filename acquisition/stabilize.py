@@ -410,10 +410,10 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         median[rows] = np.nanmedian(np.where(weights, residual, np.nan)[rows], axis=1)
         weights = _keep_three(weights & (residual <= np.maximum(outlier_mm, 3.0 * median)[:, None]), weights)
         rot, trans = kabsch(np.nan_to_num(reference), rigid, weights)
-        # reference shape = mean head-relative position of each rigid marker over its inlier frames
-        # (outliers are already out; a mean, unlike a per-axis median, does not depend on the axes)
         if given:
             break  # the frame to land in is fixed: one round of outlier rejection is all
+        # reference shape = mean head-relative position of each rigid marker over its inlier frames
+        # (outliers are already out; a mean, unlike a per-axis median, does not depend on the axes)
         rel = _to_head(rigid, rot, trans)
         inlier = weights & ~np.isnan(rel).any(axis=2)
         for m in np.flatnonzero(inlier.any(axis=0)):
@@ -425,9 +425,9 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
     has = counts > 0
     rms[has] = np.sqrt(sq[has].sum(axis=1) / counts[has])
     rms[np.isnan(rot[:, 0, 0])] = np.nan
-    # rotate back to the reference frame's own coordinates
-    r0, t0 = rot[ref_frame].copy(), trans[ref_frame].copy()
-    if not given and np.isfinite(r0).all():
+    if not given and np.isfinite(rot[ref_frame]).all():
+        # rotate back to the reference frame's own coordinates
+        r0, t0 = rot[ref_frame].copy(), trans[ref_frame].copy()
         rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
         trans = trans - np.einsum("fij,j->fi", rot, t0)
     _bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)
