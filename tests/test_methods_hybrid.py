@@ -162,3 +162,24 @@ def test_design_kept_gram_gives_the_gram_blocks_and_the_local_error_of_the_whole
     assert isinstance(insample.train_gram[0], DesignGram) and insample.test_gram[0] is insample.train_gram[0]
     held_out = CrossValidatedError.from_displacements(big, [(every[:20], every[20:])])
     assert held_out.test_gram[0] is not held_out.train_gram[0]
+
+
+def test_nearest_layout_lookup_equals_the_per_call_sort_with_ties(monkeypatch):
+    """The kept (N, N) nearest-point order gives each target's nearest layout points exactly as
+    sorting the layout columns does, ties (a grid: many equal distances) by point index."""
+    from mocaptk.clustering.methods import local_fit
+
+    neutral = wave_problem(n_side=9).neutral
+    rng = np.random.default_rng(5)
+    layouts = [np.unique(rng.choice(81, size=size, replace=False)) for size in (1, 2, 7, 30, 80)]
+    looked_up = LocalError(None, neutral)
+    found = [looked_up._nearest_layout(np.setdiff1d(np.arange(81), lay), lay, min(3, lay.size))
+             for lay in layouts]
+    monkeypatch.setattr(local_fit, "ORDER_MAX_POINTS", 0)
+    sorted_ = LocalError(None, neutral)
+    for lay, near in zip(layouts, found):
+        targets = np.setdiff1d(np.arange(81), lay)
+        assert np.array_equal(near, sorted_._nearest_layout(targets, lay, min(3, lay.size)))
+        dist = np.linalg.norm(neutral[targets][:, None] - neutral[near], axis=2)
+        assert np.all(np.diff(dist, axis=1) >= 0)  # nearest first
+    assert "order" in looked_up._cache and "order" not in sorted_._cache

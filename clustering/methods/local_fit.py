@@ -21,6 +21,10 @@ import numpy as np
 
 from .reconstruction import CrossValidatedError
 
+#: Up to this many points every point's nearest-first order of all points is kept ((N, N)
+#: indices, 32 MB at 2,000): a layout's nearest points are then a lookup, not a sort per call.
+ORDER_MAX_POINTS = 2000
+
 
 @dataclass(frozen=True, eq=False)
 class LocalError:
@@ -38,7 +42,7 @@ class LocalError:
     neutral: np.ndarray
     scales: tuple[int, ...] = (1, 2)
     measured: np.ndarray | None = None
-    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors
+    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors, "order"
 
     def _squared_errors(self, targets: np.ndarray, near: np.ndarray, *, block: int = 2048) -> np.ndarray:
         """(T,) squared error of each target from its layout points ``near`` (T, k), summed over
@@ -62,14 +66,32 @@ class LocalError:
             total += own + np.sum(coef * (t_ss @ coef - 2.0 * t_sd), axis=(1, 2))
         return total
 
+    def _nearest_layout(self, targets: np.ndarray, layout: np.ndarray, count: int) -> np.ndarray:
+        """(T, count) nearest ``layout`` points (sorted indices) of each target on the neutral face,
+        nearest first, ties by index. Up to ``ORDER_MAX_POINTS`` points from every point's
+        order of all points (sorted once), else by sorting the layout columns."""
+        n = self.neutral.shape[0]
+        if n > ORDER_MAX_POINTS:
+            dist = np.linalg.norm(self.neutral[targets][:, None] - self.neutral[layout][None], axis=2)
+            return layout[np.argsort(dist, axis=1, kind="stable")[:, :count]]
+        if "order" not in self._cache:  # (N, N): each row all points, nearest first
+            self._cache["order"] = np.concatenate([np.argsort(np.linalg.norm(
+                self.neutral[lo:lo + 256, None] - self.neutral[None], axis=2), axis=1, kind="stable")
+                for lo in range(0, n, 256)]).astype(np.intp)
+        order = self._cache["order"][targets]
+        in_layout = np.zeros(n, dtype=bool)
+        in_layout[layout] = True
+        seen = np.cumsum(in_layout[order], axis=1)  # layout points up to each rank
+        ranks = np.argmax(seen[:, :, None] > np.arange(count), axis=1)  # (T, count)
+        return np.take_along_axis(order, ranks, axis=1)
+
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
         layout = np.unique(np.asarray(layout, dtype=np.intp))
         is_target = np.ones(self.neutral.shape[0], dtype=bool)
         is_target[layout] = False
         targets = np.flatnonzero(is_target)
-        dist = np.linalg.norm(self.neutral[targets][:, None] - self.neutral[layout][None], axis=2)
-        order = layout[np.argsort(dist, axis=1, kind="stable")]
+        order = self._nearest_layout(targets, layout, min(max(self.scales), layout.size))
         total = 0.0
         for k in self.scales:
             k = min(k, layout.size)
