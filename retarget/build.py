@@ -615,7 +615,7 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     ``captures`` are baked onto the rig one after the other (their takes become clips) and
     keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
     lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known."""
-    from mocaptk.atomic import check_writable
+    from mocaptk.atomic import check_writable, write_bytes
     from mocaptk.jsonio import write_json
 
     from .export_fbx import write_rig_fbx
@@ -671,11 +671,10 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         posed_joints = animation.translations[frame, 1:] + build.rig.joint_positions[0]
         posed = skin_vertices(build.rig.vertices, build.rig.weight_index, build.rig.weight_value,
                               np.vstack([np.zeros(3), posed_joints - joints])[None])[0]
-        for pose, verts, marks in (("rest", build.rig.vertices, joints),
-                                   ("jaw_open", posed, posed_joints)):
-            for view in ("front", "profile"):
-                render_view(verts, build.rig.faces, build.regions, [c.region for c in clusters],
-                            marks, numbers, names[f"render_{pose}_{view}"], view=view)
+        for view in ("front", "profile"):  # at rest: the guide's view, the same picture
+            write_bytes(names[f"render_rest_{view}"], names[view].read_bytes(), force=True)
+            render_view(posed, build.rig.faces, build.regions, [c.region for c in clusters],
+                        posed_joints, numbers, names[f"render_jaw_open_{view}"], view=view)
     check = build.check
     notes = [f"{len(clusters)} markers; mesh: {build.report['mesh']['kind']} "
              f"({build.rig.vertex_count} vertices); weights: {build.report['weights']['method']}, "

@@ -59,8 +59,9 @@ class Node:
 def encode_fbx(nodes: Sequence[Node]) -> bytes:
     """The complete binary FBX 7.4 file holding the top-level ``nodes``."""
     out = bytearray(_HEADER + struct.pack("<I", VERSION))
+    arrays: dict[int, tuple[np.ndarray, bytes]] = {}
     for node in nodes:
-        out += _encode_node(node, len(out))
+        out += _encode_node(node, len(out), arrays)
     out += _NULL_RECORD
     out += _FOOTER_ID + b"\x00" * 4
     pad = (-len(out)) % 16
@@ -69,15 +70,15 @@ def encode_fbx(nodes: Sequence[Node]) -> bytes:
     return bytes(out)
 
 
-def _encode_node(node: Node, start: int) -> bytes:
+def _encode_node(node: Node, start: int, arrays: dict[int, tuple[np.ndarray, bytes]]) -> bytes:
     name = node.name.encode("ascii")
     if len(name) > 255:
         raise ValueError(f"FBX node name too long: {node.name[:40]}...")
-    props = b"".join(_encode_property(p) for p in node.props)
+    props = b"".join(_encode_property(p, arrays) for p in node.props)
     body = bytearray()
     offset = start + 13 + len(name) + len(props)
     for child in node.children:
-        encoded = _encode_node(child, offset + len(body))
+        encoded = _encode_node(child, offset + len(body), arrays)
         body += encoded
     if node.children or node.block or not node.props:
         body += _NULL_RECORD
@@ -88,9 +89,13 @@ def _encode_node(node: Node, start: int) -> bytes:
     return head + name + props + bytes(body)
 
 
-def _encode_property(value: Property) -> bytes:
+def _encode_property(value: Property, arrays: dict[int, tuple[np.ndarray, bytes]]) -> bytes:
+    """``arrays``: the encoded arrays so far by object id (an animation's every curve shares its
+    take's key-time array: compressed once)."""
     if isinstance(value, np.ndarray):
-        return _encode_array(value)
+        if id(value) not in arrays:  # the array is kept with its bytes: its id stays its own
+            arrays[id(value)] = (value, _encode_array(value))
+        return arrays[id(value)][1]
     if isinstance(value, bool):
         return b"C" + struct.pack("<?", value)
     if isinstance(value, Int64):
