@@ -64,3 +64,22 @@ def test_robust_method_lowers_the_worst_single_lost_marker_of_the_hybrid():
                                                           "robust": pytest.approx(after)}
     assert after <= before
     np.testing.assert_array_equal(robust.layout, select_layout(wave_problem(seed=4), 7, method="robust").layout)
+
+
+def test_lost_marker_downdate_equals_refits_on_the_sample():
+    """The rank-3 downdates give each reduced layout's refit (real data, a take held out)."""
+    from pathlib import Path
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+
+    sample = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
+    if not sample.exists():
+        pytest.skip("sample_c3d/dense_halfface.c3d not available")
+    session = read_c3d(sample)
+    positions = session.positions[::4]
+    splits = holdout_splits(positions.shape[0], split="blocks", folds=3)
+    folds = heldout_folds(positions, splits[:1])
+    layout = np.sort(np.random.default_rng(2).choice(positions.shape[1], 30, replace=False))
+    refits = np.array([folds.rmse(np.delete(layout, i)) for i in range(layout.size)])
+    np.testing.assert_allclose(lost_marker_rmse(folds, layout), refits, rtol=1e-9)
+    assert worst_lost_marker(folds, layout).marker == layout[np.argmax(refits)]
