@@ -81,9 +81,8 @@ class LocalError:
         order = self._cache["order"][targets]
         in_layout = np.zeros(n, dtype=bool)
         in_layout[layout] = True
-        seen = np.cumsum(in_layout[order], axis=1)  # layout points up to each rank
-        ranks = np.argmax(seen[:, :, None] > np.arange(count), axis=1)  # (T, count)
-        return np.take_along_axis(order, ranks, axis=1)
+        # every row holds each layout point once: row-major selection keeps each target's own
+        return order[in_layout[order]].reshape(targets.size, layout.size)[:, :count]
 
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
