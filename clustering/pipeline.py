@@ -25,7 +25,7 @@ from .neutral import max_displacement, neutral_pose
 from .regions import default_regions, face_frame, unassigned
 from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
-from .threshold import RegionClusters, cluster_region, keep_representatives
+from .threshold import RegionClusters, cluster_region, keep_representatives, region_statistics
 
 #: Fewer sampled frames than this in a region make correlations meaningless.
 MIN_SAMPLES = 3
@@ -326,8 +326,11 @@ def _clusters_of_count(regions: Sequence[tuple[np.ndarray, np.ndarray]], count: 
         raise OptionError(f"--markers {count} is fewer than the {len(regions)} regions; the paper's "
                           "rule keeps at least one marker per region")
 
+    statistics = [region_statistics(matrix) for matrix, _ in regions]  # the same at every factor
+
     def at(factor: float) -> list[RegionClusters]:
-        return [cluster_region(matrix, disp, factor=factor) for matrix, disp in regions]
+        return [cluster_region(matrix, disp, factor=factor, statistics=stats)
+                for (matrix, disp), stats in zip(regions, statistics)]
 
     def total(result: list[RegionClusters]) -> int:
         return sum(r.representatives.size for r in result)

@@ -113,7 +113,16 @@ def max_off_diagonal(matrix: np.ndarray) -> float:
     return largest
 
 
-def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: float) -> RegionClusters:
+def region_statistics(matrix: np.ndarray) -> tuple[float, float]:
+    """(mean, largest) off-diagonal correlation of a region (NaN, NaN for one marker): what
+    :func:`cluster_region` needs whatever the factor (a factor search computes them once)."""
+    if matrix.shape[0] < 2:
+        return float("nan"), float("nan")
+    return mean_off_diagonal(matrix), max_off_diagonal(matrix)
+
+
+def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: float,
+                   statistics: tuple[float, float] | None = None) -> RegionClusters:
     """Threshold clustering followed by reassignment.
 
     Parameters
@@ -124,13 +133,14 @@ def cluster_region(matrix: np.ndarray, displacement: np.ndarray, *, factor: floa
         Largest displacement of each marker (picks the representatives).
     factor : float
         Refinement factor (> 0); threshold = factor × mean off-diagonal correlation.
+    statistics : (float, float), optional
+        :func:`region_statistics` of ``matrix`` when the caller has them.
     """
     if not factor > 0:
         raise OptionError(f"refinement factor must be > 0, got {factor}")
     n = matrix.shape[0]
-    mean = mean_off_diagonal(matrix)
+    mean, largest = region_statistics(matrix) if statistics is None else statistics
     threshold = factor * mean if n > 1 else float("nan")
-    largest = max_off_diagonal(matrix) if n > 1 else float("nan")
     reps, first = threshold_clusters(matrix, displacement, threshold if n > 1 else np.inf)
     final = reassign(matrix, reps, first)
     member_corr = matrix[reps[final], np.arange(n)]

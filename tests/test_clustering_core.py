@@ -18,7 +18,7 @@ from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
 from mocaptk.clustering.regions import default_regions, read_regions, regions_from_prefixes
 from mocaptk.clustering.takes import read_takes, region_segments, sample_frames
-from mocaptk.clustering.threshold import cluster_region
+from mocaptk.clustering.threshold import cluster_region, region_statistics
 
 
 def _corrcoef_sum(pos: np.ndarray) -> np.ndarray:
@@ -115,6 +115,13 @@ def test_larger_factor_never_gives_fewer_markers(smooth_field):
     counts = [len(cluster_region(matrix, disp, factor=f).representatives) for f in np.arange(0.5, 2.01, 0.05)]
     assert counts == sorted(counts)
     assert counts[-1] > counts[0]
+    # a factor search passes the region's statistics once: the same clusters
+    statistics = region_statistics(matrix)
+    off = matrix[~np.eye(matrix.shape[0], dtype=bool)]
+    assert statistics == (pytest.approx(off.mean(), rel=1e-12), off.max())
+    for factor in (0.7, 1.3):
+        given, own = (cluster_region(matrix, disp, factor=factor, statistics=s) for s in (statistics, None))
+        assert np.array_equal(given.assignment, own.assignment) and given.max_correlation == own.max_correlation
 
 
 def test_representatives_are_taken_by_largest_displacement(smooth_field):

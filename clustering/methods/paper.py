@@ -17,7 +17,7 @@ from ...errors import OptionError
 from ..correlation import consolidated_correlation
 from ..neutral import max_displacement
 from ..regions import default_regions
-from ..threshold import cluster_region
+from ..threshold import cluster_region, region_statistics
 from .problem import LayoutProblem
 
 
@@ -46,14 +46,15 @@ class _RegionData:
     points: np.ndarray  # (M,) point indices
     matrix: np.ndarray  # (M, M) consolidated correlation
     displacement: np.ndarray  # (M,) largest displacement, mm
+    statistics: tuple[float, float]  # region_statistics of matrix (the same for every factor)
 
 
 def _region_data(problem: LayoutProblem, step: int) -> list[_RegionData]:
     positions = problem.positions
     sampled = positions[::step] if positions.shape[0] >= 3 * step else positions
     disp = max_displacement(positions, problem.neutral)
-    return [_RegionData(idx, consolidated_correlation(sampled[:, idx]).matrix, disp[idx])
-            for idx in _regions(problem)]
+    matrices = [(idx, consolidated_correlation(sampled[:, idx]).matrix) for idx in _regions(problem)]
+    return [_RegionData(idx, matrix, disp[idx], region_statistics(matrix)) for idx, matrix in matrices]
 
 
 def correlation_clusters(problem: LayoutProblem, *, factor: float, step: int = 5,
@@ -64,7 +65,7 @@ def correlation_clusters(problem: LayoutProblem, *, factor: float, step: int = 5
     order: list[tuple[int, float, int]] = []  # (creation in region, -displacement, rep) for trimming
     for region in regions if regions is not None else _region_data(problem, step):
         idx, disp = region.points, region.displacement
-        result = cluster_region(region.matrix, disp, factor=factor)
+        result = cluster_region(region.matrix, disp, factor=factor, statistics=region.statistics)
         for k, rep in enumerate(result.representatives):
             clusters[idx[result.assignment == k]] = len(reps)
             order.append((k, -float(disp[rep]), len(reps)))
