@@ -11,6 +11,11 @@ Where markers may go (the *marker zone*), on the face region of the neutral mesh
   ``EYELID_MARGIN_MM``, and to the mouth opening farther than the inner-lip landmarks (60–67)
   plus ``INNER_LIP_MARGIN_MM``.
 
+The *wide* zone (``wide=True``, ``mocaptk synth --wide-zone``) also takes the skin a rig sees badly:
+under the nose and chin and the jaw's underside (normal ``z`` ≥ ``WIDE_MIN_FORWARD_NORMAL``), the
+eyelids (≥ ``WIDE_EYELID_MARGIN_MM`` from the eye openings) and the inner lips (up to
+``-WIDE_INNER_LIP_MARGIN_MM`` inside the inner-lip landmarks) — the test case of camera-aware layouts.
+
 Markers are picked among zone vertices by farthest-point sampling (Euclidean, mm) until every
 zone vertex is closer than ``spacing`` to a marker, so neighbours are ≥ ``spacing`` apart (the
 default 8 mm gives a median nearest neighbour ≈ 9.3 mm, ≈ 1 cm nominal, and ≈ 140 markers on half
@@ -66,6 +71,10 @@ ORBIT_WIDENING_MM = 9.0
 #: Half-height of the orbit below the eye centre (lower lid and the top of the infraorbital skin).
 LOWER_ORBIT_MM = 14.0
 INNER_LIP_MARGIN_MM = 1.0
+#: The wide zone's bounds (skin facing down to 107° from the front, eyelids, inner lips).
+WIDE_MIN_FORWARD_NORMAL = -0.3
+WIDE_EYELID_MARGIN_MM = 1.0
+WIDE_INNER_LIP_MARGIN_MM = -3.0
 #: Vertices closer than this to x = 0 are on the midline (ICT midline vertices have x = 0 exactly).
 MIDLINE_TOLERANCE_MM = 0.5
 
@@ -158,8 +167,12 @@ def _inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     return (crosses & (x < x_at)).sum(axis=1) % 2 == 1
 
 
-def marker_zone(model: FaceModel) -> np.ndarray:
-    """Which face-region vertices may carry a marker, ``(face_vertex_count,)`` bool (rules above)."""
+def marker_zone(model: FaceModel, *, wide: bool = False) -> np.ndarray:
+    """Which face-region vertices may carry a marker, ``(face_vertex_count,)`` bool (rules above;
+    ``wide``: the wide zone)."""
+    min_forward, eyelid_margin, lip_margin = (
+        (WIDE_MIN_FORWARD_NORMAL, WIDE_EYELID_MARGIN_MM, WIDE_INNER_LIP_MARGIN_MM) if wide
+        else (MIN_FORWARD_NORMAL, EYELID_MARGIN_MM, INNER_LIP_MARGIN_MM))
     n = model.face_vertex_count
     vertices = model.neutral[:n]
     faces = model.face_triangles
@@ -172,7 +185,7 @@ def marker_zone(model: FaceModel) -> np.ndarray:
     inside = _inside_polygon(vertices[:, :2], outline)
     # the ear's concha and tragus project inside the outline: keep to skin in front of the ear
     inside &= vertices[:, 2] >= marks[[0, 16], 2].min()
-    forward = vertex_normals(vertices, faces)[:, 2] >= MIN_FORWARD_NORMAL
+    forward = vertex_normals(vertices, faces)[:, 2] >= min_forward
 
     graph = _edge_graph(vertices, faces)
     loops = _boundary_loops(faces, n)
@@ -185,8 +198,8 @@ def marker_zone(model: FaceModel) -> np.ndarray:
     eyes = [i for i in openings if i != mouth]
     mouth_distance = dijkstra(graph, indices=loops[mouth], min_only=True)
     eye_distance = dijkstra(graph, indices=np.concatenate([loops[i] for i in eyes]), min_only=True)
-    inner_lip = mouth_distance[model.landmarks[60:68]].max() + INNER_LIP_MARGIN_MM
-    return inside & forward & (mouth_distance > inner_lip) & (eye_distance >= EYELID_MARGIN_MM)
+    inner_lip = mouth_distance[model.landmarks[60:68]].max() + lip_margin
+    return inside & forward & (mouth_distance > inner_lip) & (eye_distance >= eyelid_margin)
 
 
 def face_regions(model: FaceModel) -> np.ndarray:
@@ -255,7 +268,7 @@ def _farthest_points(points: np.ndarray, candidates: np.ndarray, chosen: list[in
 
 
 def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.0,
-                 seed: int = 0) -> MarkerLayout:
+                 seed: int = 0, wide: bool = False) -> MarkerLayout:
     """A dense marker layout on the face (see the module docstring for the rules).
 
     Parameters
@@ -268,6 +281,8 @@ def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.
         default 8 mm gives ≈ 140 half-face markers with a median nearest neighbour ≈ 9.3 mm.
     seed : int
         Chooses the starting vertices of the sampling (same seed ⇒ same layout).
+    wide : bool
+        Sample the wide zone (:func:`marker_zone`): also under the chin, eyelids, inner lips.
     """
     if mode not in ("half", "full"):
         raise OptionError(f"layout mode must be 'half' or 'full', got {mode!r}")
@@ -275,7 +290,7 @@ def dense_layout(model: FaceModel, *, mode: str = "half", spacing_mm: float = 8.
         raise OptionError(f"marker spacing must be within 3–50 mm, got {spacing_mm}")
     n = model.face_vertex_count
     vertices = model.neutral[:n]
-    zone = marker_zone(model)
+    zone = marker_zone(model, wide=wide)
     region_of = face_regions(model)
     rng = np.random.default_rng(seed)
     midline = np.flatnonzero(zone & (np.abs(vertices[:, 0]) < MIDLINE_TOLERANCE_MM))

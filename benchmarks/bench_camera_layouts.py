@@ -12,7 +12,10 @@ the true dense markers (RMSE mm over every frame and marker, mean of 3 capture s
 Rigs: ``cara`` and ``room`` (the presets, as ``synth`` uses them) and ``cara-right`` (only the
 two Cara cameras on the subject's right: a badly placed rig, from a rig file).
 
-    python benchmarks/bench_camera_layouts.py [--counts 20,30,48] [--out table.md]
+    python benchmarks/bench_camera_layouts.py [--counts 20,30,48] [--session S.c3d] [--out table.md]
+
+``--session``: another ``mocaptk synth`` session (with its ``_performance_truth.npz``), e.g. one
+made with ``--wide-zone`` (markers under the chin, on the eyelids and inner lips).
 
 Needs ICT-FaceKit (../shared/data) for the mesh normals of the performance.
 """
@@ -42,6 +45,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="20,30,48")
     parser.add_argument("--rigs", default="cara,room,cara-right")
+    parser.add_argument("--session", type=Path, default=SAMPLE / "dense_halfface.c3d")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
 
@@ -53,8 +57,8 @@ def main() -> None:
     from mocaptk.clustering.neutral import neutral_pose
 
     started, cpu0 = time.perf_counter(), cpu_seconds()
-    session = read_trajectories(SAMPLE / "dense_halfface.c3d")
-    truth = load_ground_truth(SAMPLE / "dense_halfface_performance_truth.npz")
+    session = read_trajectories(args.session)
+    truth = load_ground_truth(args.session.with_name(args.session.stem + "_performance_truth.npz"))
     assert tuple(truth.labels) == tuple(session.labels)
     true_positions = truth.positions
     normals = marker_normals(load_face_model(), truth)

@@ -143,6 +143,19 @@ def test_full_layout_is_mirrored(model, half):
             assert np.allclose(points[label[:-1] + "L"] * [-1, 1, 1], point, atol=0.1)
 
 
+def test_wide_zone_adds_the_skin_rigs_see_badly(model, half):
+    zone, wide = marker_zone(model), marker_zone(model, wide=True)
+    assert (wide >= zone).all() and wide.sum() > 1.2 * zone.sum()
+    layout = dense_layout(model, mode="half", seed=0, wide=True)
+    normals = vertex_normals(model.neutral[:9409], model.face_triangles)[layout.vertices]
+    outside = ~zone[layout.vertices]
+    regions = np.array(layout.regions)
+    # skin turned away from the front (under the nose, the jaw's side), and the eyelids
+    assert (normals[:, 2] < MIN_FORWARD_NORMAL).sum() >= 10
+    assert (outside & (regions == "eye")).sum() >= 3 and (outside & (regions == "mouth")).sum() >= 1
+    assert layout.n_markers > half.n_markers
+
+
 def test_layout_deterministic_for_a_seed(model, half):
     again = dense_layout(model, mode="half", seed=0)
     assert again.labels == half.labels and np.array_equal(again.vertices, half.vertices)

@@ -71,6 +71,9 @@ def synth(
     spacing: float = typer.Option(8.0, "--spacing", metavar="MM",
                                   help="Minimum marker spacing (8 mm: ≈ 140 half-face markers, "
                                        "median neighbour ≈ 9.3 mm)."),
+    wide_zone: bool = typer.Option(False, "--wide-zone",
+                                   help="Also place markers where rigs see badly: under the "
+                                        "nose and chin, eyelids, inner lips."),
     expressions: int = typer.Option(8, "--expressions",
                                     help="Target expressions per region take."),
     rest: float = typer.Option(2.0, "--rest", metavar="S",
@@ -136,7 +139,7 @@ def synth(
     camera_rig = None if rig == "none" else RIG_PRESETS[rig]()
     rate = rate or (camera_rig.rate if camera_rig is not None and camera_rig.rate else 60.0)
     layout = dense_layout(model, mode="half" if half else "full", spacing_mm=spacing,
-                          seed=seed if layout_seed is None else layout_seed)
+                          seed=seed if layout_seed is None else layout_seed, wide=wide_zone)
     motion = {"head_motion": head_motion, "rotation_deg": rotation, "translation_mm": translation}
     makers = {"session": lambda: ss.dense_session(
         model, layout, seed=seed, identity_coefficients=identity_coefficients, rate=rate,
