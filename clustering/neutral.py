@@ -53,6 +53,20 @@ def _median_of_valid(column: np.ndarray, n: int) -> float:
     return column[k] if n % 2 else (column[:k].max() + column[k]) / 2
 
 
+def seen_markers(positions: np.ndarray) -> np.ndarray:
+    """(markers,) bool: the marker has all three coordinates finite in at least one frame.
+
+    ``positions`` (frames, markers, 3) mm; in blocks of frames, axes compared as strided columns
+    (``isfinite(...).all(axis=2)`` over the whole session is ~3x slower)."""
+    pos = np.asarray(positions)
+    flat = pos.reshape(pos.shape[0], pos.shape[1] * 3)
+    seen = np.zeros(pos.shape[1], dtype=bool)
+    for start in range(0, pos.shape[0], BLOCK_FRAMES):
+        finite = np.isfinite(flat[start:start + BLOCK_FRAMES])
+        seen |= (finite[:, 0::3] & finite[:, 1::3] & finite[:, 2::3]).any(axis=0)
+    return seen
+
+
 def max_displacement(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     """Largest distance of each marker from its neutral position over the frames, mm.
 

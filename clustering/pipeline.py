@@ -21,7 +21,7 @@ from ..errors import InputFileError, OptionError, source_error
 from ..trajectories import Take, Trajectories
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
-from .neutral import max_displacement, neutral_pose
+from .neutral import max_displacement, neutral_pose, seen_markers
 from .regions import default_regions, face_frame, unassigned
 from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
@@ -191,7 +191,7 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     check_options(options, traj.n_frames, source=file)
     notes: list[str] = []
     # unusable markers: never seen
-    seen = np.isfinite(traj.positions).all(axis=2).any(axis=0)
+    seen = seen_markers(traj.positions)
     excluded = [label for label, ok in zip(traj.labels, seen) if not ok]
     if excluded:
         notes.append(f"{len(excluded)} markers have no data at all and are left out: "

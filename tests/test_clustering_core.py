@@ -14,7 +14,7 @@ from mocaptk import InputFileError, OptionError, Take, Trajectories
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.clustering.correlation import consolidated_correlation, mean_off_diagonal
 from mocaptk.clustering.layout import read_layout, write_layout
-from mocaptk.clustering.neutral import neutral_pose
+from mocaptk.clustering.neutral import neutral_pose, seen_markers
 from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
 from mocaptk.clustering.regions import default_regions, read_regions, regions_from_prefixes
 from mocaptk.clustering.takes import read_takes, region_segments, sample_frames
@@ -56,7 +56,7 @@ def test_gappy_correlation_is_pairwise_complete():
     assert mean_off_diagonal(np.ones((1, 1))) != mean_off_diagonal(np.ones((1, 1)))  # NaN for one marker
 
 
-def test_neutral_pose_is_numpys_nanmedian_bit_for_bit():
+def test_neutral_pose_and_seen_markers_match_numpy_bit_for_bit(monkeypatch):
     sample = read_c3d(SAMPLES / "dense_halfface.c3d").positions
     rng = np.random.default_rng(4)
     pos = sample[:1501, :130].copy()  # odd and (with gaps) even counts, blocks of 96 columns
@@ -74,6 +74,17 @@ def test_neutral_pose_is_numpys_nanmedian_bit_for_bit():
     assert np.array_equal(neutral_pose(pos, rest_frames=rest), neutral_pose(pos[rest].copy()),
                           equal_nan=True)
     assert np.isnan(neutral_pose(pos[:0])).all() and neutral_pose(pos[:, :0]).shape == (0, 3)
+    from mocaptk.clustering import neutral
+
+    monkeypatch.setattr(neutral, "BLOCK_FRAMES", 256)
+    pos[5000 % 1501, 9, 0] = np.nan  # one frame with a missing axis among complete ones
+    pos[:, 10, 0], pos[:, 10, 1] = np.nan, np.where(np.arange(1501) % 2, np.nan, 1.0)  # never all 3
+    pos[1500, 11] = [1.0, 2.0, 3.0]  # seen in the last frame only (past a block)
+    pos[:1500, 11] = np.nan
+    pos[0, 12], pos[1:, 12] = [1.0, 2.0, 3.0], np.nan  # in the first frame only
+    assert np.array_equal(seen_markers(pos), np.isfinite(pos).all(axis=2).any(axis=0))
+    assert seen_markers(pos)[[5, 9, 10, 11, 12]].tolist() == [False, True, False, True, True]
+    assert seen_markers(pos[:0]).tolist() == [False] * 130
 
 
 @pytest.fixture(scope="module")
