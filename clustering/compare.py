@@ -31,7 +31,7 @@ from threadpoolctl import threadpool_limits
 
 from ..errors import OptionError
 from ..trajectories import Trajectories
-from .evaluation import error_summary, heldout_errors, holdout_splits
+from .evaluation import GapFreeRidge, error_summary, heldout_errors, holdout_splits
 from .figures import _pyplot, _save
 from .lost_marker import heldout_folds, pooled_worst_lost
 from .regions import face_frame
@@ -94,6 +94,16 @@ def _gap_free(positions: np.ndarray) -> np.ndarray:
     return kept[::step]
 
 
+def _scorer(train: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``errors(layout, test)`` (frames, markers) mm: the held-out ridge fitted on ``train``'s
+    :func:`_gap_free` frames — from one Gram matrix per fold when they are gap-free (every
+    method and count shares it), else by the per-pattern fits of :func:`heldout_errors`."""
+    fit = _gap_free(train)
+    if np.isfinite(fit).all():
+        return GapFreeRidge.fit(fit).errors
+    return lambda layout, test: heldout_errors(fit, layout, [], test=test)
+
+
 # thousands of small solves (scores, lost markers): BLAS threads only contend (17x the CPU at 60 markers)
 @threadpool_limits.wrap(limits=1, user_api="blas")
 def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
@@ -136,6 +146,8 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
     # one scorer per scored layout for the worst single lost marker (gap-free frames)
     lost_folds = ([heldout_folds(positions, test=test.positions)] if test is not None
                   else [heldout_folds(positions, [fold]) for fold in folds])
+    scorers = ([_scorer(positions)] if test is not None
+               else [_scorer(positions[train]) for train, _ in folds])
     options = options or {}
     rows: list[CompareRow] = []
     for method in methods:
@@ -150,20 +162,18 @@ def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                     layout = chosen.layout if layout is None else layout
                     details = details or chosen.details
                     if test is not None:
-                        errors = heldout_errors(_gap_free(positions), chosen.layout, [],
-                                                test=test.positions)
+                        errors = scorers[0](chosen.layout, test.positions)
                         seconds.append(chosen.seconds)
                         scored = [chosen.layout]
                     else:
                         errors = np.full(positions.shape[:2], np.nan)
                         scored = []
-                        for problem, (train, held) in zip(fold_problems, folds):
+                        for problem, (_, held), score in zip(fold_problems, folds, scorers):
                             fold = select_layout(problem, count, method=method, seed=s,
                                                  **options.get(method, {}))
                             seconds.append(fold.seconds)
                             scored.append(fold.layout)
-                            errors[held] = heldout_errors(_gap_free(positions[train]), fold.layout,
-                                                          [], test=positions[held])
+                            errors[held] = score(fold.layout, positions[held])
                     summaries.append(error_summary(errors))
                     lost.append(pooled_worst_lost(lost_folds, scored))
             except OptionError as exc:

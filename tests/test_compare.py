@@ -137,3 +137,25 @@ def test_compare_cli_rejects_bad_options(tmp_path, run_cli, args, message):
 def test_compare_cli_missing_file(tmp_path, run_cli):
     result = run_cli("compare", tmp_path / "nope.c3d", "--out", tmp_path / "o")
     assert result.exit_code == 2 and "nope.c3d" in result.stderr
+
+
+def test_gap_free_ridge_scores_as_the_per_pattern_fits_on_the_sample():
+    """compare's one-Gram-per-fold scorer gives heldout_errors' errors (test frames with gaps)."""
+    from pathlib import Path
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.evaluation import GapFreeRidge
+
+    sample = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
+    if not sample.exists():
+        pytest.skip("sample_c3d/dense_halfface.c3d not available")
+    positions = read_c3d(sample).positions[::3]
+    train, test = _gap_free(positions[:1500]), positions[1500:].copy()
+    layout = np.sort(np.random.default_rng(1).choice(positions.shape[1], 40, replace=False))
+    test[10:40, layout[:3]] = np.nan  # lost layout markers: other presence patterns
+    expected = heldout_errors(train, layout, [], test=test)
+    errors = GapFreeRidge.fit(train).errors(layout, test)
+    np.testing.assert_array_equal(np.isnan(errors), np.isnan(expected))
+    np.testing.assert_allclose(errors, expected, rtol=0, atol=1e-8, equal_nan=True)
+    intact = GapFreeRidge.fit(train).errors(layout, positions[1500:])
+    assert (errors[:, layout[3:]] == 0).all() and not np.allclose(errors[10:40], intact[10:40], equal_nan=True)
