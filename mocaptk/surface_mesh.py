@@ -230,7 +230,8 @@ OPENING_STRETCH = 2.0
 
 
 def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarray, *,
-                 max_stretch: float = OPENING_STRETCH) -> tuple[np.ndarray, np.ndarray]:
+                 max_stretch: float = OPENING_STRETCH, columns: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Remove the triangles that span an opening of the face (the lips), found from the motion.
 
     An edge between two markers that stretches more than ``max_stretch`` x its neutral length
@@ -247,6 +248,9 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
         The markers' motion, NaN gaps allowed.
     neutral : (M, 3) float mm
     max_stretch : float
+    columns : (M,) int, optional
+        The ``trajectories`` column of each marker (default: marker i = column i); a caller's
+        wider session array then needs no (F, M, 3) copy.
 
     Returns
     -------
@@ -260,11 +264,12 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
     if len(edges) == 0:
         return faces, edges
     rest = np.linalg.norm(neutral[edges[:, 0]] - neutral[edges[:, 1]], axis=1)
-    length = edge_lengths(trajectories, edges)
+    length = edge_lengths(trajectories, edges if columns is None else np.asarray(columns)[edges])
     seen = np.isfinite(length).any(axis=0)
     stretch = np.ones(len(edges))
     with np.errstate(invalid="ignore"):
-        stretch[seen] = np.nanpercentile(length[:, seen], 99, axis=0) / np.maximum(rest[seen], 1e-9)
+        seen_lengths = length if seen.all() else length[:, seen]  # no copy in the usual case
+        stretch[seen] = np.nanpercentile(seen_lengths, 99, axis=0) / np.maximum(rest[seen], 1e-9)
     cut = stretch > max_stretch
     if not cut.any():
         return faces, edges[:0]
@@ -277,8 +282,8 @@ def cut_openings(faces: np.ndarray, trajectories: np.ndarray, neutral: np.ndarra
                             n_vertices=n), edges[cut]
 
 
-#: Frames per block of :func:`edge_lengths` (its (frames, edges, 3) gathers stay in cache).
-EDGE_BLOCK_FRAMES = 256
+#: Frames per block of :func:`edge_lengths` (its marker-major block and gathers stay in cache).
+EDGE_BLOCK_FRAMES = 32
 
 
 def edge_lengths(trajectories: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -287,13 +292,14 @@ def edge_lengths(trajectories: np.ndarray, edges: np.ndarray) -> np.ndarray:
     traj = np.asarray(trajectories, dtype=float)
     length = np.empty((traj.shape[0], len(edges)))
     for start in range(0, traj.shape[0], EDGE_BLOCK_FRAMES):
-        block = traj[start:start + EDGE_BLOCK_FRAMES]
-        d = block[:, edges[:, 0]] - block[:, edges[:, 1]]
+        # marker-major (M, 3, B): an edge end is one contiguous row to gather, not 3 scattered values
+        block = traj[start:start + EDGE_BLOCK_FRAMES].transpose(1, 2, 0).copy()
+        d = block[edges[:, 0]] - block[edges[:, 1]]
         d *= d
-        out = length[start:start + EDGE_BLOCK_FRAMES]
-        np.add(d[..., 0], d[..., 1], out=out)
-        out += d[..., 2]
+        out = np.add(d[:, 0], d[:, 1])
+        out += d[:, 2]
         np.sqrt(out, out=out)
+        length[start:start + EDGE_BLOCK_FRAMES] = out.T
     return length
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -97,8 +98,12 @@ class DenseCloud:
     captured: np.ndarray
     rotation: np.ndarray
 
+    @cached_property
+    def _lookup(self) -> dict[str, int]:  # built once: a 10,000-marker cloud is asked per cluster
+        return {label: i for i, label in enumerate(self.labels)}
+
     def index(self, labels: Sequence[str]) -> np.ndarray:
-        lookup = {label: i for i, label in enumerate(self.labels)}
+        lookup = self._lookup
         missing = [label for label in labels if label not in lookup]
         if missing:
             raise OptionError(f"layout markers not found in the session: {', '.join(missing[:6])}"
@@ -370,7 +375,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                               max_notch_deg=RIM_NOTCH_DEG)
         chart_kind = "sphere" if chart is None else "ICT-FaceKit face fitted to the markers"
         firsts = first[order]
-        faces, cut = cut_openings(faces, cloud.trajectories[:, firsts], cloud.neutral[firsts])
+        faces, cut = cut_openings(faces, cloud.trajectories, cloud.neutral[firsts], columns=firsts)
         cut = firsts[cut]
         say("opening the eyes")
         eyes = template_eye_loops(template) if template is not None else []

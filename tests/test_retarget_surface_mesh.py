@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocaptk.surface_mesh import (face_normals, marker_spacing, marker_surface_mesh, mesh_edges,
-                                  mesh_quality, vertex_normals)
+from mocaptk.surface_mesh import (EDGE_BLOCK_FRAMES, edge_lengths, face_normals, marker_spacing,
+                                  marker_surface_mesh, mesh_edges, mesh_quality, vertex_normals)
 
 
 def face_cap(*, spacing: float = 10.0, half: bool = False, seed: int = 0) -> np.ndarray:
@@ -131,3 +131,19 @@ def test_surface_mesh_border_has_no_zigzag_notches():
     assert q.boundary_loops == 1 and q.non_manifold_edges == 0 and q.min_angle_deg > 15.0
     _, old = border_turns(*marker_surface_mesh(points))
     assert old.min() < -40.0  # without the fill (the layouts' and solve's mesh)
+
+
+def test_edge_lengths_are_numpy_norms_across_blocks_and_gaps():
+    """Frame by frame the values of np.linalg.norm of the edge vectors, bit for bit (the blocks'
+    layout must not change the sums), NaN where an end is missing, over a partial last block."""
+    pts = face_cap()
+    _, faces = marker_surface_mesh(pts)
+    edges, _ = mesh_edges(faces)
+    rng = np.random.default_rng(3)
+    frames = 3 * EDGE_BLOCK_FRAMES + 5
+    traj = pts[None] + rng.normal(scale=2.0, size=(frames, len(pts), 3))
+    traj[rng.random((frames, len(pts))) < 0.05] = np.nan
+    expected = np.linalg.norm(traj[:, edges[:, 0]] - traj[:, edges[:, 1]], axis=2)
+    got = edge_lengths(traj, edges)
+    assert got.shape == (frames, len(edges)) and np.isnan(got).any()
+    np.testing.assert_array_equal(got, expected)
