@@ -8,6 +8,12 @@ run: the same function with BLAS threads free (``compare_methods.__wrapped__``, 
 Both must give the same rows. CPU seconds are this process's own (all its threads).
 
     python benchmarks/bench_compare.py [--counts 40,60] [--methods farthest-point,qr] [--repeat 1]
+    python benchmarks/bench_compare.py --lost 60   # lost-marker scores: downdates vs a refit per marker
+
+``--lost L``: the worst-lost-marker scores of a random L-marker layout on every leave-one-take-out
+fold, by ``lost_marker_rmse`` (one eigendecomposition per fold, a rank-3 downdate per marker)
+against the baseline in the same run, a ridge refit per lost marker (``CrossValidatedError.rmse``
+of each reduced layout, the code before); both must agree to 1e-9.
 
 The whole command (``mocaptk compare sample_c3d/dense_halfface.c3d``, issue 17 goal ≤ 120 s)
 is timed with ``/usr/bin/time -v``; see docs/performance.md.
@@ -37,17 +43,43 @@ def timed(function, *args, **kwargs):
     return result, time.perf_counter() - wall, cpu_seconds() - cpu
 
 
+def lost_marker_bench(session, count: int) -> None:
+    """Lost-marker scores on every fold: downdates against a refit per marker, same run."""
+    from threadpoolctl import threadpool_limits
+
+    from mocaptk.clustering.evaluation import holdout_splits
+    from mocaptk.clustering.lost_marker import heldout_folds, lost_marker_rmse
+
+    layout = np.sort(np.random.default_rng(0).choice(session.n_markers, count, replace=False))
+    folds = [heldout_folds(session.positions, [f]) for f in holdout_splits(session.n_frames, session.takes,
+                                                                             split="takes")]
+    with threadpool_limits(limits=1, user_api="blas"):  # as compare_methods runs them
+        new, wall, cpu = timed(lambda: [lost_marker_rmse(f, layout) for f in folds])
+        old, base_wall, base_cpu = timed(lambda: [np.array([f.rmse(np.delete(layout, i)) for i in range(count)])
+                                                  for f in folds])
+    print(f"lost-marker scores, {count} markers x {len(folds)} folds | wall s | CPU s |\n|---|---:|---:|")
+    print(f"| downdates (lost_marker_rmse) | {wall:.2f} | {cpu:.2f} |\n| refit per marker (baseline) | "
+          f"{base_wall:.2f} | {base_cpu:.2f} |")
+    worst = max(float(np.max(np.abs(a - b) / b)) for a, b in zip(new, old))
+    print(f"baseline / ours: {base_wall / wall:.1f}x wall, {base_cpu / cpu:.1f}x CPU; largest relative "
+          f"difference {worst:.1e} (equal to 1e-9: {worst < 1e-9}); load {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="40,60")
     parser.add_argument("--methods", default="farthest-point,qr")
     parser.add_argument("--repeat", type=int, default=1, help="rounds, limited and free taking turns")
+    parser.add_argument("--lost", type=int, default=0, metavar="L",
+                        help="only the lost-marker benchmark, at L markers")
     args = parser.parse_args()
 
     from mocaptk.clustering.compare import compare_methods
     from mocaptk.clustering.pipeline import load_session_and_test
 
     session, _, _ = load_session_and_test(SAMPLE, None, stabilized=True, rate=None, units=None, rigid=None)
+    if args.lost:
+        return lost_marker_bench(session, args.lost)
     counts = [int(c) for c in args.counts.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
     print(f"{SAMPLE.name}: {session.n_markers} markers x {session.n_frames} frames, {len(session.takes)} takes; "
