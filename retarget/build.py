@@ -470,8 +470,7 @@ def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
     marker is missing are skipped. A dense marker's prediction is its bind position moved by
     its vertex's skinned displacement.
     """
-    predicted, target, _, _ = _marker_prediction(build, cloud, truth)
-    return skinning_error(predicted, target)
+    return distance_error(_marker_distances(build, cloud, truth)[0])
 
 
 def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
@@ -486,8 +485,7 @@ def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
     largest error happens, and how far that marker is from the nearest layout marker.
     """
     cloud = build.cloud if cloud is None else cloud
-    predicted, target, labels, frames = _marker_prediction(build, cloud, None)
-    dist = np.linalg.norm(predicted - target, axis=2)  # (F_used, N)
+    dist, labels, frames = _marker_distances(build, cloud, None)  # (F_used, N)
     region_of = {m: r.name for r in build.layout.regions for m in r.markers}
     region_of.update({m: c.region for c in build.layout.clusters for m in c.members})
     names = [region_of.get(label, "") for label in labels]
@@ -518,26 +516,39 @@ def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
     return distance_error(dist), summary
 
 
-def _marker_prediction(build: RigBuild, cloud: DenseCloud | None,
-                       truth: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
-    """Skinned (predicted) and true positions (F_used, N, 3) mm of the captured dense markers,
-    their labels (N,) and the frames used (F_used,) (frames with every layout marker seen)."""
+#: Frames per block of :func:`_marker_distances` (its skinned and true positions stay a few MB).
+CHECK_BLOCK_FRAMES = 1024
+
+
+def _marker_distances(build: RigBuild, cloud: DenseCloud | None, truth: np.ndarray | None
+                      ) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Distances (F_used, N) mm between the skinned (predicted) and true positions of the
+    captured dense markers, their labels (N,) and the frames used (F_used,) (frames with every
+    layout marker seen); block by block of frames, no (F, N, 3) temporaries."""
     cloud = build.cloud if cloud is None else cloud
     rig = build.rig
     captured = np.flatnonzero(cloud.captured)
     labels = [cloud.labels[i] for i in captured]
     bind_joints = build.cloud.neutral[build.cloud.index(build.layout.labels)]
     bind_dense = build.cloud.index(labels)
-    joints = cloud.trajectories[:, cloud.index(build.layout.labels)] - bind_joints
-    usable = np.isfinite(joints).all(axis=(1, 2))
-    disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
-    disp[:, 1:] = joints[usable]  # joint 0 is the static root
+    joint_columns = cloud.index(build.layout.labels)
     rows = build.dense_vertices[bind_dense]
     rest = np.asarray(rig.vertices)[rows]
-    predicted = skin_vertices(rest, rig.weight_index[rows], rig.weight_value[rows], disp)
-    predicted += (build.cloud.neutral[bind_dense] - rest)[None]
-    target = cloud.trajectories[:, captured] if truth is None else np.asarray(truth)
-    return predicted, target[usable], labels, np.flatnonzero(usable)
+    offset = build.cloud.neutral[bind_dense] - rest
+    distances, used = [], []
+    for start in range(0, cloud.trajectories.shape[0], CHECK_BLOCK_FRAMES):
+        block = cloud.trajectories[start:start + CHECK_BLOCK_FRAMES]
+        joints = block[:, joint_columns] - bind_joints
+        usable = np.isfinite(joints).all(axis=(1, 2))
+        disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
+        disp[:, 1:] = joints[usable]  # joint 0 is the static root
+        predicted = skin_vertices(rest, rig.weight_index[rows], rig.weight_value[rows], disp)
+        predicted += offset[None]
+        target = block[:, captured] if truth is None else np.asarray(truth)[start:start + len(block)]
+        distances.append(np.linalg.norm(predicted - target[usable], axis=2))
+        used.append(start + np.flatnonzero(usable))
+    return (np.concatenate(distances) if distances else np.zeros((0, len(labels))), labels,
+            np.concatenate(used) if used else np.zeros(0, dtype=np.int64))
 
 
 def ground_truth_error(build: RigBuild, session: Trajectories, truth_positions: np.ndarray,
