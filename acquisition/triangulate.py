@@ -4,11 +4,12 @@ One numba kernel (:mod:`.triangulate_kernel`, imported on first use; compiled on
 on disk; threads over points) does per point: undistort every view (OpenCV's fixed-point
 iteration), solve the DLT normal equations in closed form (3x3), reweight the rows by focal
 / depth so the algebraic error becomes the reprojection error in px (a Gauss-Newton-like
-refinement), and check every view's reprojection error. Points whose views disagree get a
-consensus search: every camera pair that sees the point proposes a two-view point, the
-proposal with most views within ``outlier_threshold_px`` wins (ties: smallest summed error),
-the point is refit on those views and views that agree with the refit join in (not
-aniposelib's exhaustive subset loop).
+refinement), and check every view's reprojection error. A point seen by 4 or more cameras
+whose views disagree is first refit without its worst view, and is done when the other views
+all agree. Otherwise it gets a consensus search: every camera pair that sees the point
+proposes a two-view point, the proposal with most views within ``outlier_threshold_px`` wins
+(ties: smallest summed error), the point is refit on those views and views that agree with
+the refit join in (not aniposelib's exhaustive subset loop).
 """
 
 from __future__ import annotations

@@ -2,10 +2,10 @@
 
 One pass over all points, threaded over chunks of points: undistortion (OpenCV's fixed-point
 iteration), closed-form DLT normal equations reweighted by focal / depth, per-view
-reprojection errors, the two-view pair consensus for points whose views disagree, refit and
-growth, and the RMS residual in the distorted image. Compiled on first use (about a minute)
-and cached on disk by numba; kept in its own module so that importing
-:mod:`mocaptk.acquisition` does not import numba.
+reprojection errors, for points whose views disagree a refit without the worst view (4+
+views) else the two-view pair consensus, refit and growth, and the RMS residual in the
+distorted image. Compiled on first use (about a minute) and cached on disk by numba; kept
+in its own module so that importing :mod:`mocaptk.acquisition` does not import numba.
 """
 
 from __future__ import annotations
@@ -153,31 +153,49 @@ def _triangulate_point(poses, focal, min_views, threshold, refine_iterations,
         use[j] = error[j] <= threshold
         n_inliers += use[j]
     if n >= 2 and n_inliers < n:
-        # 2) consensus over the two-view hypotheses of every camera pair seeing the point:
-        # each pair is solved from its two views only; a pair that can no longer beat the
-        # best count (even with all its remaining views agreeing) stops being checked
-        best_count, best_cost, best_mask = 0, np.inf, 0
-        for i in range(n):
-            for j in range(i + 1, n):
-                views[0], views[1] = i, j
-                weight[0], weight[1] = focal[cam[i]], focal[cam[j]]
-                _solve_weighted(2, views, weight, terms, x)
-                count, cost, mask = 0, 0.0, 0
-                for m in range(n):
-                    if count + n - m < best_count:
-                        break
-                    e = _error_px(poses, focal[cam[m]], cam[m], u[m], v[m], x)
-                    if e <= threshold:
-                        count += 1
-                        cost += e
-                        mask |= 1 << m
-                if count > best_count or (count == best_count and cost < best_cost):
-                    best_count, best_cost, best_mask = count, cost, mask
-        for j in range(n):
-            use[j] = (best_mask >> j) & 1 == 1
-        _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
+        # 2) a single outlier first: drop the worst view, refit on the others; done when
+        # they all agree (the pair search below would find the same views)
+        best_count = 0
+        if n >= 4:
+            worst = 0
+            for j in range(1, n):
+                if error[j] > error[worst]:
+                    worst = j
+            for j in range(n):
+                use[j] = j != worst
+            _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
+            _errors_px(poses, focal, n, cam, u, v, x, error)
+            best_count = n - 1
+            for j in range(n):
+                if j != worst and not error[j] <= threshold:
+                    best_count = 0
+        if best_count == 0:
+            # 3) else consensus over the two-view hypotheses of every camera pair seeing the
+            # point: each pair is solved from its two views only; a pair that can no longer
+            # beat the best count (even with all its remaining views agreeing) stops being
+            # checked
+            best_count, best_cost, best_mask = 0, np.inf, 0
+            for i in range(n):
+                for j in range(i + 1, n):
+                    views[0], views[1] = i, j
+                    weight[0], weight[1] = focal[cam[i]], focal[cam[j]]
+                    _solve_weighted(2, views, weight, terms, x)
+                    count, cost, mask = 0, 0.0, 0
+                    for m in range(n):
+                        if count + n - m < best_count:
+                            break
+                        e = _error_px(poses, focal[cam[m]], cam[m], u[m], v[m], x)
+                        if e <= threshold:
+                            count += 1
+                            cost += e
+                            mask |= 1 << m
+                    if count > best_count or (count == best_count and cost < best_cost):
+                        best_count, best_cost, best_mask = count, cost, mask
+            for j in range(n):
+                use[j] = (best_mask >> j) & 1 == 1
+            _solve(focal, n, cam, use, refine_iterations, poses, terms, views, weight, x)
+            _errors_px(poses, focal, n, cam, u, v, x, error)
         # views that agree with the refit consensus point join it (one more pass)
-        _errors_px(poses, focal, n, cam, u, v, x, error)
         grown = 0
         for j in range(n):
             grown += error[j] <= threshold
