@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import Akima1DInterpolator, CubicSpline
 
 from mocaptk.errors import OptionError
 from mocaptk.trajectories import Trajectories
@@ -188,6 +187,10 @@ def held_out_errors(filled: np.ndarray, truth: np.ndarray, holes: list[tuple[int
 
 def _interpolate(track: np.ndarray, valid: np.ndarray, gaps: list[tuple[int, int]], *, akima: bool) -> None:
     """Fill ``gaps`` of one marker's (frames, 3) ``track`` in place from its ``valid`` frames."""
+    # here: scipy.interpolate (with scipy.optimize, scipy.fft) costs ~0.2 CPU-s to import, and
+    # every `cluster` and `rig` run imports this module through retarget's bake
+    from scipy.interpolate import Akima1DInterpolator, CubicSpline
+
     known = np.flatnonzero(valid)
     frames = np.concatenate([np.arange(a, b) for a, b in gaps])
     if akima and len(known) >= 3:
