@@ -113,22 +113,31 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
             if members.any():
                 centres_arr[k] = coords[members].mean(axis=0)
                 made_of[k] = members
-    # the member nearest each centre in the trajectories themselves: a two-member cluster's tie
-    # is decided by the same rounding whatever coordinates the iterations used
-    dist = sq_dist_to(feats, np.array([feats[m].mean(axis=0) for m in made_of]))
-    # one distinct marker per cluster: the member nearest the centre; empty clusters are filled
-    # with the markers worst represented by the chosen ones
+    # the member nearest each centre in the trajectories themselves, by direct differences: the
+    # expanded |x|^2 - 2 x.c + |c|^2 of long trajectories is mostly cancellation, and a BLAS
+    # kernel's rounding then broke a two-member cluster's exact tie (CPU-dependent layouts)
+    means = np.array([feats[m].mean(axis=0) for m in made_of])
+    energy = np.einsum("ij,ij->i", feats, feats)
     chosen: list[int] = []
     for k in range(count):
         members = np.flatnonzero(assign == k)
         if members.size:
-            chosen.append(int(members[np.argmin(dist[members, k])]))
-    if len(chosen) < count:
+            chosen.append(_nearest_member(feats[members] - means[k], members, energy[members]))
+    if len(chosen) < count:  # empty clusters: the markers worst represented by the chosen ones
         remaining = np.setdiff1d(np.arange(n_markers), chosen)
-        worst = dist[remaining].min(axis=1)
+        worst = sq_dist_to(feats[remaining], means).min(axis=1)
         extra = remaining[np.argsort(-worst, kind="stable")[: count - len(chosen)]]
         chosen.extend(int(i) for i in extra)
     return np.sort(np.array(chosen, dtype=np.intp))
+
+
+def _nearest_member(offsets: np.ndarray, members: np.ndarray, energy: np.ndarray) -> int:
+    """The member nearest its cluster's mean, ``offsets`` (m, d) from it; members within 1e-9
+    (relative) of the nearest tie (two members are always equidistant from their mean), won by
+    the one that moves most (``energy``, summed squared displacement), then the lowest index."""
+    dist = np.einsum("ij,ij->i", offsets, offsets)
+    tied = np.flatnonzero(dist <= dist.min() * (1.0 + 1e-9))
+    return int(members[tied[np.argmax(energy[tied])]])
 
 
 def _gram_coordinates(feats: np.ndarray) -> np.ndarray:

@@ -88,6 +88,20 @@ def test_kmeans_layout_picks_one_marker_per_planted_group():
     assert sorted(group_of[traj.labels[i]] for i in idx) == sorted(set(group_of.values()))
 
 
+def test_kmeans_two_member_tie_goes_to_the_member_that_moves_most():
+    # two pairs of markers, each pair's members exactly equidistant from its mean: which one is
+    # kept must not depend on a BLAS kernel's rounding (it did: CPU-dependent layouts)
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(2, 6841, 3)) * 5.0
+    spread = rng.normal(size=(2, 6841, 3)) * 0.2
+    disp = np.stack([base[0] + spread[0], base[0] - 1.05 * spread[0],
+                     base[1] - 1.1 * spread[1], base[1] + spread[1]], axis=1)
+    energy = (disp ** 2).sum(axis=(0, 2))
+    expected = [int(np.argmax(energy[:2])), 2 + int(np.argmax(energy[2:]))]
+    assert kmeans_layout(disp, 2, seed=0).tolist() == expected
+    assert kmeans_layout(disp[:, ::-1], 2, seed=0).tolist() == [3 - i for i in expected[::-1]]
+
+
 def test_reconstruction_is_exact_for_linear_data_and_handles_gaps():
     rng = np.random.default_rng(15)
     drivers = rng.normal(size=(300, 3, 3)).cumsum(axis=0)
