@@ -42,7 +42,7 @@ class LocalError:
     neutral: np.ndarray
     scales: tuple[int, ...] = (1, 2)
     measured: np.ndarray | None = None
-    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors, "order"
+    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)  # point errors per k, "order"
 
     def _squared_errors(self, targets: np.ndarray, near: np.ndarray, *, block: int = 2048) -> np.ndarray:
         """(T,) squared error of each target from its layout points ``near`` (T, k), summed over
@@ -97,13 +97,17 @@ class LocalError:
         for k in self.scales:
             k = min(k, layout.size)
             near = order[:, :k]
-            keys = [(k, t, *row) for t, row in zip(targets.tolist(), near.tolist())]
-            missing = [i for i, key in enumerate(keys) if key not in self._cache]
+            errors = self._cache.setdefault(("errors", k), {})
+            # key: the bytes of (target, its k layout points), one C-level pass (tuples: 3x slower)
+            rows = np.column_stack([targets, near])
+            keys = rows.view(np.dtype((np.void, rows.itemsize * (k + 1)))).ravel().tolist()
+            values = list(map(errors.get, keys))
+            missing = [i for i, value in enumerate(values) if value is None]
             if missing:
-                rows = np.array(missing, dtype=np.intp)
-                for i, value in zip(missing, self._squared_errors(targets[rows], near[rows]).tolist()):
-                    self._cache[keys[i]] = value
-            total += float(np.sum([self._cache[key] for key in keys]))
+                at = np.array(missing, dtype=np.intp)
+                for i, value in zip(missing, self._squared_errors(targets[at], near[at]).tolist()):
+                    errors[keys[i]] = values[i] = value
+            total += float(np.sum(values))
         if self.measured is not None:  # layout markers: their capture error in every test frame
             frames = self.folds.n_test_points / self.neutral.shape[0]
             total += len(self.scales) * frames * float(self.measured[layout].sum())
