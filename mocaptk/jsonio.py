@@ -18,6 +18,8 @@ from .errors import InputFileError, unreadable
 _UNCHANGED = (str, int, bool, type(None))
 #: Types json's encoder writes as :func:`dumps` does.
 _SCALARS = (*_UNCHANGED, float)
+#: Scalars whose JSON text holds no bracket or comma (rows of them are split on "], [").
+_NUMBERS = (int, float, bool, type(None))
 
 
 def to_plain(value: Any, *, digits: int = 6) -> Any:
@@ -28,8 +30,9 @@ def to_plain(value: Any, *, digits: int = 6) -> Any:
     if isinstance(value, dict):  # plain values without a call each (tens of thousands of gap records)
         return {str(k): v if type(v) in _UNCHANGED else to_plain(v, digits=digits)
                 for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_plain(v, digits=digits) for v in value]
+    if isinstance(value, (list, tuple)):  # plain items without a call each (mesh rows, weights)
+        return [v if type(v) in _UNCHANGED else _plain_float(v, digits) if type(v) is float
+                else to_plain(v, digits=digits) for v in value]
     if isinstance(value, np.ndarray):
         return _array_to_plain(value, digits)
     if isinstance(value, (bool, np.bool_)):
@@ -37,14 +40,18 @@ def to_plain(value: Any, *, digits: int = 6) -> Any:
     if isinstance(value, (int, np.integer)):
         return int(value)
     if isinstance(value, (float, np.floating)):
-        f = float(value)
-        if not math.isfinite(f):
-            return None
-        r = round(f, digits)
-        return 0.0 if r == 0 else r
+        return _plain_float(float(value), digits)
     if isinstance(value, os.PathLike):
         return os.fspath(value)
     return value
+
+
+def _plain_float(f: float, digits: int) -> float | None:
+    """``f`` rounded to ``digits`` decimals, ``0.0`` for any zero, None if not finite."""
+    if not math.isfinite(f):
+        return None
+    r = round(f, digits)
+    return 0.0 if r == 0 else r
 
 
 def _array_to_plain(array: np.ndarray, digits: int) -> Any:
@@ -75,6 +82,10 @@ def _encode(value: Any, indent: str) -> str:
         return "{\n" + ",\n".join(items) + "\n" + indent + "}"
     if isinstance(value, list) and any(isinstance(v, (dict, list)) for v in value):
         inner = indent + "  "
+        if all(type(v) is list for v in value) and all(type(x) in _NUMBERS for v in value for x in v):
+            # rows of numbers (vertices, faces, weights): one C-encoder call for all rows
+            rows = json.dumps(value, allow_nan=False, separators=(", ", ": "))[1:-1]
+            return "[\n" + inner + rows.replace("], [", "],\n" + inner + "[") + "\n" + indent + "]"
         if all(type(v) is dict and all(type(x) in _SCALARS for x in v.values()) for v in value):
             # records of scalars (tens of thousands of gap records): one C-encoder call each
             return "[\n" + ",\n".join(inner + _record(v, inner) for v in value) + "\n" + indent + "]"

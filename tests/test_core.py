@@ -85,3 +85,13 @@ def test_json_is_deterministic_and_nan_free():
     text = dumps({"b": np.float32(0.1), "a": [np.nan, np.int64(3)], "c": -0.0000001})
     assert text == dumps(json.loads(text))
     assert json.loads(text) == {"a": [None, 3], "b": 0.1, "c": 0.0}
+
+
+def test_json_rows_one_per_line_also_when_a_string_looks_like_a_row_break():
+    """Rows of numbers (one C-encoder call for all) and rows holding text give the same layout:
+    one row a line, floats rounded, no "-0.0"."""
+    text = dumps({"rows": [[1, 0.1234567891], [], [True, None, -1e-9]],
+                  "names": [["a], [b", 1], [2]], "mesh": np.array([[0.5, 1.0], [2.0, np.nan]])})
+    assert text == ('{\n  "mesh": [\n    [0.5, 1.0],\n    [2.0, null]\n  ],\n'
+                    '  "names": [\n    ["a], [b", 1],\n    [2]\n  ],\n'
+                    '  "rows": [\n    [1, 0.123457],\n    [],\n    [true, null, 0.0]\n  ]\n}\n')

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mocaptk.surface_mesh import (EDGE_BLOCK_FRAMES, edge_lengths, face_normals, marker_spacing,
-                                  marker_surface_mesh, mesh_edges, mesh_quality, vertex_normals)
+                                  marker_surface_mesh, mesh_edges, mesh_quality,
+                                  nanpercentile_rows, vertex_normals)
 
 
 def face_cap(*, spacing: float = 10.0, half: bool = False, seed: int = 0) -> np.ndarray:
@@ -147,3 +148,24 @@ def test_edge_lengths_are_numpy_norms_across_blocks_and_gaps():
     got = edge_lengths(traj, edges)
     assert got.shape == (frames, len(edges)) and np.isnan(got).any()
     np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("q", [99, 95, 50, 100])
+def test_nanpercentile_rows_is_numpys_bit_for_bit(q):
+    """The values of np.nanpercentile(axis=1) for rows with NaN gaps of every size (none, one
+    value left, all NaN), ties, zeros and inf; the input is consumed."""
+    rng = np.random.default_rng(q)
+    values = rng.gamma(2.0, 3.0, size=(40, 1500))
+    values[rng.random(values.shape) < rng.random((40, 1))] = np.nan  # 0..100 % gaps per row
+    values[1] = np.round(values[1])  # ties
+    values[2, 5:] = np.nan  # five values
+    values[3, 1:] = np.nan  # one value
+    values[4] = np.nan  # never seen
+    values[5, :700] = 0.0
+    values[6, ::97] = np.inf  # inf among the top ranks
+    values[7, :] = np.inf
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):  # numpy: all-NaN row
+        expected = np.nanpercentile(values, q, axis=1)
+    got = nanpercentile_rows(values.copy(), q)
+    np.testing.assert_array_equal(got, expected)
+    assert np.isnan(got[4]) and np.isnan(got[6]) == np.isnan(expected[6])
