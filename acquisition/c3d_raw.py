@@ -415,12 +415,13 @@ def _decode_points(block: np.ndarray, s: C3DStructure, unit_scale: float, gaps_a
     if s.processor == "dec" and s.float_storage:
         block = _dec(block)
     fourth = block[..., 3].astype(np.float64)
-    if s.float_storage:
-        xyz[...] = block[..., :3]
-        if unit_scale != 1.0:
-            xyz *= unit_scale
-    else:
-        np.multiply(block[..., :3], abs(s.scale) * unit_scale, out=xyz)
+    for axis in range(3):  # axis by axis: one (frames, points, 3) strided copy is ~2x slower
+        if s.float_storage:
+            xyz[..., axis] = block[..., axis]
+        else:
+            np.multiply(block[..., axis], abs(s.scale) * unit_scale, out=xyz[..., axis])
+    if s.float_storage and unit_scale != 1.0:
+        xyz *= unit_scale
     valid = fourth >= 0  # NaN / -1: invalid
     np.copyto(fourth, 0.0, where=~valid)
     code = np.minimum(fourth, 0xFFFF).astype(np.int64)
@@ -439,8 +440,9 @@ def mark_gaps(xyz: np.ndarray, residuals: np.ndarray) -> None:
         total += xyz[..., 2]
         missing = ~np.isfinite(total)
     missing |= residuals < 0
-    np.copyto(xyz, np.nan, where=missing[..., None])
-    np.copyto(residuals, np.nan, where=missing)
+    # assigned at the (few) gaps: a masked copy over every sample is ~2x slower
+    xyz[missing] = np.nan
+    residuals[missing] = np.nan
 
 
 def header_only_labels(n_points: int) -> list[str]:

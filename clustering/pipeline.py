@@ -370,7 +370,8 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     if not file.is_file():
         raise InputFileError(file, "no such file")
     traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
-    digest = hashlib.sha256(file.read_bytes()).hexdigest()
+    with open(file, "rb") as handle:  # streamed: no copy of the whole file in memory
+        digest = hashlib.file_digest(handle, "sha256").hexdigest()
     return traj, {"path": file.name, "sha256": digest}
 
 
