@@ -147,3 +147,31 @@ def test_one_factorization_per_problem_gives_the_same_layouts():
         alone = thin_shell_layout(grid_problem(verts, faces), count, restarts=2, iterations=3)
         assert np.array_equal(run.layout, alone.layout) and run.rmse_mm == alone.rmse_mm
         assert run.solves == alone.solves and run.evaluations == alone.evaluations
+
+
+def test_move_errors_equal_error_of_each_moved_layout():
+    """move_errors (the base layout solved once, each move a bordered k×k Schur step) equals
+    error() of every moved layout: single and paired units, first and last positions, and moves
+    into the mesh component without a base marker (evaluated directly)."""
+    verts, faces = wavy_grid(12)
+    verts2 = np.concatenate([verts, verts + [150.0, 0.0, 0.0]])
+    faces2 = np.concatenate([faces, faces + len(verts)])
+    op = thin_shell_operator(verts2, faces2)
+    rng = np.random.default_rng(5)
+    data = rng.normal(size=(len(verts2), 7))
+    for case in range(8):
+        solver = ThinShellWeights(op)
+        solver.bind(data)
+        k = 1 + case % 2
+        layout = [int(v) for v in rng.choice(len(verts), 9, replace=False)]  # first component only
+        cols = list(range(k)) if case < 4 else list(range(9 - k, 9))
+        solver.expected_trajectories(layout, cols)  # as the optimizer: layout markers resident
+        free = [v for v in range(len(verts2)) if v not in layout]
+        units = [tuple(int(v) for v in rng.choice(free, k, replace=False)) for _ in range(8)]
+        units.append(tuple(len(verts) + np.arange(k)))  # into the second component
+        solver.prepare(units)
+        errors = solver.move_errors(layout, cols, units)
+        for unit, err in zip(units, errors):
+            trial = np.array(layout)
+            trial[cols] = unit
+            assert err == pytest.approx(solver.error(trial), rel=1e-9)

@@ -223,8 +223,8 @@ class ThinShellWeights:
             with_h = resident
         return kinv, self._lookup(self._h, markers, slots, with_h, 1)
 
-    def _coefficients(self, markers: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(used components, coef (m + c, m)) with ``W = [G, ρ·Ga] @ coef``."""
+    def _system(self, markers: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(used components, the (m + c, m + c) system whose solve gives ``λ, s``)."""
         used = np.unique(self.component[markers])
         at_markers = self._anchor_green[markers][:, used]  # K⁻¹[v, anchor] (m, c)
         m, c = markers.size, used.size
@@ -233,7 +233,13 @@ class ThinShellWeights:
         system[:m, m:] = self.rho * at_markers
         system[m:, :m] = at_markers.T
         system[m:, m:] = self.rho * self._anchor_green[self.anchors[used]][:, used] - np.eye(c)
-        rhs = np.zeros((m + c, m))
+        return used, system
+
+    def _coefficients(self, markers: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(used components, coef (m + c, m)) with ``W = [G, ρ·Ga] @ coef``."""
+        used, system = self._system(markers, kinv)
+        m = markers.size
+        rhs = np.zeros((system.shape[0], m))
         rhs[:m] = np.eye(m)
         return used, np.linalg.solve(system, rhs)
 
@@ -278,6 +284,11 @@ class ThinShellWeights:
         """(coef, BᵀX, BᵀB) for ``B = [G, ρ·Ga]``: row lookups and (m + c)-sized algebra only."""
         kinv, kinv2 = self._inverse_entries(markers, squared=True, trial=trial)
         used, coef = self._coefficients(markers, kinv)
+        return coef, *self._projections(markers, kinv2, used)
+
+    def _projections(self, markers: np.ndarray, kinv2: np.ndarray,
+                     used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(BᵀX, BᵀB) for ``B = [G, ρ·Ga]`` of ``markers`` and the ``used`` components."""
         m, c = markers.size, used.size
         gram = np.empty((m + c, m + c))
         gram[:m, :m] = kinv2
@@ -285,7 +296,7 @@ class ThinShellWeights:
         gram[:m, m:], gram[m:, :m] = cross, cross.T
         gram[m:, m:] = self.rho ** 2 * self._anchor_dots[np.ix_(used, used)]
         proj = np.concatenate([self._green_data[markers], self.rho * self._anchor_proj[used]])
-        return coef, proj, gram
+        return proj, gram
 
     def error(self, markers: Sequence[int]) -> float:
         """‖X − W·X_H‖² of the bound data for ``markers``, in O((m + c)²·r).
@@ -296,6 +307,82 @@ class ThinShellWeights:
         coef, proj, gram = self._reduced(markers, trial=True)
         fitted = coef @ self._data[markers]  # (m + c, r)
         return max(self._data_norm - 2.0 * np.sum(proj * fitted) + np.sum((gram @ fitted) * fitted), 0.0)
+
+    def move_errors(self, markers: Sequence[int], cols: Sequence[int],
+                    units: Sequence[Sequence[int]]) -> np.ndarray:
+        """:meth:`error` of ``markers`` with the unit at positions ``cols`` moved to each of
+        ``units`` (as many vertices each; prepared, see :meth:`prepare`), in one pass.
+
+        The layout without the unit (the base, n = m − k + c unknowns) is solved once; each move
+        borders its system by k rows and columns (a k×k Schur complement), and the residual
+        ``R' = R₀ + Q·α`` of the base's residual ``R₀`` gives ``‖R'‖²`` from base products:
+        O(n²·k + n·k·r) per move instead of an (m + c)-sized solve.
+        """
+        markers = np.asarray(markers, dtype=np.intp)
+        trial_units = np.asarray(units, dtype=np.intp).reshape(len(units), len(cols))
+        keep = np.ones(markers.size, dtype=bool)
+        keep[list(cols)] = False
+        base = markers[keep]
+        out = np.empty(len(trial_units))
+        if not base.size:
+            return self._moved_errors(markers, cols, trial_units, out, np.ones(len(trial_units), dtype=bool))
+        kinv0, kinv2_0 = self._inverse_entries(base, squared=True, trial=False)
+        used, system = self._system(base, kinv0)
+        proj, gram = self._projections(base, kinv2_0, used)
+        # a move into a component without a base marker changes the anchors: evaluated directly
+        in_used = np.zeros(self.anchors.size, dtype=bool)
+        in_used[used] = True
+        outside = ~in_used[self.component[trial_units]].all(axis=1)
+        self._moved_errors(markers, cols, trial_units, out, outside)
+        inside = np.flatnonzero(~outside)
+        if not inside.size:
+            return out
+        self.evaluations += inside.size
+        moved = trial_units[inside]  # (T, k)
+        count, k = moved.shape
+        n, m0, r = system.shape[0], base.size, self._data.shape[1]
+        slots = self._slot_of[base]
+        if not self._has_h[slots].all():  # rows of K⁻² at the base columns are read below
+            self._complete_h()
+        cross = self._g[moved][:, :, slots]  # K⁻¹[v, base] (T, k, m0)
+        cross2 = self._h[moved][:, :, slots]  # K⁻²[v, base]
+        anchors = self._anchor_green[moved][:, :, used]  # K⁻¹[v, anchor] (T, k, c)
+        column = np.concatenate([cross, anchors], axis=2)  # system rows of the base, column v
+        row = np.concatenate([cross, self.rho * anchors], axis=2)  # system row v, base columns
+        towards = np.concatenate([cross2, self.rho * self._anchor_green2[moved][:, :, used]], axis=2)
+        inner, inner2 = np.empty((count, k, k)), np.empty((count, k, k))
+        for t, unit in enumerate(moved):
+            if (self._slot_of[unit] < 0).all():  # the common case: entries cached by prepare()
+                for i, j in np.ndindex(k, k):
+                    inner[t, i, j], inner2[t, i, j] = self._entries[min(unit[i], unit[j]), max(unit[i], unit[j])]
+            else:
+                inner[t], inner2[t] = self._inverse_entries(unit, squared=True, trial=True)
+        rhs = np.zeros((n, count * k + r))
+        rhs[:, :count * k] = column.reshape(count * k, n).T
+        rhs[:m0, count * k:] = self._data[base]
+        solved = np.linalg.solve(system, rhs)
+        z = solved[:, :count * k].T.reshape(count, k, n)  # S₀⁻¹·(column v), as rows
+        fit = solved[:, count * k:]  # the base's fitted coefficients (n, r)
+        gram_fit = gram @ fit
+        base_error = self._data_norm - 2.0 * np.sum(proj * fit) + np.sum(gram_fit * fit)
+        base_cross = proj - gram_fit  # B₀ᵀR₀ (n, r)
+        schur = inner - row @ z.transpose(0, 2, 1)  # (T, k, k)
+        alpha = np.linalg.solve(schur, self._data[moved] - row @ fit)  # (T, k, r)
+        q_r = z @ base_cross - (self._green_data[moved] - towards @ fit)  # QᵀR₀ (T, k, r)
+        zt_towards = z @ towards.transpose(0, 2, 1)
+        q_q = z @ gram @ z.transpose(0, 2, 1) - zt_towards - zt_towards.transpose(0, 2, 1) + inner2
+        change = 2.0 * np.einsum("tkr,tkr->t", q_r, alpha) + np.einsum("tkr,tkr->t", q_q @ alpha, alpha)
+        out[inside] = np.maximum(base_error + change, 0.0)
+        return out
+
+    def _moved_errors(self, markers: np.ndarray, cols: Sequence[int], units: np.ndarray, out: np.ndarray,
+                      which: np.ndarray) -> np.ndarray:
+        """:meth:`error` of each move flagged in ``which``, written into ``out``."""
+        for t in np.flatnonzero(which):
+            trial = markers.copy()
+            trial[list(cols)] = units[t]
+            out[t] = self.error(trial)
+        return out
 
     def expected_trajectories(self, markers: Sequence[int], cols: Sequence[int]) -> np.ndarray:
         """(len(cols), r) Le et al.'s expected trajectories ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` of the
@@ -363,6 +450,11 @@ class _Layout:
     @property
     def markers(self) -> list[int]:
         return [v for unit in self.units for v in unit]
+
+    def columns(self, unit: int) -> list[int]:
+        """Positions of ``unit``'s vertices in :attr:`markers`."""
+        start = sum(len(self.units[k]) for k in range(unit))
+        return list(range(start, start + len(self.units[unit])))
 
 
 def compress_trajectories(trajectories: np.ndarray, *, max_rank: int = 96,
@@ -485,9 +577,9 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                 solver.prepare(targets)  # one multi-RHS solve for the new places
                 old = layout.units[u]
                 best_unit = old
-                for unit in dict.fromkeys(targets):
-                    layout.units[u] = unit
-                    err = solver.error(layout.markers)
+                trials = list(dict.fromkeys(targets))
+                errors = solver.move_errors(layout.markers, layout.columns(int(u)), trials) if trials else []
+                for unit, err in zip(trials, errors):
                     if err < current * (1.0 - 1e-12):
                         current, best_unit = err, unit
                 layout.units[u] = best_unit
@@ -558,11 +650,11 @@ def _jump(x: np.ndarray, solver: ThinShellWeights, layout: _Layout, allowed: np.
         for v in places[np.argsort(-per_vertex[places], kind="stable")[:targets]]:
             moves.append((u, (int(v),) if len(unit) == 1 else (int(v), int(mirror[v]))))
     solver.prepare([new_unit for _, new_unit in moves])  # one multi-RHS solve
-    for u, new_unit in moves:
-        trial = layout.units[:u] + [new_unit] + layout.units[u + 1:]
-        err = solver.error([w for t in trial for w in t])
-        if err < best_err:
-            best_err, best_move = err, (u, new_unit)
+    for u in dict.fromkeys(u for u, _ in moves):
+        units = [new_unit for w, new_unit in moves if w == u]
+        for new_unit, err in zip(units, solver.move_errors(markers, layout.columns(u), units)):
+            if err < best_err:
+                best_err, best_move = err, (u, new_unit)
     if best_move is None:
         return None
     layout.units[best_move[0]] = best_move[1]
