@@ -1,4 +1,5 @@
-"""Shared geometry: similarity transforms (rotation, translation, uniform scale) between point sets."""
+"""Shared geometry: similarity transforms (rotation, translation, uniform scale) between point sets;
+lengths of many 3-vectors."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 
 from .errors import OptionError
 
-__all__ = ["Similarity", "similarity_transform"]
+__all__ = ["Similarity", "similarity_transform", "vector_lengths"]
 
 
 @dataclass(frozen=True)
@@ -49,3 +50,14 @@ def similarity_transform(source: np.ndarray, target: np.ndarray, *,
     var = float(np.sum(a ** 2) / len(src))
     scale = float(np.trace(np.diag(sing) @ fix) / var) if with_scale else 1.0
     return Similarity(scale, rotation, mu_d - scale * rotation @ mu_s)
+
+
+def vector_lengths(vectors: np.ndarray, *, axis: int = -1) -> np.ndarray:
+    """Euclidean lengths of the 3-vectors along ``axis`` of a float array (that axis removed):
+    the values of ``np.linalg.norm(vectors, axis=axis)`` (same sum order), without its
+    temporaries. ``vectors`` is overwritten (squared in place)."""
+    squares = np.moveaxis(vectors, axis, 0)
+    squares *= squares
+    out = np.add(squares[0], squares[1])
+    out += squares[2]
+    return np.sqrt(out, out=out)

@@ -36,6 +36,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
+from .geometry import vector_lengths
+
 __all__ = [
     "MeshQuality", "SurfaceMesh", "border_turns", "boundary_edges", "cut_openings", "face_normals",
     "front_direction", "marker_spacing",
@@ -296,12 +298,8 @@ def edge_lengths(trajectories: np.ndarray, edges: np.ndarray) -> np.ndarray:
     for start in range(0, traj.shape[0], EDGE_BLOCK_FRAMES):
         # marker-major (M, 3, B): an edge end is one contiguous row to gather, not 3 scattered values
         block = traj[start:start + EDGE_BLOCK_FRAMES].transpose(1, 2, 0).copy()
-        d = block[edges[:, 0]] - block[edges[:, 1]]
-        d *= d
-        out = np.add(d[:, 0], d[:, 1])
-        out += d[:, 2]
-        np.sqrt(out, out=out)
-        length[start:start + EDGE_BLOCK_FRAMES] = out.T
+        length[start:start + EDGE_BLOCK_FRAMES] = vector_lengths(
+            block[edges[:, 0]] - block[edges[:, 1]], axis=1).T
     return length
 
 

@@ -95,3 +95,20 @@ def test_json_rows_one_per_line_also_when_a_string_looks_like_a_row_break():
     assert text == ('{\n  "mesh": [\n    [0.5, 1.0],\n    [2.0, null]\n  ],\n'
                     '  "names": [\n    ["a], [b", 1],\n    [2]\n  ],\n'
                     '  "rows": [\n    [1, 0.123457],\n    [],\n    [true, null, 0.0]\n  ]\n}\n')
+
+
+def test_vector_lengths_are_numpy_norms_on_either_axis():
+    """The values of np.linalg.norm bit for bit (components from 1e-3 to 1e4, NaN, inf), the
+    coordinate axis last or in the middle; the input is squared in place."""
+    from mocaptk.geometry import vector_lengths
+
+    rng = np.random.default_rng(3)
+    vectors = rng.normal(size=(12000, 3)) * 10.0 ** rng.uniform(-3, 4, size=(12000, 1))
+    vectors[::97, 1] = np.nan
+    vectors[5::89, 2] = -np.inf
+    expected = np.linalg.norm(vectors, axis=-1)
+    middle = vectors.reshape(3, 4000, 3).transpose(0, 2, 1).copy()  # (3, xyz, 4000)
+    np.testing.assert_array_equal(vector_lengths(middle, axis=1), expected.reshape(3, 4000))
+    squared = vectors.copy()
+    np.testing.assert_array_equal(vector_lengths(squared), expected)
+    np.testing.assert_array_equal(squared, vectors ** 2)
