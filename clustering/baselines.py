@@ -82,7 +82,8 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
 
     def sq_dist_to(points: np.ndarray, centres: np.ndarray, norms: np.ndarray | None = None) -> np.ndarray:
         norms = np.einsum("ij,ij->i", points, points) if norms is None else norms
-        d = norms[:, None] - 2.0 * points @ centres.T + np.einsum("ij,ij->i", centres, centres)[None]
+        # 2 x (points . centres), not (2 x points) . centres: no (markers, d) temporary (exact: x2)
+        d = norms[:, None] - 2.0 * (points @ centres.T) + np.einsum("ij,ij->i", centres, centres)[None]
         return np.maximum(d, 0.0)
 
     coord_norms = np.einsum("ij,ij->i", coords, coords)  # once, not once per k-means++ pick
