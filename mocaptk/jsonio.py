@@ -87,8 +87,8 @@ def _encode(value: Any, indent: str) -> str:
             rows = json.dumps(value, allow_nan=False, separators=(", ", ": "))[1:-1]
             return "[\n" + inner + rows.replace("], [", "],\n" + inner + "[") + "\n" + indent + "]"
         if all(type(v) is dict and all(type(x) in _SCALARS for x in v.values()) for v in value):
-            # records of scalars (tens of thousands of gap records): one C-encoder call each
-            return "[\n" + ",\n".join(inner + _record(v, inner) for v in value) + "\n" + indent + "]"
+            # records of scalars (tens of thousands of gap records): one C-encoder call for all
+            return "[\n" + _records(value, inner) + "\n" + indent + "]"
         return "[\n" + ",\n".join(inner + _encode(v, inner) for v in value) + "\n" + indent + "]"
     return json.dumps(value, ensure_ascii=False, allow_nan=False, separators=(", ", ": "))
 
@@ -102,6 +102,18 @@ def _record(value: dict, indent: str) -> str:
     body = json.dumps(value, ensure_ascii=False, allow_nan=False, sort_keys=True,
                       separators=(",\n" + inner, ": "))
     return "{\n" + inner + body[1:-1] + "\n" + indent + "}"
+
+
+def _records(values: list[dict], indent: str) -> str:
+    r"""``indent`` + :func:`_record` of each of ``values`` joined by ",\n", in one C-encoder call:
+    encoded text never holds a raw line break, so "},\n<indent>  {" only joins two records."""
+    if not all(values):  # an empty record has no body to split
+        return ",\n".join(indent + _record(v, indent) for v in values)
+    inner = indent + "  "
+    text = json.dumps(values, ensure_ascii=False, allow_nan=False, sort_keys=True,
+                      separators=(",\n" + inner, ": "))
+    head, tail = indent + "{\n" + inner, "\n" + indent + "}"
+    return head + text[2:-2].replace("},\n" + inner + "{", tail + ",\n" + head) + tail
 
 
 def write_json(path: str | os.PathLike[str], obj: Any, *, digits: int = 6,

@@ -112,3 +112,14 @@ def test_vector_lengths_are_numpy_norms_on_either_axis():
     squared = vectors.copy()
     np.testing.assert_array_equal(vector_lengths(squared), expected)
     np.testing.assert_array_equal(squared, vectors ** 2)
+
+
+def test_json_records_one_key_a_line_also_when_a_string_looks_like_a_record_break():
+    """Records of scalars (one C-encoder call for all) keep one key a line and a record per
+    block, also when a string holds braces, commas and line breaks, or a record is empty."""
+    records = [{"note": "},\n    {", "b": 1.0}, {"a": None, "é": "x}"}]
+    expected = ('{\n  "gaps": [\n    {\n      "b": 1.0,\n      "note": "},\\n    {"\n    },\n'
+                '    {\n      "a": null,\n      "é": "x}"\n    }\n  ]\n}\n')
+    assert dumps({"gaps": records}) == expected
+    assert json.loads(expected) == {"gaps": records}
+    assert dumps({"gaps": [{}, {"a": 1}]}) == '{\n  "gaps": [\n    {},\n    {\n      "a": 1\n    }\n  ]\n}\n'
