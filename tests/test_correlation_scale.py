@@ -33,3 +33,19 @@ def test_large_heatmap_is_block_means_in_cluster_order():
             for a, b in zip(edges, edges[1:])]
     np.testing.assert_allclose(_ordered_cells(matrix, order, 4), want)
     np.testing.assert_array_equal(_ordered_cells(matrix, order, 10), ordered)
+
+
+def test_large_heatmap_cells_are_sums_in_row_order_across_chunks():
+    """The block sums add a cell's rows one after the other, also across 1,024-row chunks:
+    the bits of np.add.at's sums (the heatmap PNGs stay byte-identical)."""
+    rng = np.random.default_rng(1)
+    n, cells = 2600, 512
+    matrix = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-3, 3, size=(n, 1))
+    order = rng.permutation(n)
+    starts = (np.arange(cells) * n) // cells
+    sums = np.zeros((cells, cells))
+    np.add.at(sums, np.searchsorted(starts, np.arange(n), side="right") - 1,
+              np.add.reduceat(matrix[np.ix_(order, order)], starts, axis=1))
+    sizes = np.diff(np.append(starts, n)).astype(float)
+    np.testing.assert_array_equal(_ordered_cells(matrix, order, cells),
+                                  sums / sizes[:, None] / sizes[None, :])
