@@ -417,8 +417,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
                                                          falloff_mm=falloff,
                                                          members=member_vertices))
-    nearest = np.argmin(np.linalg.norm(vertices[:, None] - vertices[joint_vertices][None], axis=2),
-                        axis=1)
+    # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
+    nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing)
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
