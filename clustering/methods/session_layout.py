@@ -62,14 +62,16 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
     region_of = {int(c): next((n for n, idx in regions.items() if c in idx), "") for c in chosen}
     for name, matrix in result.matrices.items():
         idx = np.array([index[m] for m in matrix.labels], dtype=np.intp)
-        reps = [k for k, p in enumerate(idx) if p in members]
-        for k, p in enumerate(idx):
-            if reps:
-                best = max(reps, key=lambda r: (matrix.matrix[r, k], -r))
-                members[int(idx[best])].append((int(p), float(matrix.matrix[best, k])))
-            else:  # no chosen marker in this region: the nearest one (correlation not defined: 0)
-                near = int(chosen[np.argmin(np.linalg.norm(neutral[chosen] - neutral[p], axis=1))])
-                members[near].append((int(p), 0.0))
+        reps = np.flatnonzero(np.isin(idx, chosen))
+        if reps.size:  # per point the chosen marker it correlates with most, ties to the first
+            best = reps[np.argmax(matrix.matrix[reps], axis=0)]
+            value = matrix.matrix[best, np.arange(idx.size)]
+            for p, b, c in zip(idx.tolist(), idx[best].tolist(), value.tolist()):
+                members[b].append((p, c))
+            continue
+        for p in idx:  # no chosen marker in this region: the nearest one (correlation not defined: 0)
+            near = int(chosen[np.argmin(np.linalg.norm(neutral[chosen] - neutral[p], axis=1))])
+            members[near].append((int(p), 0.0))
     clusters = []
     for rep in chosen:
         rep = int(rep)
