@@ -9,6 +9,12 @@ Both must give the same rows. CPU seconds are this process's own (all its thread
 
     python benchmarks/bench_compare.py [--counts 40,60] [--methods farthest-point,qr] [--repeat 1]
     python benchmarks/bench_compare.py --lost 60   # lost-marker scores: downdates vs a refit per marker
+    python benchmarks/bench_compare.py --thin-shell  # thin-shell optimizer: products kept per layout
+
+``--thin-shell``: the thin-shell optimizer as compare runs it (20/30/40/60 markers, 3 restarts,
+on the whole session and two leave-one-take-out folds) with each layout's ``WᵀX``, ``WᵀW`` kept
+for the sweep, against the baseline in the same run, the same solver recomputing them for every
+unit (:class:`_Unkept`, the code before); both must give the same layouts and training RMSE.
 
 ``--lost L``: the worst-lost-marker scores of a random L-marker layout on every leave-one-take-out
 fold, by ``lost_marker_rmse`` (one eigendecomposition per fold, a rank-3 downdate per marker)
@@ -65,6 +71,48 @@ def lost_marker_bench(session, count: int) -> None:
           f"difference {worst:.1e} (equal to 1e-9: {worst < 1e-9}); load {os.getloadavg()[0]:.1f}")
 
 
+class _Unkept(dict):
+    """A products memo that keeps nothing (the baseline: recomputed for every unit)."""
+
+    def __setitem__(self, key, value) -> None:
+        pass
+
+
+def thin_shell_bench(session) -> None:
+    """thin_shell_layout on compare's problems: per-layout products kept vs recomputed, same run."""
+    from mocaptk.clustering.compare import _problem
+    from mocaptk.clustering.evaluation import holdout_splits
+    from mocaptk.clustering.methods.thin_shell_layout import ThinShellWeights, thin_shell_layout
+
+    folds = holdout_splits(session.n_frames, session.takes, split="takes")[:2]
+    problems = [_problem(session.positions, session, None, {})]
+    problems += [_problem(session.positions, session, train, {}) for train, _ in folds]
+
+    def run():
+        return [thin_shell_layout(p, count, restarts=3) for p in problems for count in (20, 30, 40, 60)]
+
+    run()  # factorizations cached per problem, outside the timings
+    reset = ThinShellWeights._reset
+
+    def unkept(self) -> None:
+        reset(self)
+        self._products = _Unkept()
+
+    ours, wall, cpu = timed(run)
+    ThinShellWeights._reset = unkept
+    try:
+        base, base_wall, base_cpu = timed(run)
+    finally:
+        ThinShellWeights._reset = reset
+    print(f"thin-shell optimizer, {len(problems)} problems x 4 counts x 3 restarts | wall s | CPU s |\n|---|---:|---:|")
+    print(f"| products kept per layout | {wall:.2f} | {cpu:.2f} |\n| recomputed per unit (baseline) | "
+          f"{base_wall:.2f} | {base_cpu:.2f} |")
+    same = all(np.array_equal(a.layout, b.layout) and a.rmse_mm == b.rmse_mm and a.solves == b.solves
+               for a, b in zip(ours, base))
+    print(f"baseline / ours: {base_wall / wall:.2f}x wall, {base_cpu / cpu:.2f}x CPU; same layouts, RMSE "
+          f"and solves: {same}; load {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="40,60")
@@ -72,6 +120,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="rounds, limited and free taking turns")
     parser.add_argument("--lost", type=int, default=0, metavar="L",
                         help="only the lost-marker benchmark, at L markers")
+    parser.add_argument("--thin-shell", action="store_true",
+                        help="only the thin-shell optimizer: per-layout products kept vs recomputed")
     args = parser.parse_args()
 
     from mocaptk.clustering.compare import compare_methods
@@ -80,6 +130,8 @@ def main() -> None:
     session, _, _ = load_session_and_test(SAMPLE, None, stabilized=True, rate=None, units=None, rigid=None)
     if args.lost:
         return lost_marker_bench(session, args.lost)
+    if args.thin_shell:
+        return thin_shell_bench(session)
     counts = [int(c) for c in args.counts.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
     print(f"{SAMPLE.name}: {session.n_markers} markers x {session.n_frames} frames, {len(session.takes)} takes; "

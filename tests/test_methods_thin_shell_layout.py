@@ -175,3 +175,20 @@ def test_move_errors_equal_error_of_each_moved_layout():
             trial = np.array(layout)
             trial[cols] = unit
             assert err == pytest.approx(solver.error(trial), rel=1e-9)
+
+
+def test_expected_trajectories_kept_per_layout_follow_the_bound_data(grid):
+    """expected_trajectories (WᵀX, WᵀW kept per layout) equals Le et al.'s H̄j from direct
+    weights, asked twice, and again after bind() with other data (the kept products dropped)."""
+    verts, faces, op = grid
+    rng = np.random.default_rng(7)
+    layout = [int(v) for v in rng.choice(len(verts), 10, replace=False)]
+    weights = interpolation_weights(op, layout)
+    solver = ThinShellWeights(op)
+    for data in (rng.normal(size=(len(verts), 6)), rng.normal(size=(len(verts), 6))):
+        solver.bind(data)
+        for cols in ([0], [3, 4], [0]):
+            others = [k for k in range(len(layout)) if k not in cols]
+            rest = data - weights[:, others] @ data[np.array(layout)[others]]
+            direct = np.stack([weights[:, j] @ rest / (weights[:, j] @ weights[:, j]) for j in cols])
+            np.testing.assert_allclose(solver.expected_trajectories(layout, cols), direct, rtol=1e-9, atol=1e-9)

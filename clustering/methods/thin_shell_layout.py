@@ -97,6 +97,7 @@ class ThinShellWeights:
         self._has_h = np.zeros(0, dtype=bool)
         self._entries: dict[tuple[int, int], tuple[float, float]] = {}  # (K⁻¹, K⁻²) of vertex pairs
         self._last_batch: dict[int, np.ndarray] = {}  # columns of the latest prepare()
+        self._products: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}  # (WᵀX, WᵀW) per layout
 
     def _solve(self, rhs: np.ndarray) -> np.ndarray:
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
@@ -156,6 +157,7 @@ class ThinShellWeights:
         self._slot_of[kept] = np.arange(len(kept))
         self._members = kept
         self._last_batch = {}
+        self._products.clear()
 
     def _cached(self, vertices: Sequence[int]) -> bool:
         return all((min(v, w), max(v, w)) in self._entries for v in vertices for w in vertices)
@@ -269,6 +271,7 @@ class ThinShellWeights:
         self._anchor_dots = self._anchor_green.T @ self._anchor_green  # (c_all, c_all)
         self._anchor_green2 = self._solve(self._anchor_green)  # K⁻²U (V, c): row v = g_vᵀ·Ga
         self._data_norm = float(np.sum(self._data ** 2))
+        self._products.clear()
 
     def fitted(self, markers: Sequence[int]) -> np.ndarray:
         """(V, r) reconstruction ``W·X[markers]`` of the bound data."""
@@ -386,11 +389,16 @@ class ThinShellWeights:
 
     def expected_trajectories(self, markers: Sequence[int], cols: Sequence[int]) -> np.ndarray:
         """(len(cols), r) Le et al.'s expected trajectories ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` of the
-        markers at positions ``cols``, where ``Rj`` leaves out the contribution of all ``cols``."""
+        markers at positions ``cols``, where ``Rj`` leaves out the contribution of all ``cols``.
+
+        ``WᵀX`` and ``WᵀW`` are kept per layout until :meth:`forget` or :meth:`bind`: a sweep asks
+        for every unit of the same layout until one moves."""
         markers = np.asarray(markers, dtype=np.intp)
-        coef, proj, gram = self._reduced(markers, trial=False)
-        w_x = coef.T @ proj  # (m, r) = WᵀX
-        w_w = coef.T @ gram @ coef  # (m, m) = WᵀW
+        products = self._products.get(markers.tobytes())
+        if products is None:
+            coef, proj, gram = self._reduced(markers, trial=False)
+            products = self._products[markers.tobytes()] = (coef.T @ proj, coef.T @ gram @ coef)
+        w_x, w_w = products  # (m, r) WᵀX, (m, m) WᵀW
         others = np.setdiff1d(np.arange(markers.size), cols)
         traj = self._data[markers[others]]
         return np.stack([(w_x[j] - w_w[j, others] @ traj) / w_w[j, j] for j in cols])
