@@ -246,8 +246,9 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
                                      f"{options.step}; use a smaller step")
         whole = segments[name] == [(0, traj.n_frames)]  # the session's own displacement: no copy
         region_disp = displacement[idx] if whole else max_displacement(
-            traj.positions[all_frames(segments[name])][:, idx], neutral[idx])
-        corr = consolidated_correlation(traj.positions[frames][:, idx])
+            traj.positions[np.ix_(all_frames(segments[name]), idx)], neutral[idx])
+        # the region's markers at the sampled frames in one gather (not all markers' frames first)
+        corr = consolidated_correlation(traj.positions[np.ix_(frames, idx)])
         static = [regions[name][i] for i in np.flatnonzero(corr.static)]
         static_markers.extend(static)
         region_notes = []
