@@ -10,11 +10,18 @@ Both must give the same rows. CPU seconds are this process's own (all its thread
     python benchmarks/bench_compare.py [--counts 40,60] [--methods farthest-point,qr] [--repeat 1]
     python benchmarks/bench_compare.py --lost 60   # lost-marker scores: downdates vs a refit per marker
     python benchmarks/bench_compare.py --thin-shell  # thin-shell optimizer: products kept per layout
+    python benchmarks/bench_compare.py --report      # report.html's held-out errors: shared moments
 
 ``--thin-shell``: the thin-shell optimizer as compare runs it (20/30/40/60 markers, 3 restarts,
 on the whole session and two leave-one-take-out folds) with each layout's ``WᵀX``, ``WᵀW`` kept
 for the sweep, against the baseline in the same run, the same solver recomputing them for every
 unit (:class:`_Unkept`, the code before); both must give the same layouts and training RMSE.
+
+``--report``: report.html's per-row held-out errors (the session's frames with gaps, every
+take left out once) for 32 layouts (8 random per count 20/30/40/60, as compare's rows), from one
+``RidgeMoments`` per training set (``heldout_errors_of_layouts``) against the baseline in the same
+run, ``heldout_errors`` per layout (per-pattern fits over every training frame, the code before);
+both must agree to 1e-8 mm.
 
 ``--lost L``: the worst-lost-marker scores of a random L-marker layout on every leave-one-take-out
 fold, by ``lost_marker_rmse`` (one eigendecomposition per fold, a rank-3 downdate per marker)
@@ -113,6 +120,26 @@ def thin_shell_bench(session) -> None:
           f"and solves: {same}; load {os.getloadavg()[0]:.1f}")
 
 
+def report_bench(session) -> None:
+    """The report's per-row held-out errors: shared moments vs per-layout fits, same run."""
+    from threadpoolctl import threadpool_limits
+
+    from mocaptk.clustering.evaluation import heldout_errors, heldout_errors_of_layouts, holdout_splits
+
+    rng = np.random.default_rng(0)
+    layouts = [np.sort(rng.choice(session.n_markers, c, replace=False)) for c in (20, 30, 40, 60) for _ in range(8)]
+    splits = holdout_splits(session.n_frames, session.takes, split="takes")
+    with threadpool_limits(limits=1):  # as write_compare_report runs them
+        ours, wall, cpu = timed(lambda: list(heldout_errors_of_layouts(session.positions, layouts, splits)))
+        base, base_wall, base_cpu = timed(lambda: [heldout_errors(session.positions, l, splits) for l in layouts])
+    print(f"report held-out errors, {len(layouts)} layouts x {len(splits)} folds | wall s | CPU s |\n|---|---:|---:|")
+    print(f"| one RidgeMoments per fold (heldout_errors_of_layouts) | {wall:.2f} | {cpu:.2f} |\n"
+          f"| per-layout fits (heldout_errors, baseline) | {base_wall:.2f} | {base_cpu:.2f} |")
+    worst = max(float(np.nanmax(np.abs(a - b))) for a, b in zip(ours, base))
+    print(f"baseline / ours: {base_wall / wall:.1f}x wall, {base_cpu / cpu:.1f}x CPU; largest difference "
+          f"{worst:.1e} mm (within 1e-8: {worst < 1e-8}); load {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", default="40,60")
@@ -122,6 +149,8 @@ def main() -> None:
                         help="only the lost-marker benchmark, at L markers")
     parser.add_argument("--thin-shell", action="store_true",
                         help="only the thin-shell optimizer: per-layout products kept vs recomputed")
+    parser.add_argument("--report", action="store_true",
+                        help="only report.html's per-row held-out errors: shared moments vs per-layout fits")
     args = parser.parse_args()
 
     from mocaptk.clustering.compare import compare_methods
@@ -132,6 +161,8 @@ def main() -> None:
         return lost_marker_bench(session, args.lost)
     if args.thin_shell:
         return thin_shell_bench(session)
+    if args.report:
+        return report_bench(session)
     counts = [int(c) for c in args.counts.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
     print(f"{SAMPLE.name}: {session.n_markers} markers x {session.n_frames} frames, {len(session.takes)} takes; "

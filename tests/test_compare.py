@@ -159,3 +159,35 @@ def test_gap_free_ridge_scores_as_the_per_pattern_fits_on_the_sample():
     np.testing.assert_allclose(errors, expected, rtol=0, atol=1e-8, equal_nan=True)
     intact = GapFreeRidge.fit(train).errors(layout, positions[1500:])
     assert (errors[:, layout[3:]] == 0).all() and not np.allclose(errors[10:40], intact[10:40], equal_nan=True)
+
+
+def test_ridge_moments_give_heldout_errors_per_pattern_fits_on_the_sample():
+    """The report's held-out errors from one RidgeMoments per training set equal heldout_errors'
+    per-pattern fits on frames with gaps: lost layout markers in training and test frames, a
+    target missing in most frames (few complete frames left), and a layout holding every marker
+    with gaps (its full pattern fitted on the complete frames alone)."""
+    from pathlib import Path
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.evaluation import heldout_errors_of_layouts, holdout_splits
+
+    sample = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
+    if not sample.exists():
+        pytest.skip("sample_c3d/dense_halfface.c3d not available")
+    positions = read_c3d(sample).positions[::4].copy()
+    rng = np.random.default_rng(2)
+    layouts = [np.sort(rng.choice(positions.shape[1], n, replace=False)) for n in (20, 40)]
+    positions[100:160, layouts[1][:2]] = np.nan  # lost layout markers, in training and test frames
+    spare = np.setdiff1d(np.arange(positions.shape[1]), np.concatenate(layouts))[0]
+    positions[rng.random(positions.shape[0]) < 0.6, spare] = np.nan  # a target mostly missing
+    gappy = np.flatnonzero(~np.isfinite(positions).all(axis=(0, 2)))
+    layouts.append(np.union1d(gappy, layouts[0][:10]))  # every frame with a gap loses one of these
+    splits = holdout_splits(positions.shape[0], split="blocks", folds=4)
+    many = list(heldout_errors_of_layouts(positions, layouts, splits))
+    tested = list(heldout_errors_of_layouts(positions[:1000], layouts, [], test=positions[1000:]))
+    for layout, errors, on_test in zip(layouts, many, tested):
+        for got, expected in ((errors, heldout_errors(positions, layout, splits)),
+                              (on_test, heldout_errors(positions[:1000], layout, [], test=positions[1000:]))):
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-8, equal_nan=True)
+            assert np.nanmax(expected) > 1.0  # real errors, not a trivial fit

@@ -56,7 +56,7 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
     whole-session layout kept fixed across the held-out takes/blocks). Run times stay out of the
     page (compare.md / compare.json have them), so the same input gives the same bytes. Returns
     the size line."""
-    from ..clustering.evaluation import heldout_errors, holdout_splits
+    from ..clustering.evaluation import heldout_errors_of_layouts, holdout_splits
     from ..retarget.report import compare_report, per_marker_rmse, write_report
 
     if test is not None:
@@ -68,16 +68,19 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
                 "(the table re-chooses it per fold, so its numbers are a little higher).")
     from threadpoolctl import threadpool_limits
 
-    entries = []
+    scored = [row for row in rows if row.error is None]
     with threadpool_limits(limits=1):  # a small ridge fit per gap pattern: BLAS threads only contend
-        for row in rows:
-            entry = {"method": row.method, "count": row.count, "rmse_mm": row.rmse_mm, "p95_mm": row.p95_mm,
-                     "lost_rmse_mm": row.lost_rmse_mm, "error": row.error}
-            if row.error is None:
-                errors = heldout_errors(session.positions, row.layout, splits,
-                                        test=None if test is None else test.positions)
-                entry.update(rmse=per_marker_rmse(errors), layout=[session.labels[i] for i in row.layout])
-            entries.append(entry)
+        # each training set summarised once for all rows: the same fits to ~1e-9 mm
+        errors = heldout_errors_of_layouts(session.positions, [row.layout for row in scored], splits,
+                                           test=None if test is None else test.positions)
+        per_row = {id(row): per_marker_rmse(e) for row, e in zip(scored, errors)}
+    entries = []
+    for row in rows:
+        entry = {"method": row.method, "count": row.count, "rmse_mm": row.rmse_mm, "p95_mm": row.p95_mm,
+                 "lost_rmse_mm": row.lost_rmse_mm, "error": row.error}
+        if row.error is None:
+            entry.update(rmse=per_row[id(row)], layout=[session.labels[i] for i in row.layout])
+        entries.append(entry)
     data = compare_report(session, rows=entries, performance=None if test is None else test.positions,
                           summary=summary, title=f"mocaptk compare: {protocol}",
                           note=note + " Click a row to show its layout and error. Run times: "
