@@ -54,13 +54,19 @@ def test_factorized_weights_equal_direct_solves_without_refactoring(grid):
 
 
 
-def test_trial_errors_equal_direct_reconstruction_and_tried_vertices_cost_no_solve():
-    """error() of trial layouts (one or two non-resident markers) from cached entries and row
-    lookups equals ‖X − W·X_H‖² with W from direct solves; on a mesh of two components."""
+def two_grids():
+    """A wavy 12 x 12 grid, the mesh of it and a copy 150 mm away (two components), and that
+    mesh's thin-shell operator."""
     verts, faces = wavy_grid(12)
     verts2 = np.concatenate([verts, verts + [150.0, 0.0, 0.0]])
     faces2 = np.concatenate([faces, faces + len(verts)])
-    op = thin_shell_operator(verts2, faces2)
+    return verts, verts2, thin_shell_operator(verts2, faces2)
+
+
+def test_trial_errors_equal_direct_reconstruction_and_tried_vertices_cost_no_solve():
+    """error() of trial layouts (one or two non-resident markers) from cached entries and row
+    lookups equals ‖X − W·X_H‖² with W from direct solves; on a mesh of two components."""
+    verts, verts2, op = two_grids()
     rng = np.random.default_rng(3)
     data = rng.normal(size=(len(verts2), 7))
     solver = ThinShellWeights(op)
@@ -153,10 +159,7 @@ def test_move_errors_equal_error_of_each_moved_layout():
     """move_errors (the base layout solved once, each move a bordered k×k Schur step) equals
     error() of every moved layout: single and paired units, first and last positions, and moves
     into the mesh component without a base marker (evaluated directly)."""
-    verts, faces = wavy_grid(12)
-    verts2 = np.concatenate([verts, verts + [150.0, 0.0, 0.0]])
-    faces2 = np.concatenate([faces, faces + len(verts)])
-    op = thin_shell_operator(verts2, faces2)
+    verts, verts2, op = two_grids()
     rng = np.random.default_rng(5)
     data = rng.normal(size=(len(verts2), 7))
     for case in range(8):
