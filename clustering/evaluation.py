@@ -133,12 +133,13 @@ def heldout_errors_of_layouts(positions: np.ndarray, layouts: Sequence[Sequence[
     sub-models cost small solves and a pass over the frames with gaps. Same numbers to rounding
     (~1e-9 mm)."""
     positions = np.asarray(positions, dtype=np.float64)
-    fits = ([(RidgeMoments.fit(positions, ridge=ridge), None)] if test is not None
-            else [(RidgeMoments.fit(positions[train], ridge=ridge), held) for train, held in splits])
+    if test is not None:
+        moments = RidgeMoments.fit(positions, ridge=ridge)
+        for layout in layouts:
+            yield reconstruction_errors(moments.model(layout), test)
+        return
+    fits = [(RidgeMoments.fit(positions[train], ridge=ridge), held) for train, held in splits]
     for layout in layouts:
-        if test is not None:
-            yield reconstruction_errors(fits[0][0].model(layout), test)
-            continue
         errors = np.full(positions.shape[:2], np.nan)
         for moments, held in fits:
             errors[held] = reconstruction_errors(moments.model(layout), positions[held])

@@ -83,7 +83,7 @@ def region_masks(graph: sp.csr_matrix, regions: np.ndarray, n_joints: int, *,
         if falloff_mm > 0:
             dist = geodesic_distance(graph, inside, limit=falloff_mm)
             near = np.flatnonzero(dist != np.inf)  # beyond the limit the mask is 0, as zeros() has it
-            t = np.clip(1.0 - np.nan_to_num(dist[near] / falloff_mm, posinf=1.0), 0.0, 1.0)
+            t = np.clip(1.0 - dist[near] / falloff_mm, 0.0, 1.0)
             masks[near, j] = t * t * (3.0 - 2.0 * t)
         masks[inside, j] = 1.0
     return masks
