@@ -414,20 +414,20 @@ def _decode_points(block: np.ndarray, s: C3DStructure, unit_scale: float, gaps_a
     """Decode raw point words ``block`` (frames, points, 4) into ``xyz`` and ``residuals``."""
     if s.processor == "dec" and s.float_storage:
         block = _dec(block)
-    fourth = block[..., 3].astype(np.float64)
-    for axis in range(3):  # axis by axis: one (frames, points, 3) strided copy is ~2x slower
-        if s.float_storage:
-            xyz[..., axis] = block[..., axis]
-        else:
-            np.multiply(block[..., axis], abs(s.scale) * unit_scale, out=xyz[..., axis])
-    if s.float_storage and unit_scale != 1.0:
-        xyz *= unit_scale
-    valid = fourth >= 0  # NaN / -1: invalid
-    np.copyto(fourth, 0.0, where=~valid)
-    code = np.minimum(fourth, 0xFFFF).astype(np.int64)
-    code &= 0xFF  # low byte: residual in units of |SCALE|; high byte: camera mask
+    # one strided (frames, points, 3) pass each: per axis is ~1.4x slower on numpy 2
+    if s.float_storage:
+        xyz[...] = block[..., :3]
+        if unit_scale != 1.0:  # in float64, as the values are stored
+            xyz *= unit_scale
+    else:
+        np.multiply(block[..., :3], abs(s.scale) * unit_scale, out=xyz)
+    fourth = block[..., 3]  # kept in the file's word type: no float64 / int64 copies
+    invalid = ~(fourth >= 0)  # NaN / -1: invalid
+    if fourth.dtype.kind == "f":  # a float word holds the 16-bit integer
+        fourth = np.minimum(fourth, 0xFFFF).astype(np.uint16)
+    code = fourth & 0xFF  # low byte: residual in units of |SCALE|; high byte: camera mask
     np.multiply(code, abs(s.scale) * unit_scale, out=residuals)
-    np.copyto(residuals, -1.0, where=~valid)
+    np.copyto(residuals, -1.0, where=invalid)
     if gaps_as_nan:
         mark_gaps(xyz, residuals)
 

@@ -298,3 +298,26 @@ def test_info_json_names_the_reader(run_cli):
     assert result.exit_code == 0, result.stderr
     info, = json.loads(result.stdout)["files"]
     assert info["reader"] == "mocaptk" and info["format"] == "c3d"
+
+
+def test_float_residual_words_decode_as_their_16_bit_integer(tmp_path):
+    # float storage keeps the residual word as a number: its integer part is the 16-bit word
+    # (low byte x |SCALE| = residual, high byte = cameras); negative or NaN marks a gap
+    from mocaptk import Trajectories
+    from mocaptk.acquisition.c3d_write import write_c3d
+
+    words = np.array([0.0, -0.0, 3.7, 255.9, 256.0, 300.5, 65535.0, 70000.0, np.inf, -1.0, -5.5, np.nan],
+                     np.float32)
+    path = write_c3d(Trajectories(np.ones((1, words.size, 3)), [f"M{k}" for k in range(words.size)], 60.0),
+                     tmp_path / "words.c3d")
+    structure = c3d_raw.read_structure(path)
+    assert structure.float_storage and structure.n_points == words.size
+    with open(path, "r+b") as handle:
+        block = np.fromfile(handle, "<f4", words.size * 4, offset=structure.data_offset).reshape(-1, 4)
+        block[:, 3] = words
+        handle.seek(structure.data_offset)
+        block.tofile(handle)
+    traj = read_c3d(path)
+    low_byte = [0, 0, 3, 255, 0, 44, 255, 255, 255]  # 70000 and inf: the word's largest, 0xFFFF
+    np.testing.assert_array_equal(traj.residuals[0], np.r_[low_byte, [np.nan] * 3] * abs(structure.scale))
+    assert np.isnan(traj.positions[0, 9:]).all() and (traj.positions[0, :9] == 1.0).all()

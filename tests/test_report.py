@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from clustering_synthetic import planted_session, save_session
 
-from mocaptk.retarget.report import replay_clips, replay_step
+from mocaptk.retarget.report import replay_clips, replay_step, report_html, write_report
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +70,18 @@ def test_report_data_matches_the_layout(planted_reports):
     track = np.frombuffer(base64.b64decode(clip["positions"]), "<i2")
     assert track.size == clip["frames"] * captured * 3
     assert clip["frames"] == -(-clip["source_frames"] // clip["step"])
+
+
+def test_page_text_that_looks_like_a_placeholder_stays_as_given(tmp_path):
+    # the template is filled once: a title or summary naming a placeholder is not filled in again
+    data = {"title": "take @@CSS@@", "summary": "markers @@APP@@ @@PLOTLY@@ @@DATA@@ × 2"}
+    path, size = write_report(tmp_path / "report.html", data)
+    raw = path.read_bytes()
+    assert size == len(raw) and raw.decode("utf-8") == report_html(data)
+    assert "<title>take @@CSS@@</title>" in raw.decode("utf-8")
+    shown = page_data(path)
+    assert shown["summary"] == data["summary"] and shown["title"] == data["title"]
+    assert abs(float(shown["size"].removesuffix(" MB")) - len(raw) / 1e6) <= 0.051
 
 
 def test_replay_subsampling_keeps_rate_and_budget():
