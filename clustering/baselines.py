@@ -74,7 +74,8 @@ def kmeans_layout(displacements: np.ndarray, count: int, *, seed: int, iteration
     disp = np.asarray(displacements, dtype=np.float64)
     n_markers = disp.shape[1]
     _check_count(n_markers, count)
-    feats = np.nan_to_num(disp, nan=0.0).transpose(1, 0, 2).reshape(n_markers, -1)
+    # one copy (markers-major), its gaps set to 0 in place
+    feats = np.nan_to_num(disp.transpose(1, 0, 2).copy(), nan=0.0, copy=False).reshape(n_markers, -1)
     # the iterations run on coordinates with the same dot products: (markers, markers) for a long
     # session, one pass over its frames instead of one per centre
     coords = _gram_coordinates(feats) if feats.shape[1] > n_markers else feats

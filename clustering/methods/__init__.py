@@ -53,7 +53,9 @@ def kmeans_points(problem: LayoutProblem, count: int, *, seed: int = 0) -> np.nd
     """The k-means layout (sorted point indices), computed once per problem, count and seed."""
     def compute() -> np.ndarray:
         cand = problem.candidate_points()
-        return np.sort(cand[kmeans_layout(problem.displacements[:, cand], count, seed=seed)])
+        # every point a candidate (sorted, unique): the displacements themselves, no (F, N, 3) copy
+        disp = problem.displacements if cand.size == problem.n_points else problem.displacements[:, cand]
+        return np.sort(cand[kmeans_layout(disp, count, seed=seed)])
     return problem.cached(("kmeans", count, seed), compute)
 
 

@@ -165,7 +165,8 @@ def _gains(resid: np.ndarray, jitter: float) -> np.ndarray:
     n = resid.shape[0] // 3
     blocks = resid.reshape(3 * n, n, 3)
     cross = np.einsum("ian,iam->anm", blocks, blocks)  # Σ_i G[i,J]ᵀ G[i,J] per point
-    own = np.stack([resid[3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(n)]) + jitter * np.eye(3)
+    at = np.arange(n)  # each point's own (3, 3) diagonal block, one gather
+    own = resid.reshape(n, 3, n, 3)[at, :, at, :] + jitter * np.eye(3)
     return np.einsum("anm,amn->a", np.linalg.inv(own), cross)
 
 
@@ -236,15 +237,18 @@ class CrossValidatedError:
                 test_d.append(train_d[-1] if same else DesignGram(flat[test] - mean))
             points = sum(test.size for _, test in splits) * disp.shape[1]
             return cls(tuple(train_d), tuple(test_d), points, float(ridge))
-        total_sum, total_gram = flat.sum(axis=0), flat.T @ flat
+        total: tuple[np.ndarray, np.ndarray] | None = None
         train_g, test_g, points = [], [], 0
         for train, test in splits:
-            # train statistics as total minus test (one pass over the frames for all folds)
+            test_sum, test_raw = flat[test].sum(axis=0), flat[test].T @ flat[test]
             if train.size + test.size == flat.shape[0]:
-                test_sum, test_raw = flat[test].sum(axis=0), flat[test].T @ flat[test]
-                train_sum, train_raw = total_sum - test_sum, total_gram - test_raw
+                # train statistics as total minus test (one pass over the frames for all folds)
+                if total is None:
+                    total = flat.sum(axis=0), flat.T @ flat
+                train_sum, train_raw = total[0] - test_sum, total[1] - test_raw
+            elif np.array_equal(train, test):  # an in-sample fit: the same sums, computed once
+                train_sum, train_raw = test_sum, test_raw
             else:
-                test_sum, test_raw = flat[test].sum(axis=0), flat[test].T @ flat[test]
                 train_sum, train_raw = flat[train].sum(axis=0), flat[train].T @ flat[train]
             mean = train_sum / train.size
             train_g.append(train_raw - train.size * np.outer(mean, mean))
@@ -269,15 +273,25 @@ class CrossValidatedError:
 
 
 def training_frames(problem: LayoutProblem) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """Gap-free training displacements (F', N, 3) and their cross-validation folds.
+    """Gap-free training displacements (F', N, 3) and their cross-validation folds (cached on
+    the problem: the Gram matrix, the local error and the cross-validation share them; read-only).
 
     Folds leave one take out when ≥ 3 takes keep frames, else 5 contiguous blocks.
     """
+    if "training-frames" not in problem.cache:
+        problem.cache["training-frames"] = _training_frames(problem)
+    return problem.cache["training-frames"]
+
+
+def _training_frames(problem: LayoutProblem) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     complete = np.isfinite(problem.displacements).all(axis=(1, 2))
-    if complete.sum() < 10:
+    gappy = complete.sum() < 10
+    if gappy:
         complete[:] = True
     kept = np.flatnonzero(complete)
-    disp = np.nan_to_num(problem.displacements[kept], nan=0.0)
+    disp = problem.displacements[kept]
+    if gappy:  # complete frames hold no NaN to set at rest
+        disp = np.nan_to_num(disp, nan=0.0, copy=False)
     takes = []
     for i, (start, end) in enumerate(problem.segments):
         lo, hi = np.searchsorted(kept, [start, end])
