@@ -165,21 +165,79 @@ def test_design_kept_gram_gives_the_gram_blocks_and_the_local_error_of_the_whole
 
 
 def test_nearest_layout_lookup_equals_the_per_call_sort_with_ties(monkeypatch):
-    """The kept (N, N) nearest-point order gives each target's nearest layout points exactly as
-    sorting the layout columns does, ties (a grid: many equal distances) by point index."""
+    """The kept (N, N) distances give each target's nearest layout points exactly as sorting the
+    layout columns per layout does, several layouts at once, ties (a grid: many equal distances)
+    by point index."""
     from mocaptk.clustering.methods import local_fit
 
     neutral = wave_problem(n_side=9).neutral
     rng = np.random.default_rng(5)
-    layouts = [np.unique(rng.choice(81, size=size, replace=False)) for size in (1, 2, 7, 30, 80)]
     looked_up = LocalError(None, neutral)
-    found = [looked_up._nearest_layout(np.setdiff1d(np.arange(81), lay), lay, min(3, lay.size))
-             for lay in layouts]
     monkeypatch.setattr(local_fit, "ORDER_MAX_POINTS", 0)
     sorted_ = LocalError(None, neutral)
-    for lay, near in zip(layouts, found):
-        targets = np.setdiff1d(np.arange(81), lay)
-        assert np.array_equal(near, sorted_._nearest_layout(targets, lay, min(3, lay.size)))
-        dist = np.linalg.norm(neutral[targets][:, None] - neutral[near], axis=2)
-        assert np.all(np.diff(dist, axis=1) >= 0)  # nearest first
-    assert "order" in looked_up._cache and "order" not in sorted_._cache
+    for size in (1, 2, 7, 30, 80):
+        layouts = np.sort([rng.choice(81, size=size, replace=False) for _ in range(3)], axis=1)
+        targets = np.array([np.setdiff1d(np.arange(81), lay) for lay in layouts])
+        count = min(3, size)
+        monkeypatch.setattr(local_fit, "ORDER_MAX_POINTS", 2000)
+        found = looked_up._nearest_layout(targets, layouts, count)
+        monkeypatch.setattr(local_fit, "ORDER_MAX_POINTS", 0)
+        assert np.array_equal(found, sorted_._nearest_layout(targets, layouts, count))
+        for lay, target, near in zip(layouts, targets, found):
+            assert np.isin(near, lay).all()
+            dist = np.linalg.norm(neutral[target][:, None] - neutral[near], axis=2)
+            assert np.all(np.diff(dist, axis=1) >= 0)  # nearest first
+    assert "distances" in looked_up._cache and "distances" not in sorted_._cache
+
+
+def test_local_errors_of_several_layouts_at_once_equal_each_alone():
+    """Batched (shared uncached point errors, layouts grouped by size, a duplicated point, capture
+    costs) and one-at-a-time scores are the same numbers, not just close."""
+    problem = wave_problem(seed=4)
+    every = np.arange(problem.n_frames)
+    folds = CrossValidatedError.from_displacements(problem.displacements, [(every, every)])
+    error = 0.1 + 0.01 * np.arange(problem.n_points)
+    rng = np.random.default_rng(6)
+    layouts = [rng.choice(problem.n_points, size=size, replace=False) for size in (1, 2, 6, 6, 6, 9)]
+    layouts.append(np.array([3, 3, 17, 40]))  # a duplicate: the layout of its distinct points
+    for scales in ((2,), (1, 2), (1, 3)):
+        for measured in (None, error ** 2):
+            together = LocalError(folds, problem.neutral, scales, measured).rmse_many(layouts)
+            alone = [LocalError(folds, problem.neutral, scales, measured).rmse(lay) for lay in layouts]
+            assert together == alone
+    assert together[-1] == LocalError(folds, problem.neutral, (1, 3), error ** 2).rmse([3, 17, 40])
+
+
+def test_swap_descent_scoring_a_slot_together_keeps_first_improvement():
+    """The batched search takes the same swaps as trying one candidate after another."""
+    from mocaptk.clustering.methods.reconstruction import swap_descent
+
+    rng = np.random.default_rng(7)
+    weight = rng.normal(size=(30, 30))
+
+    def score(layout: list[int]) -> float:
+        return float(np.sum(weight[np.ix_(layout, layout)]))
+
+    def candidates(slot: int, current: list[int]) -> list[int]:
+        return [p for p in range((current[slot] * 7) % 30, 30) if p not in current][:5]
+
+    def one_at_a_time(layout: list[int], max_passes: int) -> tuple[list[int], float]:
+        current, best = list(layout), score(layout)
+        for _ in range(max_passes):
+            improved = False
+            for slot in range(len(current)):
+                for cand in candidates(slot, current):
+                    trial = current[:slot] + [cand] + current[slot + 1:]
+                    if score(trial) < best - 1e-12:
+                        best, current, improved = score(trial), trial, True
+            if not improved:
+                break
+        return sorted(current), best
+
+    batches: list[int] = []
+    for start in ([0, 1, 2, 3], [5, 9, 14, 20, 27]):
+        layout, value = swap_descent(start, candidates, lambda ts: batches.append(len(ts)) or
+                                     [score(t) for t in ts], max_passes=4)
+        expected, best = one_at_a_time(start, 4)
+        assert layout.tolist() == expected and value == best and value < score(start)
+    assert max(batches) > 1

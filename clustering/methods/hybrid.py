@@ -114,7 +114,7 @@ def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *
                                      kind="stable")
         return [int(p) for p in near[point] if allowed[p] and int(p) not in used][:neighbours]
 
-    return swap_descent(layout, candidates, score.rmse, max_passes=max_passes)
+    return swap_descent(layout, candidates, score.rmse_many, max_passes=max_passes)
 
 
 #: The contender layouts of the hybrid and the ones also refined by local swaps.

@@ -21,8 +21,8 @@ import numpy as np
 
 from .reconstruction import CrossValidatedError
 
-#: Up to this many points every point's nearest-first order of all points is kept ((N, N)
-#: indices, 32 MB at 2,000): a layout's nearest points are then a lookup, not a sort per call.
+#: Up to this many points the distances between all points are kept ((N, N), 32 MB at 2,000):
+#: a layout's nearest points are then a gather and a sort of its columns, for several layouts at once.
 ORDER_MAX_POINTS = 2000
 
 
@@ -66,49 +66,73 @@ class LocalError:
             total += own + np.sum(coef * (t_ss @ coef - 2.0 * t_sd), axis=(1, 2))
         return total
 
-    def _nearest_layout(self, targets: np.ndarray, layout: np.ndarray, count: int) -> np.ndarray:
-        """(T, count) nearest ``layout`` points (sorted indices) of each target on the neutral face,
-        nearest first, ties by index. Up to ``ORDER_MAX_POINTS`` points from every point's
-        order of all points (sorted once), else by sorting the layout columns."""
+    def _nearest_layout(self, targets: np.ndarray, layouts: np.ndarray, count: int) -> np.ndarray:
+        """(L, T, count) nearest points of each layout (L, m) (rows sorted) to its targets (L, T)
+        on the neutral face, nearest first, ties by index (as a stable sort of the layout columns).
+        Up to ``ORDER_MAX_POINTS`` points from the distances between all points (computed once),
+        else computed per layout."""
         n = self.neutral.shape[0]
         if n > ORDER_MAX_POINTS:
-            dist = np.linalg.norm(self.neutral[targets][:, None] - self.neutral[layout][None], axis=2)
-            return layout[np.argsort(dist, axis=1, kind="stable")[:, :count]]
-        if "order" not in self._cache:  # (N, N): each row all points, nearest first
-            self._cache["order"] = np.concatenate([np.argsort(np.linalg.norm(
-                self.neutral[lo:lo + 256, None] - self.neutral[None], axis=2), axis=1, kind="stable")
-                for lo in range(0, n, 256)]).astype(np.intp)
-        order = self._cache["order"].take(targets, axis=0)
-        in_layout = np.zeros(n, dtype=bool)
-        in_layout[layout] = True
-        # every row holds each layout point once: row-major selection keeps each target's own
-        # (take and flat indices: ~3x faster than fancy and 2-D boolean indexing at this size)
-        picked = order.ravel()[np.flatnonzero(in_layout.take(order))]
-        return picked.reshape(targets.size, layout.size)[:, :count]
+            return np.stack([layout[np.argsort(np.linalg.norm(
+                self.neutral[t][:, None] - self.neutral[layout][None], axis=2), axis=1, kind="stable")[:, :count]]
+                for t, layout in zip(targets, layouts)])
+        if "distances" not in self._cache:  # (N, N), elementwise as the per-layout norms above
+            self._cache["distances"] = np.concatenate([np.linalg.norm(
+                self.neutral[lo:lo + 256, None] - self.neutral[None], axis=2) for lo in range(0, n, 256)])
+        # (L, T, m) by flat indices: take is ~3x faster than fancy indexing at this size
+        dist = self._cache["distances"].take(targets[:, :, None] * n + layouts[:, None, :])
+        rows, cols = np.ogrid[:dist.shape[0], :dist.shape[1]]
+        near = np.empty(dist.shape[:2] + (count,), dtype=np.intp)
+        for rank in range(count):  # the first minimum: ties by index (count is a few: 5x a sort)
+            pick = np.argmin(dist, axis=2)
+            near[:, :, rank] = layouts[rows, pick]
+            dist[rows, cols, pick] = np.inf
+        return near
 
     def rmse(self, layout: Sequence[int] | np.ndarray) -> float:
         """RMSE (mm) over all points of the local reconstruction from ``layout``, mean over scales."""
-        layout = np.unique(np.asarray(layout, dtype=np.intp))
-        is_target = np.ones(self.neutral.shape[0], dtype=bool)
-        is_target[layout] = False
-        targets = np.flatnonzero(is_target)
-        order = self._nearest_layout(targets, layout, min(max(self.scales), layout.size))
-        total = 0.0
-        for k in self.scales:
-            k = min(k, layout.size)
-            near = order[:, :k]
-            errors = self._cache.setdefault(("errors", k), {})
-            # key: the bytes of (target, its k layout points), one C-level pass (tuples: 3x slower)
-            rows = np.column_stack([targets, near])
-            keys = rows.view(np.dtype((np.void, rows.itemsize * (k + 1)))).ravel().tolist()
-            values = list(map(errors.get, keys))
-            missing = [i for i, value in enumerate(values) if value is None]
-            if missing:
-                at = np.array(missing, dtype=np.intp)
-                for i, value in zip(missing, self._squared_errors(targets[at], near[at]).tolist()):
-                    errors[keys[i]] = values[i] = value
-            total += float(np.sum(values))
-        if self.measured is not None:  # layout markers: their capture error in every test frame
-            frames = self.folds.n_test_points / self.neutral.shape[0]
-            total += len(self.scales) * frames * float(self.measured[layout].sum())
-        return float(np.sqrt(max(total, 0.0) / (self.folds.n_test_points * len(self.scales))))
+        return self.rmse_many([layout])[0]
+
+    def rmse_many(self, layouts: Sequence[Sequence[int] | np.ndarray]) -> list[float]:
+        """:meth:`rmse` of each layout, layouts of one size together: their nearest points in one
+        gather and sort, the point errors none has cached in one batch per scale (a swap search
+        scores a slot's trials together)."""
+        unique = [np.unique(np.asarray(layout, dtype=np.intp)) for layout in layouts]
+        n = self.neutral.shape[0]
+        sizes: dict[int, list[int]] = {}
+        for i, layout in enumerate(unique):
+            sizes.setdefault(layout.size, []).append(i)
+        keys: list[list[tuple[int, list[bytes]]]] = [[] for _ in unique]  # per layout, per scale
+        todo: dict[int, dict[bytes, np.ndarray]] = {}  # per k: uncached key -> (target, its k points)
+        for size, members in sizes.items():
+            group = np.stack([unique[i] for i in members])  # (L, m)
+            is_target = np.ones((len(members), n), dtype=bool)
+            is_target[np.arange(len(members))[:, None], group] = False
+            targets = np.nonzero(is_target)[1].reshape(len(members), n - size)
+            order = self._nearest_layout(targets, group, min(max(self.scales), size))
+            for k in dict.fromkeys(min(k, size) for k in self.scales):
+                errors = self._cache.setdefault(("errors", k), {})
+                # key: the bytes of (target, its k layout points), one C-level pass (tuples: 3x slower)
+                rows = np.concatenate([targets[:, :, None], order[:, :, :k]], axis=2).reshape(-1, k + 1)
+                flat = rows.view(np.dtype((np.void, rows.itemsize * (k + 1)))).ravel().tolist()
+                queued = todo.setdefault(k, {})
+                for i in [i for i, known in enumerate(map(errors.__contains__, flat)) if not known]:
+                    queued.setdefault(flat[i], rows[i])
+                for j, i in enumerate(members):
+                    keys[i].append((k, flat[j * (n - size):(j + 1) * (n - size)]))
+        for k, queued in todo.items():
+            if queued:
+                rows = np.array(list(queued.values()))
+                self._cache[("errors", k)].update(zip(queued, self._squared_errors(rows[:, 0], rows[:, 1:]).tolist()))
+        out = []
+        for layout, per_k in zip(unique, keys):
+            found = dict((k, float(np.sum(list(map(self._cache[("errors", k)].__getitem__, flat)))))
+                         for k, flat in per_k)
+            total = 0.0
+            for k in self.scales:
+                total += found[min(k, layout.size)]
+            if self.measured is not None:  # layout markers: their capture error in every test frame
+                frames = self.folds.n_test_points / self.neutral.shape[0]
+                total += len(self.scales) * frames * float(self.measured[layout].sum())
+            out.append(float(np.sqrt(max(total, 0.0) / (self.folds.n_test_points * len(self.scales)))))
+        return out

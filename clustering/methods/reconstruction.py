@@ -336,24 +336,27 @@ def swap_refine(problem: LayoutProblem, layout: Sequence[int] | np.ndarray, *,
         order = np.argsort(-gain, kind="stable")[:candidates_per_swap]
         return [int(c) for c in order if np.isfinite(gain[c])]
 
-    return swap_descent(layout, candidates, scorer.rmse, max_passes=max_passes)
+    return swap_descent(layout, candidates, lambda layouts: [scorer.rmse(t) for t in layouts],
+                        max_passes=max_passes)
 
 
 def swap_descent(layout: Sequence[int] | np.ndarray,
                  candidates: Callable[[int, list[int]], Sequence[int]],
-                 score: Callable[[list[int]], float], *, max_passes: int) -> tuple[np.ndarray, float]:
+                 scores: Callable[[list[list[int]]], Sequence[float]], *,
+                 max_passes: int) -> tuple[np.ndarray, float]:
     """First-improvement swap search: for each slot of the layout in turn, try the points
     ``candidates(slot, layout)`` (listed once per slot) in its place and keep every swap that
-    lowers ``score``; repeat until a sweep improves nothing or ``max_passes`` sweeps.
+    lowers the score; repeat until a sweep improves nothing or ``max_passes`` sweeps.
+    ``scores`` scores several layouts at once: a slot's trials differ from the layout at that
+    slot only, whichever of them are kept, so they are scored together before the scan.
     Returns (sorted layout, its score)."""
     current = [int(i) for i in layout]
-    best = score(current)
+    best = scores([current])[0]
     for _ in range(max_passes):
         improved = False
         for slot in range(len(current)):
-            for cand in candidates(slot, current):
-                trial = current[:slot] + [int(cand)] + current[slot + 1:]
-                value = score(trial)
+            trials = [current[:slot] + [int(cand)] + current[slot + 1:] for cand in candidates(slot, current)]
+            for trial, value in zip(trials, scores(trials) if trials else []):
                 if value < best - 1e-12:
                     best, current, improved = value, trial, True
         if not improved:

@@ -22,7 +22,7 @@ def worst_lost(score: LocalError, layout: np.ndarray) -> tuple[float, int]:
     """(local RMSE mm with the worst marker lost, its slot in the sorted ``layout``)."""
     if layout.size < 2:
         return float("inf"), 0
-    lost = [score.rmse(np.delete(layout, i)) for i in range(layout.size)]
+    lost = score.rmse_many([np.delete(layout, i) for i in range(layout.size)])
     slot = int(np.argmax(lost))
     return float(lost[slot]), slot
 
