@@ -9,13 +9,16 @@ Both must give the same rows. CPU seconds are this process's own (all its thread
 
     python benchmarks/bench_compare.py [--counts 40,60] [--methods farthest-point,qr] [--repeat 1]
     python benchmarks/bench_compare.py --lost 60   # lost-marker scores: downdates vs a refit per marker
-    python benchmarks/bench_compare.py --thin-shell  # thin-shell optimizer: products kept per layout
+    python benchmarks/bench_compare.py --thin-shell  # thin-shell optimizer: blocks kept per layout
     python benchmarks/bench_compare.py --report      # report.html's held-out errors: shared moments
 
 ``--thin-shell``: the thin-shell optimizer as compare runs it (20/30/40/60 markers, 3 restarts,
-on the whole session and two leave-one-take-out folds) with each layout's ``WᵀX``, ``WᵀW`` kept
-for the sweep, against the baseline in the same run, the same solver recomputing them for every
-unit (:class:`_Unkept`, the code before); both must give the same layouts and training RMSE.
+on the whole session and two leave-one-take-out folds) with each layout's blocks kept for the
+sweep (``WᵀX``, ``WᵀW``, and the system and projections from which each unit's trial moves take
+their base's rows and columns), against the baseline in the same run, the same solver looking
+every base's entries up anew (``_computed_base``, the code before), and, for reference, keeping
+nothing (:class:`_Unkept`, products recomputed for every unit); all must give the same layouts,
+training RMSE and solve counts.
 
 ``--report``: report.html's per-row held-out errors (the session's frames with gaps, every
 take left out once) for 32 layouts (8 random per count 20/30/40/60, as compare's rows), from one
@@ -79,14 +82,14 @@ def lost_marker_bench(session, count: int) -> None:
 
 
 class _Unkept(dict):
-    """A products memo that keeps nothing (the baseline: recomputed for every unit)."""
+    """A per-layout memo that keeps nothing (the baseline: recomputed for every unit)."""
 
     def __setitem__(self, key, value) -> None:
         pass
 
 
 def thin_shell_bench(session) -> None:
-    """thin_shell_layout on compare's problems: per-layout products kept vs recomputed, same run."""
+    """thin_shell_layout on compare's problems: per-layout blocks kept vs recomputed, same run."""
     from mocaptk.clustering.compare import _problem
     from mocaptk.clustering.evaluation import holdout_splits
     from mocaptk.clustering.methods.thin_shell_layout import ThinShellWeights, thin_shell_layout
@@ -98,24 +101,27 @@ def thin_shell_bench(session) -> None:
     def run():
         return [thin_shell_layout(p, count, restarts=3) for p in problems for count in (20, 30, 40, 60)]
 
-    run()  # factorizations cached per problem, outside the timings
-    reset = ThinShellWeights._reset
+    run()  # factorizations and compressed data cached per problem, outside the timings
+    reset, base_blocks = ThinShellWeights._reset, ThinShellWeights._base_blocks
 
     def unkept(self) -> None:
         reset(self)
-        self._products = _Unkept()
+        self._layouts = _Unkept()
 
-    ours, wall, cpu = timed(run)
-    ThinShellWeights._reset = unkept
+    timings = {"blocks kept per layout": timed(run)}
+    ThinShellWeights._base_blocks = lambda self, markers, keep, base: self._computed_base(base)
     try:
-        base, base_wall, base_cpu = timed(run)
+        timings["each base's blocks looked up anew (baseline, the code before)"] = timed(run)
+        ThinShellWeights._reset = unkept
+        timings["nothing kept per layout (before 87fe59c)"] = timed(run)
     finally:
-        ThinShellWeights._reset = reset
+        ThinShellWeights._reset, ThinShellWeights._base_blocks = reset, base_blocks
     print(f"thin-shell optimizer, {len(problems)} problems x 4 counts x 3 restarts | wall s | CPU s |\n|---|---:|---:|")
-    print(f"| products kept per layout | {wall:.2f} | {cpu:.2f} |\n| recomputed per unit (baseline) | "
-          f"{base_wall:.2f} | {base_cpu:.2f} |")
+    for name, (_, wall, cpu) in timings.items():
+        print(f"| {name} | {wall:.2f} | {cpu:.2f} |")
+    (ours, wall, cpu), (base, base_wall, base_cpu), (none, _, _) = timings.values()
     same = all(np.array_equal(a.layout, b.layout) and a.rmse_mm == b.rmse_mm and a.solves == b.solves
-               for a, b in zip(ours, base))
+               for other in (base, none) for a, b in zip(ours, other))
     print(f"baseline / ours: {base_wall / wall:.2f}x wall, {base_cpu / cpu:.2f}x CPU; same layouts, RMSE "
           f"and solves: {same}; load {os.getloadavg()[0]:.1f}")
 
@@ -148,7 +154,7 @@ def main() -> None:
     parser.add_argument("--lost", type=int, default=0, metavar="L",
                         help="only the lost-marker benchmark, at L markers")
     parser.add_argument("--thin-shell", action="store_true",
-                        help="only the thin-shell optimizer: per-layout products kept vs recomputed")
+                        help="only the thin-shell optimizer: per-layout blocks kept vs recomputed")
     parser.add_argument("--report", action="store_true",
                         help="only report.html's per-row held-out errors: shared moments vs per-layout fits")
     args = parser.parse_args()

@@ -97,7 +97,7 @@ class ThinShellWeights:
         self._has_h = np.zeros(0, dtype=bool)
         self._entries: dict[tuple[int, int], tuple[float, float]] = {}  # (K⁻¹, K⁻²) of vertex pairs
         self._last_batch: dict[int, np.ndarray] = {}  # columns of the latest prepare()
-        self._products: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}  # (WᵀX, WᵀW) per layout
+        self._layouts: dict[bytes, _LayoutBlocks] = {}  # per layout of the current sweep
 
     def _solve(self, rhs: np.ndarray) -> np.ndarray:
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
@@ -157,7 +157,7 @@ class ThinShellWeights:
         self._slot_of[kept] = np.arange(len(kept))
         self._members = kept
         self._last_batch = {}
-        self._products.clear()
+        self._layouts.clear()
 
     def _cached(self, vertices: Sequence[int]) -> bool:
         return all((min(v, w), max(v, w)) in self._entries for v in vertices for w in vertices)
@@ -189,6 +189,8 @@ class ThinShellWeights:
                 which: int) -> np.ndarray:
         """(m, m) block of ``K⁻¹`` (``which`` 0) or ``K⁻²`` (1) among ``markers``: rows of the
         ``known`` markers' columns, the remaining entries from the cache."""
+        if known.all():  # the common case: every marker resident
+            return columns[markers[:, None], slots]
         rest = np.flatnonzero(~known)
         known = np.flatnonzero(known)
         block = np.empty((markers.size, markers.size))
@@ -240,10 +242,7 @@ class ThinShellWeights:
     def _coefficients(self, markers: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(used components, coef (m + c, m)) with ``W = [G, ρ·Ga] @ coef``."""
         used, system = self._system(markers, kinv)
-        m = markers.size
-        rhs = np.zeros((system.shape[0], m))
-        rhs[:m] = np.eye(m)
-        return used, np.linalg.solve(system, rhs)
+        return used, _identity_solve(system, markers.size)
 
     def _basis(self, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(slots, used components, coef) of ``W = [G, ρ·Ga] @ coef`` with resident markers."""
@@ -271,7 +270,7 @@ class ThinShellWeights:
         self._anchor_dots = self._anchor_green.T @ self._anchor_green  # (c_all, c_all)
         self._anchor_green2 = self._solve(self._anchor_green)  # K⁻²U (V, c): row v = g_vᵀ·Ga
         self._data_norm = float(np.sum(self._data ** 2))
-        self._products.clear()
+        self._layouts.clear()
 
     def fitted(self, markers: Sequence[int]) -> np.ndarray:
         """(V, r) reconstruction ``W·X[markers]`` of the bound data."""
@@ -283,11 +282,13 @@ class ThinShellWeights:
         out[markers] = self._data[markers]
         return out
 
-    def _reduced(self, markers: np.ndarray, *, trial: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(coef, BᵀX, BᵀB) for ``B = [G, ρ·Ga]``: row lookups and (m + c)-sized algebra only."""
+    def _reduced(self, markers: np.ndarray, *,
+                 trial: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(used components, system, coef, BᵀX, BᵀB) for ``B = [G, ρ·Ga]``: row lookups and
+        (m + c)-sized algebra only."""
         kinv, kinv2 = self._inverse_entries(markers, squared=True, trial=trial)
-        used, coef = self._coefficients(markers, kinv)
-        return coef, *self._projections(markers, kinv2, used)
+        used, system = self._system(markers, kinv)
+        return used, system, _identity_solve(system, markers.size), *self._projections(markers, kinv2, used)
 
     def _projections(self, markers: np.ndarray, kinv2: np.ndarray,
                      used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -307,7 +308,7 @@ class ThinShellWeights:
         Up to two markers may be non-resident (a trial move, see :meth:`prepare`)."""
         markers = np.asarray(markers, dtype=np.intp)
         self.evaluations += 1
-        coef, proj, gram = self._reduced(markers, trial=True)
+        _, _, coef, proj, gram = self._reduced(markers, trial=True)
         fitted = coef @ self._data[markers]  # (m + c, r)
         return max(self._data_norm - 2.0 * np.sum(proj * fitted) + np.sum((gram @ fitted) * fitted), 0.0)
 
@@ -329,9 +330,7 @@ class ThinShellWeights:
         out = np.empty(len(trial_units))
         if not base.size:
             return self._moved_errors(markers, cols, trial_units, out, np.ones(len(trial_units), dtype=bool))
-        kinv0, kinv2_0 = self._inverse_entries(base, squared=True, trial=False)
-        used, system = self._system(base, kinv0)
-        proj, gram = self._projections(base, kinv2_0, used)
+        used, system, proj, gram = self._base_blocks(markers, keep, base)
         # a move into a component without a base marker changes the anchors: evaluated directly
         in_used = np.zeros(self.anchors.size, dtype=bool)
         in_used[used] = True
@@ -378,6 +377,25 @@ class ThinShellWeights:
         out[inside] = np.maximum(base_error + change, 0.0)
         return out
 
+    def _base_blocks(self, markers: np.ndarray, keep: np.ndarray,
+                     base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(used components, system, BᵀX, BᵀB) of ``base`` = ``markers[keep]``: rows and columns of
+        the layout's kept blocks (the same numbers: every entry is a lookup or an entrywise product)
+        when it has them and the base uses the same components, else computed."""
+        blocks = self._layouts.get(markers.tobytes())
+        used = np.unique(self.component[base])
+        if blocks is None or used.size != blocks.used.size:
+            return self._computed_base(base)
+        index = np.concatenate([np.flatnonzero(keep), np.arange(markers.size, markers.size + used.size)])
+        rows = np.ix_(index, index)
+        return used, blocks.system[rows], blocks.proj[index], blocks.gram[rows]
+
+    def _computed_base(self, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_base_blocks` from the entries of ``K⁻¹`` and ``K⁻²`` among ``base``."""
+        kinv0, kinv2_0 = self._inverse_entries(base, squared=True, trial=False)
+        used, system = self._system(base, kinv0)
+        return used, system, *self._projections(base, kinv2_0, used)
+
     def _moved_errors(self, markers: np.ndarray, cols: Sequence[int], units: np.ndarray, out: np.ndarray,
                       which: np.ndarray) -> np.ndarray:
         """:meth:`error` of each move flagged in ``which``, written into ``out``."""
@@ -391,17 +409,41 @@ class ThinShellWeights:
         """(len(cols), r) Le et al.'s expected trajectories ``H̄j = Wjᵀ·Rj / (Wjᵀ·Wj)`` of the
         markers at positions ``cols``, where ``Rj`` leaves out the contribution of all ``cols``.
 
-        ``WᵀX`` and ``WᵀW`` are kept per layout until :meth:`forget` or :meth:`bind`: a sweep asks
-        for every unit of the same layout until one moves."""
+        ``WᵀX``, ``WᵀW`` and the layout's system and projections are kept per layout until
+        :meth:`forget` or :meth:`bind`: a sweep asks for every unit of the same layout until one
+        moves, and :meth:`move_errors` reads each unit's base from them."""
         markers = np.asarray(markers, dtype=np.intp)
-        products = self._products.get(markers.tobytes())
-        if products is None:
-            coef, proj, gram = self._reduced(markers, trial=False)
-            products = self._products[markers.tobytes()] = (coef.T @ proj, coef.T @ gram @ coef)
-        w_x, w_w = products  # (m, r) WᵀX, (m, m) WᵀW
-        others = np.setdiff1d(np.arange(markers.size), cols)
+        blocks = self._layouts.get(markers.tobytes())
+        if blocks is None:
+            used, system, coef, proj, gram = self._reduced(markers, trial=False)
+            blocks = self._layouts[markers.tobytes()] = _LayoutBlocks(
+                used, system, proj, gram, coef.T @ proj, coef.T @ gram @ coef)
+        w_x, w_w = blocks.w_x, blocks.w_w
+        others = np.ones(markers.size, dtype=bool)
+        others[list(cols)] = False
+        others = np.flatnonzero(others)
         traj = self._data[markers[others]]
         return np.stack([(w_x[j] - w_w[j, others] @ traj) / w_w[j, j] for j in cols])
+
+
+@dataclass(frozen=True, eq=False)
+class _LayoutBlocks:
+    """What :class:`ThinShellWeights` keeps of one layout (n = m + c unknowns): the used
+    components, the (n, n) system, ``BᵀX`` (n, r), ``BᵀB`` (n, n), ``WᵀX`` (m, r), ``WᵀW`` (m, m)."""
+
+    used: np.ndarray
+    system: np.ndarray
+    proj: np.ndarray
+    gram: np.ndarray
+    w_x: np.ndarray
+    w_w: np.ndarray
+
+
+def _identity_solve(system: np.ndarray, m: int) -> np.ndarray:
+    """(n, m) ``system⁻¹`` applied to the first ``m`` unit vectors (the coefficients of ``W``)."""
+    rhs = np.zeros((system.shape[0], m))
+    rhs[:m] = np.eye(m)
+    return np.linalg.solve(system, rhs)
 
 
 @dataclass(frozen=True)
@@ -507,13 +549,15 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
                         mirror: np.ndarray | None = None, neighbours: sp.spmatrix | None = None,
                         iterations: int = 10, restarts: int = 10,
                         initial: Sequence[int] | None = None, verify: bool = True,
-                        candidates_per_move: int = 3, seed: int = 0) -> ThinShellResult:
+                        candidates_per_move: int = 3, seed: int = 0,
+                        frames: int | None = None) -> ThinShellResult:
     """Block coordinate descent of Le et al. over ``restarts`` starts.
 
     Parameters
     ----------
     trajectories : (V, 3F) float, mm
-        Per-vertex displacement trajectories (:func:`trajectory_matrix`).
+        Per-vertex displacement trajectories (:func:`trajectory_matrix`), or their
+        :func:`compress_trajectories` coordinates with ``frames`` = F (the RMSE is per frame).
     solver : ThinShellWeights
         Factorized thin-shell operator of the mesh.
     count : int
@@ -608,7 +652,8 @@ def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, coun
         if best is None or err < best[0]:
             best = (err, sorted(markers))
     assert best is not None
-    rmse = float(np.sqrt(best[0] / (n * np.asarray(trajectories).shape[1] / 3)))
+    frame_count = np.asarray(trajectories).shape[1] / 3 if frames is None else frames
+    rmse = float(np.sqrt(best[0] / (n * frame_count)))
     return ThinShellResult(np.array(best[1], dtype=np.intp), rmse, iteration_counts, moves,
                            solver.solves, 0.0, time.perf_counter() - started, solver.evaluations)
 
@@ -760,17 +805,23 @@ def thin_shell_layout(problem: LayoutProblem, count: int, *, ks: float = 1.0, kb
     solver = problem.cached(("thin-shell-solver", ks, kb), lambda: ThinShellWeights(
         thin_shell_operator(problem.neutral, faces, ks=ks, kb=kb))).fresh()
     factor_seconds = time.perf_counter() - t0
-    disp = problem.complete_frames()
     mirror = None
     if symmetric:
         if problem.mirror is None:
             raise OptionError("symmetric layouts need the mirror partner of every point")
         mirror = problem.mirror
-        disp = mirrored_frames(disp, mirror)
+
+    def training_data() -> tuple[np.ndarray, int]:
+        disp = problem.complete_frames()
+        disp = disp if mirror is None else mirrored_frames(disp, mirror)
+        return compress_trajectories(trajectory_matrix(disp)), disp.shape[0]
+
+    # compressed once per problem: compare runs the optimizer at every count, and the hybrid too
+    data, frames = problem.cached(("thin-shell-data", symmetric), training_data)
     pinned = list(dict.fromkeys([int(v) for v in fixed]
                                 + ([int(v) for v in border_vertices(faces, border_markers, problem.neutral)]
                                    if border_markers else [])))
-    result = optimize_thin_shell(trajectory_matrix(disp), solver, count,
+    result = optimize_thin_shell(data, solver, count, frames=frames,
                                  candidates=problem.candidate_points(), fixed=pinned, mirror=mirror,
                                  neighbours=mesh_neighbours(faces, problem.n_points), iterations=iterations,
                                  restarts=restarts, initial=initial, verify=verify, seed=seed)
