@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from mocaptk.background import beside
 from mocaptk.errors import OptionError
 from mocaptk.geometry import vector_lengths
 from mocaptk.surface_mesh import (SurfaceMesh, cut_openings, front_direction, marker_spacing,
@@ -638,14 +639,12 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     ``captures`` are baked onto the rig one after the other (their takes become clips) and
     keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
     lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known."""
-    from mocaptk.atomic import check_writable, write_bytes
-    from mocaptk.jsonio import write_json
+    from mocaptk.atomic import check_writable
 
     from .export_fbx import write_rig_fbx
     from .export_glb import write_rig_glb
     from .export_json import write_rig_json
     from .mesh_io import load_mesh
-    from .renders import render_view
 
     unknown = [f for f in formats if f not in FORMATS]
     if unknown:
@@ -673,10 +672,26 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         held_out = [held_out_check(build, c) for c in captures[1:]]
         build.report["held_out"] = [h for h in held_out if h is not None]
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
-    for fmt in formats:
-        say(f"writing rig.{fmt}")
-        writers[fmt](build.rig, names[fmt], animation=animation, force=True)
-    say("rendering the guide")
+
+    def write_rig_files() -> None:
+        for fmt in formats:
+            writers[fmt](build.rig, names[fmt], animation=animation, force=True)
+
+    say(f"writing {', '.join(f'rig.{fmt}' for fmt in formats)} and rendering the guide")
+    with beside(write_rig_files if formats else None, what="the rig files"):  # a process each
+        _write_guide(build, names, animation, captures, options=options, title=title, say=say)
+    return build, names
+
+
+def _write_guide(build: RigBuild, names: dict[str, Path], animation: RigAnimation | None,
+                 captures: Sequence[Capture], *, options: RigOptions, title: str,
+                 say: Callable[[str], None]) -> None:
+    """The renders, ``guide.pdf`` and ``rig_report.json`` of :func:`write_rig_outputs`."""
+    from mocaptk.atomic import write_bytes
+    from mocaptk.jsonio import write_json
+
+    from .renders import render_view
+
     clusters = build.layout.clusters
     joints = np.asarray(build.rig.joint_positions)[1:]
     rows = guide_rows(build)
@@ -712,4 +727,3 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
                     title=title or "mocaptk marker placement guide", notes=notes, force=True)
     write_json(names["report"], {"format": "mocaptk.rig_report", "version": 1, **build.report},
                force=True)
-    return build, names

@@ -184,6 +184,7 @@ def cluster(
     from ..clustering.pipeline import ClusterOptions, check_layout_options, cluster_session, load_session
     from ..clustering.regions import read_regions
     from ..clustering.takes import read_takes
+    from ..background import beside
 
     session = sessions[0]
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
@@ -228,10 +229,14 @@ def cluster(
     for note in result.notes:
         print(f"mocaptk: warning: {note}", file=sys.stderr)
     with staged_folder(out_dir, force=force) as folder:
-        write_cluster_outputs(result, folder, pictures=parse_formats(formats) != ("none",))
-        build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
-                                    formats=formats, quiet=quiet, session=traj,
-                                    animate=animate or [])
+        write_cluster_outputs(result, folder, pictures=False)
+        pictures = parse_formats(formats) != ("none",)
+        # the pictures in a second process while the rig is built: the same files, less waiting
+        with beside((lambda: write_cluster_pictures(result, folder)) if pictures else None,
+                    what="the pictures"):
+            build = cluster_rig_outputs(result, folder, mesh=mesh, max_influences=max_influences,
+                                        formats=formats, quiet=quiet, session=traj,
+                                        animate=animate or [])
         summary = summary_text(result)
         if build is not None:  # the rig's check (per region, held-out captures) after the header
             summary += "\n".join([f"rig: {build.rig.joint_count - 1} joints, skinning check RMSE "
