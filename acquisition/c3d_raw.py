@@ -360,8 +360,9 @@ def _analog_words(params: dict[str, dict[str, ParamValue]], header_words: int,
     return header_words
 
 
-#: Frames decoded per step of :func:`read_points` (bounds its temporaries to a few MB).
-READ_BLOCK_BYTES = 4 * 2**20
+#: Bytes of frames decoded per step of :func:`read_points`: a block and its decoded values stay
+#: in a core's L2 cache across the decode's passes (4 MB blocks: 5-10 % slower).
+READ_BLOCK_BYTES = 2**19
 
 
 def read_points(structure: C3DStructure, *, unit_scale: float = 1.0,
