@@ -72,10 +72,15 @@ def bytecode_env() -> dict[str, str]:
     return env
 
 
-def run(argv: list[str], timeout: float, env: dict[str, str] | None = None) -> tuple[float, float, float, int]:
-    """(wall s, CPU s, peak RSS GB, exit code) of one child process, killed after ``timeout`` s."""
+def run(argv: list[str], timeout: float, env: dict[str, str] | None = None, *,
+        one_cpu: bool = False) -> tuple[float, float, float, int]:
+    """(wall s, CPU s, peak RSS GB, exit code) of one child process, killed after ``timeout`` s;
+    ``one_cpu``: confined to one CPU (as ``taskset -c 0``), where mocaptk writes every output in
+    one process (``mocaptk.background``)."""
     start = time.perf_counter()
-    child = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    confine = (lambda: os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})) if one_cpu else None
+    child = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                             preexec_fn=confine)
     timer = threading.Timer(timeout, child.kill)
     timer.start()
     _, status, usage = os.wait4(child.pid, 0)
@@ -96,6 +101,8 @@ def main() -> None:
     parser.add_argument("--method", default=None, help="run only the rows with (paper) or without "
                         "(hybrid) --method paper")
     parser.add_argument("--timeout", type=float, default=1800.0, help="kill a row after this many s")
+    parser.add_argument("--one-cpu", action="store_true", help="each row also confined to one CPU "
+                        "(the baseline of the second process's outputs): its wall s and the ratio")
     parser.add_argument("--make", nargs=3, help=argparse.SUPPRESS)  # internal: PATH MARKERS FRAMES
     args = parser.parse_args()
     if args.make:
@@ -104,8 +111,9 @@ def main() -> None:
     args.folder.mkdir(parents=True, exist_ok=True)
     print(f"load average at start: {' '.join(f'{v:.1f}' for v in os.getloadavg())} "
           f"on {os.cpu_count()} CPUs")
-    print("| markers | frames | options | outputs | wall s | CPU s | peak GB | goal |")
-    print("|---|---|---|---|---|---|---|---|")
+    extra = " one-CPU wall s | one-CPU / wall |" if args.one_cpu else ""
+    print("| markers | frames | options | outputs | wall s | CPU s | peak GB | goal |" + extra)
+    print("|---|---|---|---|---|---|---|---|" + "---|---|" * args.one_cpu)
     env = bytecode_env()
     rows = QUICK if args.quick else ROWS
     if args.only is not None:
@@ -128,6 +136,9 @@ def main() -> None:
              else "not met"))
         shown = " ".join(options) or "-"
         status = "" if code == 0 else " (killed)" if wall >= args.timeout else f" (exit {code})"
+        if args.one_cpu:
+            single = run(argv, args.timeout, env, one_cpu=True)[0]
+            verdict += f" | {single:.1f} | {single / wall:.2f}x"
         print(f"| {markers} | {frames} | {shown} | {formats} | {wall:.1f}{status} | {cpu:.1f} | "
               f"{peak:.2f} | {verdict} |", flush=True)
     print(f"load average at end: {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
