@@ -55,9 +55,12 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
     allowed = np.zeros(problem.n_points, dtype=bool)
     allowed[cand] = True
     layout = [int(p) for p in start]
+    changes, settled = 0, {}  # per slot: the change count its others had when it was last searched
     for _ in range(max_passes):
         changed = False
         for slot, rep in enumerate(list(layout)):
+            if settled.get(slot) == changes:  # the same others as then: the same gains, no change
+                continue
             others = layout[:slot] + layout[slot + 1:]
             members = np.flatnonzero((clusters == clusters[rep]) & allowed)
             members = members[~np.isin(members, others)]
@@ -68,7 +71,8 @@ def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start:
             best = int(members[np.argmax([gain[int(m)] for m in members])])
             if best != rep and gain[best] > gain[rep] * (1.0 + 1e-9):
                 layout[slot] = best
-                changed = True
+                changed, changes = True, changes + 1
+            settled[slot] = changes
         if not changed:
             break
     return np.sort(np.array(layout, dtype=np.intp))
