@@ -14,7 +14,7 @@ from mocaptk import InputFileError, OptionError, Take, Trajectories
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.clustering.correlation import consolidated_correlation, mean_off_diagonal
 from mocaptk.clustering.layout import read_layout, write_layout
-from mocaptk.clustering.neutral import neutral_pose, seen_markers
+from mocaptk.clustering.neutral import max_displacement, neutral_pose, seen_markers
 from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
 from mocaptk.clustering.regions import default_regions, read_regions, regions_from_prefixes
 from mocaptk.clustering.takes import read_takes, region_segments, sample_frames
@@ -85,6 +85,33 @@ def test_neutral_pose_and_seen_markers_match_numpy_bit_for_bit(monkeypatch):
     assert np.array_equal(seen_markers(pos), np.isfinite(pos).all(axis=2).any(axis=0))
     assert seen_markers(pos)[[5, 9, 10, 11, 12]].tolist() == [False, True, False, True, True]
     assert seen_markers(pos[:0]).tolist() == [False] * 130
+
+
+
+@pytest.mark.parametrize("block_values", [None, 1, 5_000])
+def test_max_displacement_is_the_largest_norm_over_valid_frames_in_any_blocks(monkeypatch, block_values):
+    """Blocks of 1 frame, of a few frames and the default give np.linalg.norm's largest value
+    bit for bit; a marker whose frames are all gaps or infinite gets 0."""
+    from mocaptk.clustering import neutral
+
+    if block_values is not None:
+        monkeypatch.setattr(neutral, "DISPLACEMENT_BLOCK_VALUES", block_values)
+    sample = read_c3d(SAMPLES / "dense_halfface.c3d").positions
+    rng = np.random.default_rng(9)
+    pos = sample[:777, :40].copy()
+    pos[rng.random(pos.shape[:2]) < 0.1] = np.nan
+    pos[:, 3] = np.nan  # never seen
+    pos[:, 4, 0] = np.inf  # only infinite samples: no valid frame
+    pos[776, 5] = sample[0, 5] + [9.0, 9.0, 9.0]  # largest in the last frame (past every block)
+    rest = neutral_pose(sample[:777, :40])
+    norms = np.linalg.norm(pos - rest[None], axis=2)
+    norms[~np.isfinite(norms)] = np.nan
+    expected = np.zeros(40)
+    valid = np.isfinite(norms).any(axis=0)
+    expected[valid] = np.nanmax(norms[:, valid], axis=0)
+    got = max_displacement(pos, rest)
+    assert np.array_equal(got, expected) and got[3] == got[4] == 0.0
+    assert got[5] == pytest.approx(np.linalg.norm(pos[776, 5] - rest[5]))
 
 
 @pytest.fixture(scope="module")
