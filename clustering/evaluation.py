@@ -34,9 +34,18 @@ def reconstruct(model: ReconstructionModel | FaceModel, test: np.ndarray) -> np.
 def reconstruction_errors(model: ReconstructionModel | FaceModel, test: np.ndarray) -> np.ndarray:
     """Per-point reconstruction error ``(frames, markers)`` mm; NaN where truth or prediction is missing."""
     test = np.asarray(test, dtype=np.float64)
-    pred = reconstruct(model, test)
-    err = np.linalg.norm(pred - test, axis=2)
-    return np.where(np.isfinite(err), err, np.nan)
+    return point_errors(reconstruct(model, test), test)
+
+
+def point_errors(pred: np.ndarray, test: np.ndarray) -> np.ndarray:
+    """Euclidean distances ``(frames, markers)`` mm of ``pred`` and ``test`` (both (frames, markers, 3)),
+    NaN where either is missing or infinite."""
+    # np.linalg.norm's own sum, without its copies and np.where's (the same numbers)
+    diff = pred - test
+    diff *= diff
+    err = np.sqrt(np.add.reduce(diff, axis=2))
+    err[np.isinf(err)] = np.nan
+    return err
 
 
 def error_summary(errors: np.ndarray, *, regions: Mapping[str, Sequence[int]] | None = None) -> dict:
@@ -183,9 +192,7 @@ class GapFreeRidge:
             coef = np.linalg.solve(block + lam * np.eye(cols.size), self.gram[cols])
             return ((x.reshape(len(x), -1) - self.mean[cols]) @ coef + self.mean).reshape(len(x), n_markers, 3)
 
-        pred = _by_pattern(test[:, layout], layout, n_markers, solve)
-        err = np.linalg.norm(pred - test, axis=2)
-        return np.where(np.isfinite(err), err, np.nan)
+        return point_errors(_by_pattern(test[:, layout], layout, n_markers, solve), test)
 
 
 def baseline_layouts(positions: np.ndarray, count: int, *, n_random: int = 10, seed: int = 0,

@@ -355,8 +355,10 @@ class ThinShellWeights:
         inner, inner2 = np.empty((count, k, k)), np.empty((count, k, k))
         for t, unit in enumerate(moved):
             if (self._slot_of[unit] < 0).all():  # the common case: entries cached by prepare()
-                for i, j in np.ndindex(k, k):
-                    inner[t, i, j], inner2[t, i, j] = self._entries[min(unit[i], unit[j]), max(unit[i], unit[j])]
+                vertices = unit.tolist()
+                for i, v in enumerate(vertices):
+                    for j, w in enumerate(vertices):
+                        inner[t, i, j], inner2[t, i, j] = self._entries[min(v, w), max(v, w)]
             else:
                 inner[t], inner2[t] = self._inverse_entries(unit, squared=True, trial=True)
         rhs = np.zeros((n, count * k + r))
@@ -383,12 +385,12 @@ class ThinShellWeights:
         the layout's kept blocks (the same numbers: every entry is a lookup or an entrywise product)
         when it has them and the base uses the same components, else computed."""
         blocks = self._layouts.get(markers.tobytes())
-        used = np.unique(self.component[base])
-        if blocks is None or used.size != blocks.used.size:
+        if blocks is None or (self.anchors.size > 1  # one component: every base uses it
+                              and np.unique(self.component[base]).size != blocks.used.size):
             return self._computed_base(base)
-        index = np.concatenate([np.flatnonzero(keep), np.arange(markers.size, markers.size + used.size)])
-        rows = np.ix_(index, index)
-        return used, blocks.system[rows], blocks.proj[index], blocks.gram[rows]
+        index = np.concatenate([np.flatnonzero(keep), np.arange(markers.size, markers.size + blocks.used.size)])
+        return (blocks.used, blocks.system.take(index, 0).take(index, 1), blocks.proj.take(index, 0),
+                blocks.gram.take(index, 0).take(index, 1))
 
     def _computed_base(self, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`_base_blocks` from the entries of ``K⁻¹`` and ``K⁻²`` among ``base``."""
