@@ -112,11 +112,14 @@ def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *
     near: dict[int, np.ndarray] = {}  # per layout point, all points nearest first (rows on demand)
 
     def candidates(slot: int, current: list[int]) -> list[int]:
-        used, point = set(current), current[slot]
+        point = current[slot]
         if point not in near:
             near[point] = np.argsort(np.linalg.norm(problem.neutral[point] - problem.neutral, axis=1),
                                      kind="stable")
-        return [int(p) for p in near[point] if allowed[p] and int(p) not in used][:neighbours]
+        free = allowed.copy()
+        free[current] = False
+        order = near[point]
+        return order[free[order]][:neighbours].tolist()
 
     return swap_descent(layout, candidates, score.rmse_many, max_passes=max_passes)
 
