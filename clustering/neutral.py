@@ -10,8 +10,11 @@ BLOCK_FRAMES = 4096
 #: a block's temporaries stay in a core's L2 cache (4,096-frame blocks of 200 markers, 19 MB,
 #: went through memory: 1.7x the time).
 DISPLACEMENT_BLOCK_VALUES = 2 ** 16
-#: Columns (x, y, z of 32 markers) per block of :func:`neutral_pose`, frames per transposed tile.
+#: Columns (x, y, z of up to 32 markers) per block of :func:`neutral_pose`, at most
+#: ``MEDIAN_BLOCK_VALUES`` values (16 MB: a 55 MB block of 72,000 frames cost 0.06-0.12 s of
+#: page faults), and frames per transposed tile.
 MEDIAN_COLUMNS = 96
+MEDIAN_BLOCK_VALUES = 2 ** 21
 MEDIAN_TILE_FRAMES = 512
 
 
@@ -36,12 +39,13 @@ def neutral_pose(positions: np.ndarray, *, rest_frames: np.ndarray | slice | Non
     frames, markers = pos.shape[:2]
     columns = pos.reshape(frames, markers * 3)
     out = np.full(markers * 3, np.nan)
-    block = np.empty((min(MEDIAN_COLUMNS, markers * 3), frames))
-    for start in range(0, markers * 3, MEDIAN_COLUMNS):
-        part = block[:min(MEDIAN_COLUMNS, markers * 3 - start)]
+    width = max(3, min(MEDIAN_COLUMNS, MEDIAN_BLOCK_VALUES // max(frames, 1)) // 3 * 3)  # whole markers
+    block = np.empty((min(width, markers * 3), frames))
+    for start in range(0, markers * 3, width):
+        part = block[:min(width, markers * 3 - start)]
         for tile in range(0, frames, MEDIAN_TILE_FRAMES):  # tiled transposition: cache-friendly
             part[:, tile:tile + MEDIAN_TILE_FRAMES] = \
-                columns[tile:tile + MEDIAN_TILE_FRAMES, start:start + MEDIAN_COLUMNS].T
+                columns[tile:tile + MEDIAN_TILE_FRAMES, start:start + width].T
         seen = np.isfinite(part).reshape(len(part) // 3, 3, frames).all(axis=1).any(axis=1)
         valid = frames - np.isnan(part).sum(axis=1)
         for j in np.flatnonzero(np.repeat(seen, 3)):

@@ -76,6 +76,9 @@ def test_neutral_pose_and_seen_markers_match_numpy_bit_for_bit(monkeypatch):
     assert np.isnan(neutral_pose(pos[:0])).all() and neutral_pose(pos[:, :0]).shape == (0, 3)
     from mocaptk.clustering import neutral
 
+    for values in (1, 20 * 1501):  # blocks of one marker, of 6 (20 columns: whole markers only)
+        monkeypatch.setattr(neutral, "MEDIAN_BLOCK_VALUES", values)
+        assert np.array_equal(neutral_pose(pos), expected, equal_nan=True)
     monkeypatch.setattr(neutral, "BLOCK_FRAMES", 256)
     pos[5000 % 1501, 9, 0] = np.nan  # one frame with a missing axis among complete ones
     pos[:, 10, 0], pos[:, 10, 1] = np.nan, np.where(np.arange(1501) % 2, np.nan, 1.0)  # never all 3
