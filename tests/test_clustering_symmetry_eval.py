@@ -102,6 +102,24 @@ def test_kmeans_two_member_tie_goes_to_the_member_that_moves_most():
     assert kmeans_layout(disp[:, ::-1], 2, seed=0).tolist() == [3 - i for i in expected[::-1]]
 
 
+
+@pytest.mark.parametrize("tile_values", [1, 1000, None])
+def test_kmeans_gaps_count_as_rest_in_any_tiles(monkeypatch, tile_values):
+    """Gaps are 0 displacement whatever the feature tiles (1 frame, a few, the default)."""
+    from mocaptk.clustering import baselines
+
+    traj, _ = planted_session(seed=16, takes=False)
+    disp = traj.positions - np.median(traj.positions, axis=0)
+    gappy = disp.copy()
+    gappy[np.random.default_rng(4).random(disp.shape[:2]) < 0.05] = np.nan
+    filled = np.nan_to_num(gappy, nan=0.0)
+    expected = kmeans_layout(filled, 6, seed=1)
+    if tile_values is not None:
+        monkeypatch.setattr(baselines, "FEATURE_TILE_VALUES", tile_values)
+    assert kmeans_layout(gappy, 6, seed=1).tolist() == expected.tolist()
+    assert np.isnan(gappy).any()  # the caller's array is left as it was
+
+
 def test_reconstruction_is_exact_for_linear_data_and_handles_gaps():
     rng = np.random.default_rng(15)
     drivers = rng.normal(size=(300, 3, 3)).cumsum(axis=0)
