@@ -11,6 +11,7 @@ Both must give the same rows. CPU seconds are this process's own (all its thread
     python benchmarks/bench_compare.py --lost 60   # lost-marker scores: downdates vs a refit per marker
     python benchmarks/bench_compare.py --thin-shell  # thin-shell optimizer: blocks kept per layout
     python benchmarks/bench_compare.py --report      # report.html's held-out errors: shared moments
+    python benchmarks/bench_compare.py --orders      # greedy / QR layouts: pick orders kept per problem
 
 ``--thin-shell``: the thin-shell optimizer as compare runs it (20/30/40/60 markers, 3 restarts,
 on the whole session and two leave-one-take-out folds) with each layout's blocks kept for the
@@ -25,6 +26,12 @@ take left out once) for 32 layouts (8 random per count 20/30/40/60, as compare's
 ``RidgeMoments`` per training set (``heldout_errors_of_layouts``) against the baseline in the same
 run, ``heldout_errors`` per layout (per-pattern fits over every training frame, the code before);
 both must agree to 1e-8 mm.
+
+``--orders``: the greedy and pivoted-QR layouts at compare's counts 20/30/40/60 on the whole
+session and two leave-one-take-out folds, the pick orders kept per problem and extended (greedy's
+forward selection, QR's pivots: neither depends on the count), against the baseline in the same
+run, each count selected from scratch (the kept orders dropped before every call, the code before;
+the training Gram stays shared, as before); both must give the same layouts.
 
 ``--lost L``: the worst-lost-marker scores of a random L-marker layout on every leave-one-take-out
 fold, by ``lost_marker_rmse`` (one eigendecomposition per fold, a rank-3 downdate per marker)
@@ -126,6 +133,41 @@ def thin_shell_bench(session) -> None:
           f"and solves: {same}; load {os.getloadavg()[0]:.1f}")
 
 
+def orders_bench(session) -> None:
+    """Greedy and QR layouts of compare's counts: pick orders kept per problem vs from scratch, same run."""
+    from mocaptk.clustering.compare import _problem
+    from mocaptk.clustering.evaluation import holdout_splits
+    from mocaptk.clustering.methods.reconstruction import greedy_layout, pivoted_qr_layout, training_gram
+
+    folds = holdout_splits(session.n_frames, session.takes, split="takes")[:2]
+    problems = [_problem(session.positions, session, None, {})]
+    problems += [_problem(session.positions, session, train, {}) for train, _ in folds]
+    for problem in problems:
+        training_gram(problem)  # shared before and after the change: outside the timings
+
+    def run(kept: bool):
+        out = []
+        for problem in problems:
+            for count in (20, 30, 40, 60):
+                if not kept or count == 20:
+                    problem.cache.pop(("greedy-order", ()), None)
+                    problem.cache.pop("qr-order", None)
+                out.append((greedy_layout(problem, count), pivoted_qr_layout(problem, count)))
+        return out
+
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):  # as select_layout runs them
+        ours, wall, cpu = timed(run, True)
+        base, base_wall, base_cpu = timed(run, False)
+    print(f"greedy + QR layouts, {len(problems)} problems x 4 counts | wall s | CPU s |\n|---|---:|---:|")
+    print(f"| pick orders kept per problem | {wall:.2f} | {cpu:.2f} |\n| each count from scratch (baseline) | "
+          f"{base_wall:.2f} | {base_cpu:.2f} |")
+    same = all(np.array_equal(a, b) for pair, other in zip(ours, base) for a, b in zip(pair, other))
+    print(f"baseline / ours: {base_wall / wall:.2f}x wall, {base_cpu / cpu:.2f}x CPU; same layouts: {same}; "
+          f"load {os.getloadavg()[0]:.1f}")
+
+
 def report_bench(session) -> None:
     """The report's per-row held-out errors: shared moments vs per-layout fits, same run."""
     from threadpoolctl import threadpool_limits
@@ -155,6 +197,8 @@ def main() -> None:
                         help="only the lost-marker benchmark, at L markers")
     parser.add_argument("--thin-shell", action="store_true",
                         help="only the thin-shell optimizer: per-layout blocks kept vs recomputed")
+    parser.add_argument("--orders", action="store_true",
+                        help="only the greedy and QR layouts: pick orders kept per problem vs from scratch")
     parser.add_argument("--report", action="store_true",
                         help="only report.html's per-row held-out errors: shared moments vs per-layout fits")
     args = parser.parse_args()
@@ -169,6 +213,8 @@ def main() -> None:
         return thin_shell_bench(session)
     if args.report:
         return report_bench(session)
+    if args.orders:
+        return orders_bench(session)
     counts = [int(c) for c in args.counts.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
     print(f"{SAMPLE.name}: {session.n_markers} markers x {session.n_frames} frames, {len(session.takes)} takes; "

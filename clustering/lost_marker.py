@@ -140,7 +140,9 @@ def pooled_worst_lost(folds: Sequence[CrossValidatedError], layouts: Sequence[np
     for fold, layout in zip(folds, layouts):
         if fold.n_test_points == 0:
             continue
-        lost = worst_lost_marker(fold, layout).lost_rmse_mm
+        layout = np.unique(np.asarray(layout, dtype=np.intp))
+        # worst_lost_marker's lost error, without the intact error it also computes
+        lost = float(np.max(lost_marker_rmse(fold, layout))) if layout.size >= 2 else float("nan")
         sse, points = sse + lost ** 2 * fold.n_test_points, points + fold.n_test_points
     return float(np.sqrt(sse / points)) if points else float("nan")
 

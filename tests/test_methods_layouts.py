@@ -93,6 +93,17 @@ def test_greedy_keeps_fixed_points():
     assert {0, 1} <= set(layout.tolist()) and layout.size == 6
 
 
+def test_greedy_and_qr_of_several_counts_are_each_counts_own_selection():
+    # the pick orders are kept per problem and extended: counts in any order, then fixed points,
+    # give what a problem of their own gives
+    problem, _ = driven_problem(noise=0.3)
+    for count, fixed in ((12, ()), (4, ()), (7, ()), (20, ()), (6, (0, 1)), (9, (0, 1)), (3, (5,))):
+        fresh, _ = driven_problem(noise=0.3)
+        assert np.array_equal(greedy_layout(problem, count, fixed=fixed), greedy_layout(fresh, count, fixed=fixed))
+        if not fixed:
+            assert np.array_equal(pivoted_qr_layout(problem, count), pivoted_qr_layout(fresh, count))
+
+
 def test_paper_factor_bisection_hits_the_count():
     from mocaptk.clustering.methods.paper import paper_layout
     problem, _ = driven_problem()

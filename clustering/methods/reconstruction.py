@@ -133,6 +133,15 @@ def pivoted_qr_layout(problem: LayoutProblem, count: int, *, seed: int = 0) -> n
     """``count`` points by column-pivoted QR of the centred displacements (sorted indices)."""
     cand = problem.candidate_points()
     _check(count, cand.size)
+    chosen = problem.cached("qr-order", lambda: _pivot_order(problem, cand))[:count]
+    if len(chosen) < count:  # fewer informative columns than points: pad deterministically
+        chosen += [i for i in range(cand.size) if i not in set(chosen)][: count - len(chosen)]
+    return np.sort(cand[np.array(chosen, dtype=np.intp)])
+
+
+def _pivot_order(problem: LayoutProblem, cand: np.ndarray) -> list[int]:
+    """Candidate positions in the order of the pivoted QR's first column of each (the same for
+    every count: compare asks for several)."""
     cols = _blocks(cand)
     # Same pivots as QR of the tall design matrix (D = U·S with U orthonormal), on a square
     # factor S of its Gram matrix: 3N×3N instead of frames×3N.
@@ -143,11 +152,7 @@ def pivoted_qr_layout(problem: LayoutProblem, count: int, *, seed: int = 0) -> n
         vals, vecs = np.linalg.eigh(gram[np.ix_(cols, cols)])
         square = np.sqrt(np.maximum(vals, 0.0))[:, None] * vecs.T
     _, piv = sla.qr(square, pivoting=True, mode="r", check_finite=False)
-    order = list(dict.fromkeys(int(c) // 3 for c in piv))
-    chosen = order[:count]
-    if len(chosen) < count:  # fewer informative columns than points: pad deterministically
-        chosen += [i for i in range(cand.size) if i not in set(chosen)][: count - len(chosen)]
-    return np.sort(cand[np.array(chosen, dtype=np.intp)])
+    return list(dict.fromkeys(int(c) // 3 for c in piv))
 
 
 def _residual_gram(gram: np.ndarray, chosen: Sequence[int], jitter: float) -> np.ndarray:
@@ -190,24 +195,51 @@ def gains_given(gram: np.ndarray, chosen: Sequence[int], points: np.ndarray, jit
 
 def greedy_layout(problem: LayoutProblem, count: int, *, fixed: Sequence[int] = (),
                   seed: int = 0) -> np.ndarray:
-    """Greedy forward selection of ``count`` points (``fixed`` ones are kept and counted)."""
+    """Greedy forward selection of ``count`` points (``fixed`` ones are kept and counted).
+
+    The order of the picks does not depend on ``count``: it is kept per problem (and ``fixed``)
+    and only extended, so layouts of several counts (compare's, the hybrid's) cost the largest
+    one's picks, the same points as a selection of its own."""
     cand = problem.candidate_points()
     _check(count, cand.size)
-    cols = _blocks(cand)
-    gram = training_gram(problem)[np.ix_(cols, cols)]
-    jitter = gram_jitter(gram)
-    pos = {int(p): i for i, p in enumerate(cand)}
-    chosen = [pos[int(p)] for p in fixed]
-    resid = _residual_gram(gram, chosen, jitter)
-    while len(chosen) < count:
-        gain = _gains(resid, jitter)
-        gain[chosen] = -np.inf
-        best = int(np.argmax(gain))
-        cols = _blocks(np.array([best]))
-        g_bc = resid[cols]
-        resid = resid - g_bc.T @ np.linalg.solve(resid[np.ix_(cols, cols)] + jitter * np.eye(3), g_bc)
-        chosen.append(best)
+    key = ("greedy-order", tuple(int(p) for p in fixed))
+    if key not in problem.cache:
+        problem.cache[key] = _GreedyOrder.start(problem, cand, fixed)
+    order = problem.cache[key]
+    order.extend(count)
+    chosen = order.chosen[:max(count, len(fixed))]
     return np.sort(cand[np.array(chosen, dtype=np.intp)])
+
+
+@dataclass(eq=False)
+class _GreedyOrder:
+    """The forward selection so far: candidate positions ``chosen`` in pick order, the residual
+    Gram matrix after them and the jitter."""
+
+    chosen: list[int]
+    resid: np.ndarray
+    jitter: float
+
+    @classmethod
+    def start(cls, problem: LayoutProblem, cand: np.ndarray, fixed: Sequence[int]) -> _GreedyOrder:
+        cols = _blocks(cand)
+        gram = training_gram(problem)[np.ix_(cols, cols)]
+        jitter = gram_jitter(gram)
+        pos = {int(p): i for i, p in enumerate(cand)}
+        chosen = [pos[int(p)] for p in fixed]
+        return cls(chosen, _residual_gram(gram, chosen, jitter), jitter)
+
+    def extend(self, count: int) -> None:
+        """Pick until ``count`` points are chosen."""
+        while len(self.chosen) < count:
+            gain = _gains(self.resid, self.jitter)
+            gain[self.chosen] = -np.inf
+            best = int(np.argmax(gain))
+            cols = _blocks(np.array([best]))
+            g_bc = self.resid[cols]
+            self.resid = self.resid - g_bc.T @ np.linalg.solve(
+                self.resid[np.ix_(cols, cols)] + self.jitter * np.eye(3), g_bc)
+            self.chosen.append(best)
 
 
 @dataclass(frozen=True, eq=False)
