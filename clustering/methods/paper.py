@@ -81,7 +81,8 @@ def paper_layout(problem: LayoutProblem, count: int | None = None, *, factor: fl
         return correlation_clusters(problem, factor=1.1 if factor is None else factor, step=step)
     if not 1 <= count <= problem.n_points:
         raise OptionError(f"layout size must be between 1 and {problem.n_points}, got {count}")
-    regions = _region_data(problem, step)  # correlations do not depend on the factor
+    # correlations depend on neither the factor nor the count: once per problem (compare asks 4 counts)
+    regions = problem.cached(("paper-regions", step), lambda: _region_data(problem, step))
     lo, hi = 1e-3, 1.0
     result_hi = correlation_clusters(problem, factor=hi, regions=regions)
     while result_hi.layout.size < count and hi < 64:
