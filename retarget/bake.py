@@ -145,7 +145,7 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
     ValueError
         Shapes that do not match the rig, a non-positive rate, no frames.
     """
-    positions = np.array(joint_positions, dtype=np.float64)
+    positions = np.asarray(joint_positions, dtype=np.float64)  # not written to: fill_gaps copies
     count = rig.joint_count
     if positions.ndim != 3 or positions.shape[1:] != (count - 1, 3) or len(positions) == 0:
         raise ValueError(f"joint_positions must have shape (F >= 1, {count - 1}, 3), "
