@@ -20,12 +20,15 @@ from mocaptk.acquisition.formats import read_trajectories
 from mocaptk.atomic import atomic_open, atomic_path, write_text
 from mocaptk.errors import OutputError
 
+FRAMES = 40_000
+
 
 @pytest.fixture(scope="module")
 def big_session(tmp_path_factory) -> Path:
-    """An .npz session whose text export is ~8 MB (a second or more to write)."""
+    """An .npz session whose text export is ~60 MB (~0.7 s to write on a fast machine: 8 MB
+    was written between two polls of the killer)."""
     rng = np.random.default_rng(0)
-    traj = Trajectories(rng.normal(0, 100, (6000, 40, 3)), [f"M{i:02d}" for i in range(40)], 100.0)
+    traj = Trajectories(rng.normal(0, 100, (FRAMES, 40, 3)), [f"M{i:02d}" for i in range(40)], 100.0)
     path = tmp_path_factory.mktemp("big") / "big.npz"
     np.savez(path, positions=traj.positions, labels=np.array(traj.labels), rate=traj.rate)
     return path
@@ -69,7 +72,7 @@ def test_convert_killed_mid_write_without_old_file_leaves_no_output(big_session,
     # the next run is not confused by the hidden leftover and writes a complete file
     done = run_cli("convert", big_session, target)
     assert done.exit_code == 0, done.stderr
-    assert read_trajectories(target).positions.shape == (6000, 40, 3)
+    assert read_trajectories(target).positions.shape == (FRAMES, 40, 3)
     assert [p.name for p in tmp_path.iterdir()] == [target.name]  # and it removed the leftovers
 
 
