@@ -1,4 +1,4 @@
-"""Run one output writer in a forked process while the caller goes on with its own work.
+"""Run one output writer (or check) in a forked process while the caller goes on with its own work.
 
 The outputs of a run are independent files, so writing two of them side by side changes no byte;
 it halves their wall time on two cores. Where fork is not safe (macOS frameworks, Windows) or this
@@ -13,6 +13,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from mocaptk.errors import MocaptkError
 
@@ -22,57 +23,66 @@ def can_fork() -> bool:
     return sys.platform.startswith("linux") and len(os.sched_getaffinity(0)) > 1
 
 
+class Outcome:
+    """What :func:`beside` gives the ``with`` body: the task's return value, set on leaving."""
+
+    value: Any = None
+
+
 @contextmanager
-def beside(task: Callable[[], object] | None, *, what: str) -> Iterator[None]:
-    """Run ``task()`` (nothing for None) while the ``with`` body runs; leave when both are done.
+def beside(task: Callable[[], Any] | None, *, what: str) -> Iterator[Outcome]:
+    """Run ``task()`` (nothing for None) while the ``with`` body runs; leave when both are done,
+    with the task's return value (pickled back: keep it small) in the yielded :class:`Outcome`.
 
     An exception of the task is raised again after the body (its type and message; ``what``
     names the task when it died without one); an exception of the body kills the task first, so
     nothing writes on after the caller has given up.
     """
+    outcome = Outcome()
     if task is None or not can_fork():
-        if task is not None:
-            task()
-        yield
+        outcome.value = None if task is None else task()
+        yield outcome
         return
     read, write = os.pipe()
     pid = os.fork()
-    if pid == 0:  # the child: run the task, report its exception, never return into the caller
+    if pid == 0:  # the child: run the task, send its result or exception, never return into the caller
         code = 1
         try:
             os.close(read)
-            payload = b""
             try:
-                task()
+                payload = pickle.dumps((True, task()))
                 code = 0
             except BaseException as error:  # noqa: BLE001 - every failure goes back to the parent
-                payload = _pickled(error)
+                payload = pickle.dumps((False, _picklable(error)))
             with os.fdopen(write, "wb") as pipe:
                 pipe.write(payload)
         finally:
             os._exit(code)
     os.close(write)
     try:
-        yield
+        yield outcome
     except BaseException:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         os.close(read)
         raise
     with os.fdopen(read, "rb") as pipe:
-        payload = pipe.read()  # before waiting: a large exception would block the child's write
+        payload = pipe.read()  # before waiting: a large result would block the child's write
     _, status = os.waitpid(pid, 0)
-    if payload:
-        raise pickle.loads(payload)
-    if status:
+    if not payload:
         raise MocaptkError(f"{what} stopped without a result ({_status_text(status)})")
+    ok, value = pickle.loads(payload)
+    if not ok:
+        raise value
+    outcome.value = value
 
 
-def _pickled(error: BaseException) -> bytes:
+def _picklable(error: BaseException) -> BaseException:
     try:
-        return pickle.dumps(error)
+        pickle.loads(pickle.dumps(error))
+        return error
     except Exception:  # an unpicklable exception: its type and message
-        return pickle.dumps(MocaptkError(f"{type(error).__name__}: {error}"))
+        return MocaptkError(f"{type(error).__name__}: {error}")
 
 
 def _status_text(status: int) -> str:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -51,7 +51,7 @@ from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "dense_cloud", "ground_truth_error",
            "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
-           "rig_frame_rotation", "write_rig_outputs"]
+           "rig_frame_rotation", "with_check", "write_rig_outputs"]
 
 #: Largest angle (degrees) between a face-frame axis and a coordinate axis for snapping.
 SNAP_DEGREES = 25.0
@@ -346,12 +346,13 @@ def _sagittal_plane(layout: Layout) -> SagittalPlane:
 def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None = None,
               landmarks: dict[str, int] | None = None, options: RigOptions = RigOptions(),
               progress: Callable[[str], None] | None = None,
-              neutral: np.ndarray | None = None) -> RigBuild:
+              neutral: np.ndarray | None = None, check: bool = True) -> RigBuild:
     """Skinned rig of ``layout`` on ``mesh`` (default: the dense marker surface).
 
     ``session`` must be the (stabilized) session the layout was computed on; ``neutral`` its
     neutral pose (markers, 3) mm when the caller has it. ``landmarks`` maps marker labels to
-    vertex indices of ``mesh`` for its alignment.
+    vertex indices of ``mesh`` for its alignment. ``check=False`` leaves the skinning check out
+    (NaN; :func:`with_check` adds it later, e.g. computed beside other work).
     """
     say = progress or (lambda _: None)
     cloud = dense_cloud(layout, session, neutral=neutral)
@@ -432,10 +433,6 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                            marker_sides=[c.side for c in layout.clusters],
                            marker_regions=[c.region for c in layout.clusters],
                            weight_index=index, weight_value=value)
-    say("checking by animation")
-    build = RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment,
-                     SkinningError(float("nan"), float("nan"), float("nan"), 0, 0))
-    check, by_region = skinning_check(build)
     quality = mesh_quality(vertices, faces)
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
@@ -456,10 +453,21 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         "mirrored_dense_markers": int((~cloud.captured).sum()),
         "marker_spacing_mm": spacing,
         "frame_rotation": cloud.rotation,
-        "skinning_check": {**check.as_dict(), **by_region},
+        "skinning_check": None,  # its place in rig_report.json; filled by with_check
     }
-    return RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment, check,
-                    report)
+    build = RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment,
+                     SkinningError(float("nan"), float("nan"), float("nan"), 0, 0), report)
+    if not check:
+        return build
+    say("checking by animation")
+    return with_check(build, *skinning_check(build))
+
+
+def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:
+    """``build`` with the :func:`skinning_check` result ``(check, by_region)`` in its ``check``
+    and report (the report's other keys as they are now, in their order)."""
+    report = {**build.report, "skinning_check": {**check.as_dict(), **by_region}}
+    return replace(build, check=check, report=report)
 
 
 def marker_driven_error(build: RigBuild, cloud: DenseCloud | None = None, *,
@@ -662,15 +670,18 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
         check_writable(target, force=force)
     mesh = load_mesh(mesh_path) if mesh_path is not None else None
     build = build_rig(layout, session, mesh=mesh, landmarks=landmarks, options=options,
-                      progress=progress, neutral=neutral)
+                      progress=progress, neutral=neutral, check=False)
     say = progress or (lambda _: None)
     animation = None
-    if captures:
-        say("baking the animation")
-        animation = concatenate_animations([bake_capture(build, c) for c in captures])
-        build.report["animation"] = animation.report()
-        held_out = [held_out_check(build, c) for c in captures[1:]]
-        build.report["held_out"] = [h for h in held_out if h is not None]
+    say("checking by animation" + (" and baking the animation" if captures else ""))
+    # the check in a second process while the animation is baked: the same numbers, less waiting
+    with beside(lambda: skinning_check(build), what="the skinning check") as checked:
+        if captures:
+            animation = concatenate_animations([bake_capture(build, c) for c in captures])
+            build.report["animation"] = animation.report()
+            held_out = [held_out_check(build, c) for c in captures[1:]]
+            build.report["held_out"] = [h for h in held_out if h is not None]
+    build = with_check(build, *checked.value)
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
 
     def write_rig_files() -> None:

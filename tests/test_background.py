@@ -24,6 +24,17 @@ def test_the_task_runs_in_another_process_beside_the_body(tmp_path):
     assert int(target.read_text()) != body_pid  # written by the child, finished on leaving
 
 
+@pytest.mark.parametrize("fork", [True, False])
+def test_the_task_result_comes_back_on_leaving(monkeypatch, fork):
+    if fork and not background.can_fork():
+        pytest.skip("fork: Linux with 2+ CPUs only")
+    monkeypatch.setattr(background, "can_fork", lambda: fork)
+    with beside(lambda: {"pid": os.getpid(), "rmse_mm": 0.25}, what="the check") as outcome:
+        body_pid = os.getpid()
+    assert outcome.value["rmse_mm"] == 0.25
+    assert (outcome.value["pid"] != body_pid) == fork
+
+
 @needs_fork
 def test_a_failure_of_the_task_is_raised_after_the_body_with_its_type_and_message(tmp_path):
     def task():
