@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocaptk.surface_mesh import (EDGE_BLOCK_FRAMES, edge_lengths, face_normals, marker_spacing,
-                                  marker_surface_mesh, mesh_edges, mesh_quality,
+from mocaptk.surface_mesh import (EDGE_BLOCK_FRAMES, cut_openings, edge_lengths, face_normals,
+                                  marker_spacing, marker_surface_mesh, mesh_edges, mesh_quality,
                                   nanpercentile_rows, vertex_normals)
 
 
@@ -148,6 +148,24 @@ def test_edge_lengths_are_numpy_norms_across_blocks_and_gaps():
     got = edge_lengths(traj, edges)
     assert got.shape == (frames, len(edges)) and np.isnan(got).any()
     np.testing.assert_array_equal(got, expected)
+
+
+def test_cut_openings_measures_a_long_session_on_evenly_spaced_frames():
+    """The stretch is the 99th percentile over every k-th frame of a session longer than
+    ``max_frames``: an edge that opens only in the frames left out is kept, and it is cut when
+    every frame is measured."""
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(8.0), np.arange(6.0)), -1).reshape(-1, 2) * 10
+    pts = np.column_stack([g + rng.normal(0, 1.0, g.shape), np.zeros(len(g))])
+    _, faces = marker_surface_mesh(pts)
+    frames = 400
+    traj = np.repeat(pts[None], frames, axis=0)
+    a, b = mesh_edges(faces)[0][len(faces) // 2]
+    traj[1::2, b] += 3.0 * (pts[b] - pts[a])  # the edge (a, b) stretched 4x in every odd frame
+    kept, cut = cut_openings(faces, traj, pts, max_frames=frames // 2)  # every 2nd frame: 0, 2, ...
+    assert len(cut) == 0 and len(kept) == len(faces)
+    _, cut = cut_openings(faces, traj, pts, max_frames=frames)
+    assert [int(a), int(b)] in cut.tolist()
 
 
 @pytest.mark.parametrize("q", [99, 95, 50, 100])
