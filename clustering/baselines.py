@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
 
 
 def _check_count(n_markers: int, count: int) -> None:

@@ -25,8 +25,9 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from ..acquisition.cameras import FACE_CENTER_MM, RIG_PRESETS, CameraRig, load_rig
-from ..errors import InputFileError, OptionError
+from mocaptk.acquisition.cameras import FACE_CENTER_MM, RIG_PRESETS, CameraRig, load_rig
+from mocaptk.errors import InputFileError, OptionError
+
 from .neutral import max_displacement, neutral_pose
 from .regions import face_frame
 from .symmetry import SagittalPlane
@@ -104,7 +105,7 @@ def surface_normals(positions: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     """Outward unit normals ``(F, N, 3)`` of the marker surface (a mesh through ``neutral`` (N, 3)
     mm, deformed with ``positions`` (F, N, 3) mm, no NaN): area-weighted per frame; a marker the
     mesh leaves out (its rim peeled) takes the normal of the nearest marker in the mesh."""
-    from ..surface_mesh import marker_surface_mesh
+    from mocaptk.surface_mesh import marker_surface_mesh
 
     try:
         faces = marker_surface_mesh(neutral)[1]
@@ -133,9 +134,9 @@ def capture_costs(rig: CameraRig, positions: np.ndarray, *, labels: Sequence[str
                   noise_mm: float = DEFAULT_NOISE_MM, frames: int = COST_FRAMES, seed: int = 0) -> CaptureCosts:
     """Visibility and triangulation error of every marker of ``positions`` (F, N, 3) mm (gaps NaN)
     captured through ``rig`` with ``noise_mm`` of detection noise (in px as ``mocaptk synth``)."""
-    from ..acquisition.projection import project_markers
-    from ..acquisition.synth_session import MAX_VIEW_NORMAL_DEG, detection_noise_px
-    from ..acquisition.triangulate import triangulate
+    from mocaptk.acquisition.projection import project_markers
+    from mocaptk.acquisition.synth_session import MAX_VIEW_NORMAL_DEG, detection_noise_px
+    from mocaptk.acquisition.triangulate import triangulate
 
     if not noise_mm >= 0:
         raise OptionError(f"--noise must be >= 0 mm, got {noise_mm}")

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..errors import OptionError
-from ..trajectories import Trajectories
+from mocaptk.errors import OptionError
+from mocaptk.trajectories import Trajectories
+
 from .evaluation import GapFreeRidge, error_summary, heldout_errors, holdout_splits
 from .figures import _pyplot, _save
 from .lost_marker import heldout_folds, pooled_worst_lost

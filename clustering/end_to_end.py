@@ -16,8 +16,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..acquisition.cameras import CameraRig
-from ..trajectories import Trajectories
+from mocaptk.acquisition.cameras import CameraRig
+from mocaptk.trajectories import Trajectories
+
 from .reconstruction_models import fit_reconstruction
 
 
@@ -27,8 +28,8 @@ def capture_layout(rig: CameraRig, truth: np.ndarray, normals: np.ndarray, layou
     """The layout markers of ``truth`` (F, N, 3) mm with outward ``normals`` (F, N, 3) as the rig
     delivers them: ``(F, L, 3)`` mm, NaN where lost. Detection noise is ``noise_mm`` in px for the
     whole face (as ``mocaptk synth``), so every layout sees the same pixel noise."""
-    from ..acquisition.gapfill import fill_gaps
-    from ..acquisition.synth_session import capture_points, detection_noise_px
+    from mocaptk.acquisition.gapfill import fill_gaps
+    from mocaptk.acquisition.synth_session import capture_points, detection_noise_px
 
     layout = np.asarray(layout, dtype=np.intp)
     # synth's marker_normals gives normals per frame block, (start, stop) -> (frames, N, 3)

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import OptionError
-from ..trajectories import Take
+from mocaptk.errors import OptionError
+from mocaptk.trajectories import Take
+
 from .baselines import farthest_point_layout, kmeans_layout, random_layout
 from .neutral import neutral_pose
 from .reconstruction_models import (DEFAULT_RIDGE, FaceModel, ReconstructionModel, RidgeMoments, _by_pattern,

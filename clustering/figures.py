@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from mocaptk.atomic import atomic_path
+
 from .layout import Layout
 
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputFileError
-from ..jsonio import read_json, write_json
+from mocaptk.errors import InputFileError
+from mocaptk.jsonio import read_json, write_json
 
 FORMAT = "mocaptk.layout"
 VERSION = 1

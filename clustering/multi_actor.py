@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import InputFileError, OptionError
-from ..geometry import Similarity, similarity_transform
-from ..trajectories import Take, Trajectories
+from mocaptk.errors import InputFileError, OptionError
+from mocaptk.geometry import Similarity, similarity_transform
+from mocaptk.trajectories import Take, Trajectories
+
 from .compare import RANDOM_SEEDS, _gap_free
 from .evaluation import error_summary, heldout_errors, holdout_splits
 from .methods import LayoutProblem, method_names, select_layout

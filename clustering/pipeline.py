@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputFileError, OptionError, source_error
-from ..trajectories import Take, Trajectories
+from mocaptk.errors import InputFileError, OptionError, source_error
+from mocaptk.trajectories import Take, Trajectories
+
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
 from .neutral import max_displacement, neutral_pose, seen_markers
@@ -100,7 +101,7 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None,
     is already within :data:`HEAD_RELATIVE_RMS_MM` RMS of it).
     """
     try:
-        from ..acquisition.stabilize import head_relative_markers, stabilize_head
+        from mocaptk.acquisition.stabilize import head_relative_markers, stabilize_head
     except ImportError:
         raise OptionError("head stabilization is not available in this installation; "
                           "use --no-stabilize for already head-relative data") from None
@@ -145,7 +146,7 @@ def check_layout_options(*, method: str, markers: int | None, rig: str | None = 
 def check_rig(rig: str, *, methods: Sequence[str]) -> None:
     """Reject ``--rig`` with the paper's representatives (they take no costs) or naming neither a
     preset nor a readable rig file."""
-    from ..acquisition.cameras import RIG_PRESETS
+    from mocaptk.acquisition.cameras import RIG_PRESETS
     if "paper" in methods:
         raise OptionError("--rig needs a layout method that weighs camera costs; the paper's "
                           "representatives do not (use another --method)")
@@ -365,7 +366,7 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
 
     Returns the trajectories (``Subject:`` prefixes stripped) and ``{"path", "sha256"}``.
     """
-    from ..acquisition.formats import read_trajectories
+    from mocaptk.acquisition.formats import read_trajectories
 
     file = Path(path)
     if not file.is_file():

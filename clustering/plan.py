@@ -20,8 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from ..acquisition.cameras import RIG_PRESETS
-from ..trajectories import Take, Trajectories
+from mocaptk.acquisition.cameras import RIG_PRESETS
+from mocaptk.trajectories import Take, Trajectories
+
 from .camera_cost import DEFAULT_NOISE_MM, MIRROR_PREFIX, session_costs
 from .evaluation import holdout_splits
 from .figures import _front, _pyplot, _save

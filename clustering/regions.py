@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..acquisition.text_io import UTF16_PROBLEM, looks_utf16
-from ..errors import InputFileError
+from mocaptk.acquisition.text_io import UTF16_PROBLEM, looks_utf16
+from mocaptk.errors import InputFileError
 
 #: The six facial regions of the paper, top to bottom.
 FACIAL_REGIONS = ("forehead_brow", "eye", "nose", "cheek", "mouth", "chin")

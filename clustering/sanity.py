@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import MocaptkError
-from ..trajectories import Trajectories
+from mocaptk.errors import MocaptkError
+from mocaptk.trajectories import Trajectories
 
 #: Largest extent of a face's neutral markers (mm): forehead to chin, or ear to ear.
 FACE_SPAN_MM = (100.0, 250.0)
@@ -139,7 +139,7 @@ def check_face(labels: Sequence[str], neutral: np.ndarray, *, mm_per_file_unit: 
 def check_session(traj: Trajectories, *, neutral: np.ndarray | None = None) -> FaceCheck:
     """:func:`check_face` of a session as read (its neutral pose, ``neutral`` (markers, 3) mm
     when the caller has it; units from its metadata)."""
-    from ..acquisition.text_io import mm_per_unit
+    from mocaptk.acquisition.text_io import mm_per_unit
     from .neutral import neutral_pose
 
     meta = traj.metadata

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .layout import Cluster
 from .regions import face_frame
 

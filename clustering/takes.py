@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError, OptionError
-from ..jsonio import read_json
-from ..trajectories import Take
+from mocaptk.errors import InputFileError, OptionError
+from mocaptk.jsonio import read_json
+from mocaptk.trajectories import Take
 
 
 def read_takes(path: str | os.PathLike[str], n_frames: int) -> list[Take]:

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .correlation import mean_off_diagonal
 
 #: Columns per block in the reassignment (bounds memory for very large regions).

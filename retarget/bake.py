@@ -30,10 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocaptk.acquisition.gapfill import GapRecord, fill_gaps
+from mocaptk.acquisition.runs import true_runs
 from mocaptk.trajectories import Take, Trajectories
 
-from ..acquisition.gapfill import GapRecord, fill_gaps
-from ..acquisition.runs import true_runs
 from .rig import Rig
 
 __all__ = ["HEAD_POSE", "RigAnimation", "bake_animation", "concatenate_animations",
@@ -229,7 +229,7 @@ def head_pose_between(raw: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray
     (frames with fewer than 3 markers seen in both give NaN). Stabilization moves every marker
     by the same rigid transform, so the fit is exact up to rounding.
     """
-    from ..acquisition.stabilize import kabsch
+    from mocaptk.acquisition.stabilize import kabsch
 
     seen = np.isfinite(raw).all(axis=2) & np.isfinite(relative).all(axis=2)
     return kabsch(np.nan_to_num(relative), np.nan_to_num(raw), seen.astype(float))

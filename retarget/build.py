@@ -27,16 +27,16 @@ from typing import Any
 import numpy as np
 
 from mocaptk.background import beside
+from mocaptk.clustering.layout import Cluster, Layout
+from mocaptk.clustering.neutral import max_displacement, neutral_pose
+from mocaptk.clustering.regions import face_frame
+from mocaptk.clustering.symmetry import SagittalPlane, mirror_label, side_tag
 from mocaptk.errors import OptionError
 from mocaptk.geometry import vector_lengths
 from mocaptk.surface_mesh import (SurfaceMesh, cut_openings, front_direction, marker_spacing,
                                   marker_surface_mesh, mesh_quality)
 from mocaptk.trajectories import Trajectories
 
-from ..clustering.layout import Cluster, Layout
-from ..clustering.neutral import max_displacement, neutral_pose
-from ..clustering.regions import face_frame
-from ..clustering.symmetry import SagittalPlane, mirror_label, side_tag
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import OptionError
+from mocaptk.errors import OptionError
+
 from ..baselines import farthest_point_layout, kmeans_layout, random_layout
 from .problem import LayoutProblem, layout_problem
 

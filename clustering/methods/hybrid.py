@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import OptionError
+from mocaptk.errors import OptionError
+
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem

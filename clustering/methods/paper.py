@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import OptionError
+from mocaptk.errors import OptionError
+
 from ..correlation import consolidated_correlation
 from ..neutral import max_displacement
 from ..regions import default_regions

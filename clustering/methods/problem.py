@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import OptionError
-from ...trajectories import Trajectories
+from mocaptk.errors import OptionError
+from mocaptk.trajectories import Trajectories
+
 from ..neutral import neutral_pose
 
 
@@ -124,7 +125,7 @@ class LayoutProblem:
         """(T, 3) the surface mesh over the points (``faces``, else triangulated from ``neutral``)."""
         if self.faces is not None:
             return self.faces
-        from ...surface_mesh import marker_surface_mesh
+        from mocaptk.surface_mesh import marker_surface_mesh
         return np.asarray(marker_surface_mesh(self.neutral)[1], dtype=np.intp)
 
 

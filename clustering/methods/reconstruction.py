@@ -21,9 +21,11 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg as sla
 
-from ...errors import OptionError
+from mocaptk.errors import OptionError
+
 from ..evaluation import DEFAULT_RIDGE, holdout_splits
-from ...trajectories import Take
+from mocaptk.trajectories import Take
+
 from .problem import LayoutProblem
 
 

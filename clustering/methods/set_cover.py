@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ...errors import OptionError
+from mocaptk.errors import OptionError
+
 from .problem import LayoutProblem
 
 ALPHA = 0.5
@@ -192,7 +193,7 @@ def problem_visibility(problem: LayoutProblem) -> np.ndarray:
     ~1 cm apart cannot resolve finer occluders; 4× fewer pixels per buffer).
     """
     if "set_cover_visibility" not in problem.cache:
-        from ...surface_mesh import marker_spacing
+        from mocaptk.surface_mesh import marker_spacing
         resolution = max(1.5, marker_spacing(problem.neutral) / 4.0)
         problem.cache["set_cover_visibility"] = visibility(
             problem.neutral, problem.surface_faces(), problem_shapes(problem), front=facing_direction(problem),

@@ -30,8 +30,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from threadpoolctl import threadpool_limits
 
-from ...errors import MocaptkError, OptionError
-from ...thin_shell import thin_shell_operator
+from mocaptk.errors import MocaptkError, OptionError
+from mocaptk.thin_shell import thin_shell_operator
+
 from .problem import LayoutProblem
 
 

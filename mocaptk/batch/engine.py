@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
 
 #: a task whose worker dies is retried this many times, then reported failed
 WORKER_DEATH_RETRIES = 1

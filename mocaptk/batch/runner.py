@@ -30,7 +30,7 @@ READY = b"ready\n"
 
 def run_cli(argv: list[str]) -> tuple[int, str, str, str | None]:
     """``mocaptk ARGV`` in this process: (exit code, stdout, stderr, traceback of a crash or None)."""
-    from ..cli import main
+    from mocaptk.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     crash = None
@@ -77,8 +77,8 @@ def outputs_intact(outputs: dict[str, str], folder: Path) -> bool:
 
 def process_session(task: dict[str, Any]) -> dict[str, Any]:
     """Run (or skip) one session; returns its record (see :mod:`mocaptk.batch.summary`)."""
-    from .. import __version__
-    from ..errors import InputFileError, MocaptkError, unreadable
+    from mocaptk import __version__
+    from mocaptk.errors import InputFileError, MocaptkError, unreadable
     from .sessions import COMMANDS, input_files, file_digest, session_argv
     from .summary import session_metrics
 
@@ -117,7 +117,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
                           if line.startswith(("mocaptk: warning:", "mocaptk: note:"))]
     record["exit_code"] = code
     if code == 0 and COMMANDS[command].stdout_file:
-        from ..atomic import write_text
+        from mocaptk.atomic import write_text
 
         write_text(out_dir / COMMANDS[command].stdout_file, stdout)
     if code != 0:

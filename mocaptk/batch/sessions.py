@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError
 
 #: suffix of a session's own options file and the name of a folder-wide one
 SIDECAR_SUFFIX = ".mocaptk.json"
@@ -63,7 +63,7 @@ def _controlled(param) -> bool:
 def click_command(name: str):
     """The click command behind ``mocaptk NAME``, built as the CLI builds it for a call of that
     command (only its module imported; its parameters drive option parsing)."""
-    from ..cli import command_line
+    from mocaptk.cli import command_line
 
     return command_line([name]).commands[name]
 
@@ -165,7 +165,7 @@ def _absolute(value: str, base: Path) -> str:
 def _sidecar_tokens(command: str, path: Path) -> list[str]:
     """The options a sidecar file gives ``command`` (keys the command lacks but another batch
     command has are left to that command; unknown keys are an error)."""
-    from ..jsonio import read_json
+    from mocaptk.jsonio import read_json
 
     doc = read_json(path)
     if not isinstance(doc, dict):

@@ -107,8 +107,8 @@ def summary_markdown(records: list[dict[str, Any]], run: dict[str, Any]) -> str:
 
 def write_summary(out: Path, records: list[dict[str, Any]], run: dict[str, Any]) -> tuple[Path, Path]:
     """Write DIR/batch.json and DIR/batch.md atomically."""
-    from ..atomic import write_text
-    from ..jsonio import write_json
+    from mocaptk.atomic import write_text
+    from mocaptk.jsonio import write_json
 
     return (write_json(out / "batch.json", summary_document(records, run), digits=3),
             write_text(out / "batch.md", summary_markdown(records, run)))

@@ -11,7 +11,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from ..errors import MocaptkError
+from mocaptk.errors import MocaptkError
+
 from .app import app
 
 # The order of `mocaptk --help` (pipeline order: files -> capture -> cleaning -> layout ->
@@ -93,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(f"mocaptk: error: {where}no space left on device (free some space or use --out)", file=sys.stderr)
         sys.exit(2)
     finally:
-        from ..atomic import release_claims
+        from mocaptk.atomic import release_claims
 
         release_claims()
     if code:

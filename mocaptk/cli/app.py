@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from .. import __version__
+from mocaptk import __version__
 
 app = typer.Typer(
     name="mocaptk",

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import typer
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .app import app
 from .options import Quiet
 
@@ -47,7 +48,7 @@ def batch(
     """
     from rich.console import Console
 
-    from ..batch import engine, sessions, summary
+    from mocaptk.batch import engine, sessions, summary
 
     if do not in sessions.COMMANDS:
         raise OptionError(f"--do must be one of {COMMAND_NAMES}, got {do!r}")
@@ -96,7 +97,7 @@ def _run_with_progress(client, task_list: list[dict], *, console, records: list[
     as sessions finish."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..batch import engine, summary
+    from mocaptk.batch import engine, summary
 
     columns = (TextColumn("batch"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[tally]}"),
                TimeElapsedColumn())

@@ -39,13 +39,13 @@ def clean(
 
     echo = (lambda text: None) if quiet else typer.echo
 
-    from ..acquisition.filtering import check_cutoff, lowpass
-    from ..acquisition.formats import output_format, write_trajectories
-    from ..acquisition.gapfill import fill_gaps
-    from ..acquisition.stabilize import stabilize_head
-    from ..atomic import claim_output
-    from ..errors import OptionError
-    from ..jsonio import write_json
+    from mocaptk.acquisition.filtering import check_cutoff, lowpass
+    from mocaptk.acquisition.formats import output_format, write_trajectories
+    from mocaptk.acquisition.gapfill import fill_gaps
+    from mocaptk.acquisition.stabilize import stabilize_head
+    from mocaptk.atomic import claim_output
+    from mocaptk.errors import OptionError
+    from mocaptk.jsonio import write_json
     from .info import read_marker_file
 
     fmt = output_format(target)

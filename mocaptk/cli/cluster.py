@@ -14,7 +14,8 @@ from pathlib import Path
 
 import typer
 
-from ..atomic import claim_output, staged_folder
+from mocaptk.atomic import claim_output, staged_folder
+
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
 from .report import write_cluster_report
@@ -33,8 +34,8 @@ def warn_unless_face(traj, session: Path, *, regions_given: bool, neutral=None) 
     """Refuse a session that is no face capture (a warning only with ``--regions``); warn when its
     size says the units are wrong (see clustering/sanity.py; ``neutral``: the session's neutral
     pose, if known)."""
-    from ..clustering.sanity import check_session
-    from ..errors import InputFileError
+    from mocaptk.clustering.sanity import check_session
+    from mocaptk.errors import InputFileError
 
     check = check_session(traj, neutral=neutral)
     if check.not_a_face:
@@ -54,7 +55,7 @@ def summary_text(result) -> str:
     The paper's mean correlation and threshold columns appear when the paper's rule chose the
     markers; with another method they only set the count, which the header says.
     """
-    from ..clustering.pipeline import stabilization_note
+    from mocaptk.clustering.pipeline import stabilization_note
 
     layout = result.layout
     params = layout.parameters
@@ -100,8 +101,8 @@ def summary_text(result) -> str:
 def write_cluster_outputs(result, folder: Path, *, pictures: bool = True) -> list[Path]:
     """Write layout.json, summary.txt and (``pictures``) the per-region heatmaps and the layout +
     regions pictures into ``folder``."""
-    from ..atomic import write_text
-    from ..clustering.layout import write_layout
+    from mocaptk.atomic import write_text
+    from mocaptk.clustering.layout import write_layout
 
     layout = result.layout
     written = [write_layout(layout, folder / "layout.json"),
@@ -113,7 +114,7 @@ def write_cluster_outputs(result, folder: Path, *, pictures: bool = True) -> lis
 
 def write_cluster_pictures(result, folder: Path) -> list[Path]:
     """correlation_<region>.png per region, layout.png and regions.png in ``folder``."""
-    from ..clustering.figures import correlation_heatmap, layout_picture, regions_picture
+    from mocaptk.clustering.figures import correlation_heatmap, layout_picture, regions_picture
 
     layout = result.layout
     written = []
@@ -181,10 +182,10 @@ def cluster(
     """
     from rich.console import Console
 
-    from ..clustering.pipeline import ClusterOptions, check_layout_options, cluster_session, load_session
-    from ..clustering.regions import read_regions
-    from ..clustering.takes import read_takes
-    from ..background import beside
+    from mocaptk.clustering.pipeline import ClusterOptions, check_layout_options, cluster_session, load_session
+    from mocaptk.clustering.regions import read_regions
+    from mocaptk.clustering.takes import read_takes
+    from mocaptk.background import beside
 
     session = sessions[0]
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
@@ -196,10 +197,10 @@ def cluster(
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
     if len(sessions) > 1:
-        from ..errors import OptionError
+        from mocaptk.errors import OptionError
         if rig is not None:
             raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
-        from ..clustering.multi_actor import load_actors
+        from mocaptk.clustering.multi_actor import load_actors
         actors, _, _, actor_sources = load_actors(sessions, None, stabilized=not no_stabilize, rate=rate,
                                                   units=units, rigid=rigid_labels(rigid))
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
@@ -209,7 +210,7 @@ def cluster(
     if len(sessions) == 1:  # one median pass for the face check and the layout
         import numpy as np
 
-        from ..clustering.neutral import neutral_pose
+        from mocaptk.clustering.neutral import neutral_pose
         with np.errstate(all="ignore"):
             neutral = neutral_pose(traj.positions)
     warn_unless_face(traj, session, regions_given=regions is not None, neutral=neutral)
@@ -220,7 +221,7 @@ def cluster(
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:
         if len(sessions) > 1:
-            from ..clustering.multi_actor import cluster_actors
+            from mocaptk.clustering.multi_actor import cluster_actors
             result = cluster_actors(actors, actor_sources, options=options, source=source,
                                     progress=lambda text: status.update(text))
         else:

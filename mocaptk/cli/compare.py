@@ -6,7 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
 from .report import write_compare_report
@@ -59,13 +60,13 @@ def compare(
     """
     from rich.console import Console
 
-    from ..atomic import claim_output, write_text
-    from ..clustering.compare import (DEFAULT_METHODS, compare_methods, compare_plot, layout_gallery,
+    from mocaptk.atomic import claim_output, write_text
+    from mocaptk.clustering.compare import (DEFAULT_METHODS, compare_methods, compare_plot, layout_gallery,
                                       rows_as_json, rows_as_markdown)
-    from ..clustering.methods import method_names
-    from ..clustering.neutral import max_displacement, neutral_pose
-    from ..clustering.pipeline import load_session_and_test
-    from ..jsonio import write_json
+    from mocaptk.clustering.methods import method_names
+    from mocaptk.clustering.neutral import max_displacement, neutral_pose
+    from mocaptk.clustering.pipeline import load_session_and_test
+    from mocaptk.jsonio import write_json
 
     count_list = parse_counts(counts)
     method_list = [m.strip() for m in methods.split(",") if m.strip()] if methods else list(DEFAULT_METHODS)
@@ -75,7 +76,7 @@ def compare(
     if restarts < 1:
         raise OptionError(f"--restarts must be >= 1, got {restarts}")
     if rig is not None:
-        from ..clustering.pipeline import check_rig
+        from mocaptk.clustering.pipeline import check_rig
         check_rig(rig, methods=())
     session, test = sessions[0], tests[0] if tests else None
     folder = out or session.with_name(session.stem + "_compare")
@@ -125,9 +126,9 @@ def compare_actors_command(sessions: list[Path], tests: list[Path] | None, folde
     """``compare`` of several actors: the shared layout against each actor's own (compare.md/.json)."""
     from rich.console import Console
 
-    from ..atomic import claim_output, write_text
-    from ..clustering.multi_actor import actor_rows_as_json, actor_rows_as_markdown, compare_actors, load_actors
-    from ..jsonio import write_json
+    from mocaptk.atomic import claim_output, write_text
+    from mocaptk.clustering.multi_actor import actor_rows_as_json, actor_rows_as_markdown, compare_actors, load_actors
+    from mocaptk.jsonio import write_json
     from .cluster import OUT_HINT
 
     targets = [folder / "compare.md", folder / "compare.json"]

@@ -22,8 +22,8 @@ def convert(
     quiet: Quiet = False,
 ) -> None:
     """Convert a marker file; the output is written atomically (never a partial file)."""
-    from ..acquisition.formats import output_format, write_trajectories
-    from ..atomic import claim_output
+    from mocaptk.acquisition.formats import output_format, write_trajectories
+    from mocaptk.atomic import claim_output
     from .info import read_marker_file
 
     fmt = output_format(target)

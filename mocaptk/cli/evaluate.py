@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .app import app
 from .options import Quiet, Rate, Units
 from .report import write_evaluation_report
@@ -43,7 +44,7 @@ def layout_rigid_set(layout) -> tuple[str, ...] | None:
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
                    units: str | None, rigid: tuple[str, ...] | None = None):
     """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
-    from ..clustering.pipeline import load_session_and_test
+    from mocaptk.clustering.pipeline import load_session_and_test
 
     traj, perf, source = load_session_and_test(session, test, stabilized=stabilized, rate=rate,
                                                units=units, rigid=rigid)
@@ -57,8 +58,8 @@ LOST_MARKER_SEEDS = 3
 def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, test, split: str,
                     folds: int, n_random: int, ridge: float) -> None:
     """Add ``lost_marker`` (intact / worst-lost RMSE, mm; worst marker) to every method of ``result``."""
-    from ..clustering.evaluation import baseline_layouts, holdout_splits
-    from ..clustering.lost_marker import heldout_folds, lost_marker_summaries
+    from mocaptk.clustering.evaluation import baseline_layouts, holdout_splits
+    from mocaptk.clustering.lost_marker import heldout_folds, lost_marker_summaries
 
     from threadpoolctl import threadpool_limits
 
@@ -95,11 +96,11 @@ def evaluate(
     """Reconstruct every dense marker from the layout's markers; compare with baselines of equal size."""
     from rich.console import Console
 
-    from ..atomic import claim_output
-    from ..clustering.evaluation import evaluate_layout
-    from ..clustering.layout import measured_indices, read_layout
-    from ..clustering.takes import read_takes
-    from ..jsonio import write_json
+    from mocaptk.atomic import claim_output
+    from mocaptk.clustering.evaluation import evaluate_layout
+    from mocaptk.clustering.layout import measured_indices, read_layout
+    from mocaptk.clustering.takes import read_takes
+    from mocaptk.jsonio import write_json
 
     if seeds < 1:
         raise OptionError(f"--seeds must be >= 1, got {seeds}")

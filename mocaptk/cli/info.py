@@ -15,7 +15,7 @@ def read_marker_file(path: Path, *, units: str | None, rate: float | None, strip
     """Read ``path`` as every command does: ``--units`` for text files only and ``--rate`` for column
     CSV only; given for a file that declares its own (a C3D's POINT:UNITS, a TRC's rate), they are
     refused (OptionError), never silently ignored."""
-    from ..acquisition.formats import read_trajectories
+    from mocaptk.acquisition.formats import read_trajectories
 
     return read_trajectories(path, units=units, rate=rate, strip_prefixes=strip_prefixes)
 
@@ -76,8 +76,8 @@ def info(
     and the others are still described; the exit code is then 2. With --quiet only the errors
     are printed (a check that files read: exit code 0 or 2).
     """
-    from ..errors import MocaptkError
-    from ..jsonio import dumps
+    from mocaptk.errors import MocaptkError
+    from mocaptk.jsonio import dumps
 
     results: list[dict[str, Any]] = []
     failed = False

@@ -13,7 +13,7 @@ from .options import Quiet, Rate, Units
 def default_session(layout_path: Path, layout) -> Path:
     """The session a layout was computed from: the file its ``source`` names, beside the layout's
     folder (where ``mocaptk cluster`` writes ``<session>_layout/``)."""
-    from ..errors import InputFileError
+    from mocaptk.errors import InputFileError
 
     name = layout.source.get("path")
     candidate = layout_path.resolve().parent.parent / str(name) if name else None
@@ -44,17 +44,17 @@ def plan(
     held-out RMSE when that marker is lost, and the risk it brings (plan.json, plan.png)."""
     from rich.console import Console
 
-    from ..atomic import claim_output
-    from ..acquisition.cameras import RIG_PRESETS
-    from ..clustering.camera_cost import read_rig_file
-    from ..clustering.layout import read_layout
-    from ..clustering.neutral import max_displacement, neutral_pose
-    from ..clustering.regions import face_frame
-    from ..clustering.pipeline import load_session, stabilize
-    from ..clustering.camera_cost import captured_cloud
-    from ..clustering.plan import layout_neutral, layout_plane, layout_plan, plan_picture, plan_table
-    from ..errors import InputFileError, OptionError
-    from ..jsonio import write_json
+    from mocaptk.atomic import claim_output
+    from mocaptk.acquisition.cameras import RIG_PRESETS
+    from mocaptk.clustering.camera_cost import read_rig_file
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.neutral import max_displacement, neutral_pose
+    from mocaptk.clustering.regions import face_frame
+    from mocaptk.clustering.pipeline import load_session, stabilize
+    from mocaptk.clustering.camera_cost import captured_cloud
+    from mocaptk.clustering.plan import layout_neutral, layout_plane, layout_plan, plan_picture, plan_table
+    from mocaptk.errors import InputFileError, OptionError
+    from mocaptk.jsonio import write_json
     from .cluster import OUT_HINT
     from .evaluate import layout_rigid_set
 

@@ -18,8 +18,8 @@ def report_line(path: Path, size: int, clips: list[dict]) -> str:
 def write_cluster_report(result, build, path: Path, *, summary: str) -> str:
     """``mocaptk cluster``'s report (``build``: the rig, None without one); its size and replay
     rate are added to ``summary.txt`` beside it. Returns that line."""
-    from ..atomic import write_text
-    from ..retarget.report import cluster_report, write_report
+    from mocaptk.atomic import write_text
+    from mocaptk.retarget.report import cluster_report, write_report
 
     layout = result.layout
     title = (f"mocaptk cluster: {layout.source.get('path', '')} · factor "
@@ -37,8 +37,8 @@ def write_evaluation_report(path: Path, layout, session, layout_idx, result: dic
     """``mocaptk evaluate``'s report beside its JSON: the layout's per-marker held-out RMSE on
     the face (same protocol as the result), the method table, session + performance replay.
     Returns the line stating its size."""
-    from ..clustering.evaluation import heldout_errors, holdout_splits
-    from ..retarget.report import evaluation_report, per_marker_rmse, write_report
+    from mocaptk.clustering.evaluation import heldout_errors, holdout_splits
+    from mocaptk.retarget.report import evaluation_report, per_marker_rmse, write_report
 
     splits = [] if test is not None else holdout_splits(session.n_frames, takes, split=split, folds=folds)
     errors = heldout_errors(session.positions, layout_idx, splits, test=test, ridge=ridge)
@@ -56,8 +56,8 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
     whole-session layout kept fixed across the held-out takes/blocks). Run times stay out of the
     page (compare.md / compare.json have them), so the same input gives the same bytes. Returns
     the size line."""
-    from ..clustering.evaluation import heldout_errors_of_layouts, holdout_splits
-    from ..retarget.report import compare_report, per_marker_rmse, write_report
+    from mocaptk.clustering.evaluation import heldout_errors_of_layouts, holdout_splits
+    from mocaptk.retarget.report import compare_report, per_marker_rmse, write_report
 
     if test is not None:
         splits, note = [], "Per-marker maps: fitted on the session, scored on the held-out performance."
@@ -95,9 +95,9 @@ def write_solve_report(path: Path, layout, solver, *, solved: Path, rigid, train
     head-relative on ``rigid`` when head motion was solved) on the face, each dense marker coloured
     by the model's expected error on the ``training`` session (None with ``--model``: no map),
     the model table and ``text`` (solve's summary). Returns the line stating its size."""
-    from ..acquisition.c3d_read import read_c3d
-    from ..clustering.pipeline import stabilize
-    from ..retarget.report import per_marker_rmse, solve_report, write_report
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.pipeline import stabilize
+    from mocaptk.retarget.report import per_marker_rmse, solve_report, write_report
 
     motion = read_c3d(solved)
     if rigid:  # into the training session's head frame, the face's

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import typer
 
-from ..errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError
+
 from .app import app
 from .options import Quiet
 
@@ -19,7 +20,7 @@ def parse_formats(text: str) -> tuple[str, ...]:
 
 def read_landmarks(path: Path) -> dict[str, int]:
     """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs)."""
-    from ..jsonio import read_json
+    from mocaptk.jsonio import read_json
 
     data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, int) and v >= 0 for v in data.values()):
@@ -32,7 +33,7 @@ def read_landmarks(path: Path) -> dict[str, int]:
 def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: bool,
                 subdivisions: int):
     """Validated :class:`~mocaptk.retarget.build.RigOptions` from command-line values."""
-    from ..retarget.build import RigOptions
+    from mocaptk.retarget.build import RigOptions
 
     if max_influences < 1 or max_influences > 8:
         raise OptionError(f"--max-influences must be 1..8, got {max_influences}")
@@ -49,8 +50,8 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
     ``relative`` as the layout was computed on it) and each ``--animate`` file, stabilized on
     the layout's rigid set when the layout's session was (the bake ignores markers other than
     the layout's; the dense ones give the held-out skinning check)."""
-    from ..clustering.pipeline import load_session, rigid_reference, stabilize
-    from ..retarget.build import Capture
+    from mocaptk.clustering.pipeline import load_session, rigid_reference, stabilize
+    from mocaptk.retarget.build import Capture
     from .evaluate import layout_rigid_set
 
     stabilized = bool(layout.parameters.get("stabilized")) and not no_stabilize
@@ -105,9 +106,9 @@ def rig(
     """Build a skinned face rig and a printable marker guide from a layout."""
     from rich.console import Console
 
-    from ..clustering.layout import read_layout
-    from ..clustering.pipeline import load_session, stabilize
-    from ..retarget.build import write_rig_outputs
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.pipeline import load_session, stabilize
+    from mocaptk.retarget.build import write_rig_outputs
     from .evaluate import layout_rigid_set
 
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
@@ -188,12 +189,12 @@ def cluster_rig_outputs(result, folder: Path, *, mesh: Path | None, max_influenc
     Returns the :class:`~mocaptk.retarget.build.RigBuild` (None when skipped)."""
     from rich.console import Console
 
-    from ..retarget.build import write_rig_outputs
+    from mocaptk.retarget.build import write_rig_outputs
 
     chosen = parse_formats(formats)
     if chosen == ("none",):
         return None
-    from ..clustering.layout import read_layout
+    from mocaptk.clustering.layout import read_layout
 
     # the layout as written (rounded), so `mocaptk rig` on layout.json builds the same rig
     layout = read_layout(folder / "layout.json")

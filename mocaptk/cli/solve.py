@@ -6,7 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ..errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError
+
 from .app import app
 from .options import Quiet, Rate, Units
 
@@ -29,9 +30,9 @@ def session_path(layout_path: Path, recorded: str | None, given: Path | None) ->
 def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progress) -> None:
     """``mocaptk rig --animate``'s rig files in ``staging/rig/``, keyed with the solved dense
     markers (``staging/dense.c3d``; head-relative copy when head motion was removed)."""
-    from ..acquisition.c3d_read import read_c3d
-    from ..clustering.pipeline import rigid_reference, stabilize
-    from ..retarget.build import Capture, write_rig_outputs
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.pipeline import rigid_reference, stabilize
+    from mocaptk.retarget.build import Capture, write_rig_outputs
     from .rig import rig_options
 
     solved = read_c3d(staging / "dense.c3d")
@@ -91,12 +92,12 @@ def solve(
     """Solve every dense marker and an animated face mesh from a capture of the layout's markers."""
     from rich.console import Console
 
-    from ..clustering.layout import read_layout
-    from ..clustering.pipeline import load_session, stabilize
-    from ..clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
-    from ..jsonio import write_json
-    from ..retarget.solve import FaceSolver, train_solver
-    from ..retarget.solve_outputs import write_solve_outputs
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.pipeline import load_session, stabilize
+    from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
+    from mocaptk.jsonio import write_json
+    from mocaptk.retarget.solve import FaceSolver, train_solver
+    from mocaptk.retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
     from .evaluate import layout_rigid_set
     from .report import write_solve_report

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import typer
 
-from ..errors import OptionError
+from mocaptk.errors import OptionError
+
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
 
@@ -62,13 +63,13 @@ def sweep(
     """Cluster at every factor; report measured layout markers and held-out RMSE (table, plot, JSON)."""
     from rich.progress import Progress
 
-    from ..atomic import claim_output, staged_folder, write_text
-    from ..clustering.evaluation import error_summary, heldout_errors, holdout_splits
-    from ..clustering.figures import sweep_plot
-    from ..clustering.pipeline import ClusterOptions, cluster_session
-    from ..clustering.regions import read_regions
-    from ..clustering.takes import read_takes
-    from ..jsonio import write_json
+    from mocaptk.atomic import claim_output, staged_folder, write_text
+    from mocaptk.clustering.evaluation import error_summary, heldout_errors, holdout_splits
+    from mocaptk.clustering.figures import sweep_plot
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
+    from mocaptk.clustering.regions import read_regions
+    from mocaptk.clustering.takes import read_takes
+    from mocaptk.jsonio import write_json
     from .cluster import OUT_HINT
     from .evaluate import session_arrays
 

@@ -33,7 +33,7 @@ def _parse_identity(text: str | None):
     """The --identity numbers, checked before the face model loads (its count is checked after)."""
     import numpy as np
 
-    from ..errors import OptionError
+    from mocaptk.errors import OptionError
 
     if text is None:
         return None
@@ -104,15 +104,15 @@ def synth(
     """Simulate a dense facial marker capture (per-region takes) with ground truth."""
     from rich.console import Console
 
-    from ..acquisition import synth_session as ss
-    from ..acquisition.cameras import RIG_PRESETS
-    from ..acquisition.face_model import load_face_model
-    from ..acquisition.formats import output_format, write_trajectories
-    from ..acquisition.gapfill import fill_gaps
-    from ..acquisition.synth_layout import dense_layout
-    from ..acquisition.triangulate import compile_notice
-    from ..atomic import check_writable
-    from ..errors import OptionError
+    from mocaptk.acquisition import synth_session as ss
+    from mocaptk.acquisition.cameras import RIG_PRESETS
+    from mocaptk.acquisition.face_model import load_face_model
+    from mocaptk.acquisition.formats import output_format, write_trajectories
+    from mocaptk.acquisition.gapfill import fill_gaps
+    from mocaptk.acquisition.synth_layout import dense_layout
+    from mocaptk.acquisition.triangulate import compile_notice
+    from mocaptk.atomic import check_writable
+    from mocaptk.errors import OptionError
 
     if rig not in (*RIG_PRESETS, "none"):
         raise OptionError(f"--rig must be one of {', '.join((*RIG_PRESETS, 'none'))}, got {rig!r}")

@@ -38,12 +38,12 @@ def triangulate(
     import numpy as np
     from rich.console import Console
 
-    from ..acquisition.cameras import load_rig
-    from ..acquisition.formats import output_format, write_trajectories
-    from ..acquisition.triangulate import compile_notice
-    from ..acquisition.triangulate import triangulate as triangulate_rig
-    from ..atomic import check_writable
-    from ..errors import OptionError
+    from mocaptk.acquisition.cameras import load_rig
+    from mocaptk.acquisition.formats import output_format, write_trajectories
+    from mocaptk.acquisition.triangulate import compile_notice
+    from mocaptk.acquisition.triangulate import triangulate as triangulate_rig
+    from mocaptk.atomic import check_writable
+    from mocaptk.errors import OptionError
 
     if min_views < 2:
         raise OptionError(f"--min-views must be >= 2, got {min_views}")
@@ -72,7 +72,7 @@ def read_observations(path: Path, camera_names: list[str]):
 
     import numpy as np
 
-    from ..errors import InputFileError
+    from mocaptk.errors import InputFileError
 
     try:
         with np.load(path, allow_pickle=False) as data:
