@@ -86,7 +86,8 @@ def write_layout(layout: Layout, path: str | os.PathLike[str], *, force: bool = 
 
 
 def read_layout(path: str | os.PathLike[str]) -> Layout:
-    """Read a ``layout.json`` written by :func:`write_layout`."""
+    """Read a ``layout.json`` written by :func:`write_layout`; every field's type is checked, so a
+    hand-edited or damaged file is an :class:`InputFileError` naming the field, not a crash later."""
     path = Path(path)
     data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
@@ -94,20 +95,85 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
     if data.get("version") != VERSION:
         raise InputFileError(path, f"unsupported layout version {data.get('version')!r} (expected {VERSION})")
     try:
-        clusters = tuple(
-            Cluster(c["representative"], c["region"], tuple(c["members"]),
-                    {k: float(v) for k, v in c["member_correlation"].items()},
-                    tuple(float(x) for x in c["position"]), c["side"], c.get("mirrored_from"))
-            for c in data["clusters"])
-        regions = tuple(
-            RegionResult(r["name"], tuple(r["markers"]), _num(r["mean_correlation"]), _num(r["threshold"]),
-                         int(r.get("samples", 0)), tuple(r.get("representatives", ())))
-            for r in data["regions"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputFileError(path, f"malformed layout ({type(exc).__name__}: {exc})") from None
+        clusters = tuple(_cluster(c, f"clusters[{i}]") for i, c in enumerate(_list(data, "clusters")))
+        regions = tuple(_region(r, f"regions[{i}]") for i, r in enumerate(_list(data, "regions")))
+        source, parameters = (_field(data, key, dict, "an object") for key in ("source", "parameters"))
+    except _Malformed as exc:
+        raise InputFileError(path, f"malformed layout: {exc}") from None
+    if not clusters:
+        raise InputFileError(path, "malformed layout: no clusters")
+    labels = [c.representative for c in clusters]
+    if len(set(labels)) != len(labels):
+        twice = sorted({label for label in labels if labels.count(label) > 1})
+        raise InputFileError(path, "malformed layout: a layout marker named twice: " + ", ".join(twice[:5]))
     known = {"format", "version", "units", "source", "parameters", "regions", "clusters", "layout"}
     extra = {k: v for k, v in data.items() if k not in known}
-    return Layout(dict(data["source"]), dict(data["parameters"]), regions, clusters, extra)
+    return Layout(dict(source), dict(parameters), regions, clusters, extra)
+
+
+class _Malformed(ValueError):
+    """A field of layout.json of the wrong type (message: where, and what it must be)."""
+
+
+def _field(obj: dict, key: str, kind: type, what: str, where: str = "") -> Any:
+    """``obj[key]`` if it is a ``kind`` (dict, list or str), else _Malformed naming it."""
+    name = f"{where}.{key}" if where else key
+    if key not in obj:
+        raise _Malformed(f"{name} is missing")
+    if not isinstance(obj[key], kind):
+        raise _Malformed(f"{name} must be {what}")
+    return obj[key]
+
+
+def _list(obj: Any, key: str, where: str = "") -> list:
+    return _field(obj, key, list, "a list", where)
+
+
+def _labels(obj: Any, key: str, where: str) -> tuple[str, ...]:
+    values = _list(obj, key, where)
+    if not all(isinstance(v, str) for v in values):
+        raise _Malformed(f"{where}.{key} must be a list of marker labels")
+    return tuple(values)
+
+
+def _number(value: Any, name: str) -> float:
+    """A JSON number (null: NaN, as the writer stores NaN)."""
+    if value is None:
+        return float("nan")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _Malformed(f"{name} must be a number")
+    return float(value)
+
+
+def _cluster(c: Any, where: str) -> Cluster:
+    if not isinstance(c, dict):
+        raise _Malformed(f"{where} must be an object")
+    correlation = _field(c, "member_correlation", dict, "an object", where)
+    position = _list(c, "position", where)
+    if len(position) != 3:
+        raise _Malformed(f"{where}.position must be 3 numbers (mm)")
+    side = _field(c, "side", str, "a string", where)
+    if side not in ("L", "R", "C"):
+        raise _Malformed(f"{where}.side must be L, R or C")
+    mirrored_from = c.get("mirrored_from")
+    if mirrored_from is not None and not isinstance(mirrored_from, str):
+        raise _Malformed(f"{where}.mirrored_from must be a marker label or null")
+    return Cluster(_field(c, "representative", str, "a marker label", where),
+                   _field(c, "region", str, "a region name", where), _labels(c, "members", where),
+                   {str(k): _number(v, f"{where}.member_correlation.{k}") for k, v in correlation.items()},
+                   tuple(_number(x, f"{where}.position") for x in position), side, mirrored_from)
+
+
+def _region(r: Any, where: str) -> RegionResult:
+    if not isinstance(r, dict):
+        raise _Malformed(f"{where} must be an object")
+    samples = r.get("samples", 0)
+    if isinstance(samples, bool) or not isinstance(samples, int):
+        raise _Malformed(f"{where}.samples must be a whole number")
+    representatives = _labels(r, "representatives", where) if "representatives" in r else ()
+    return RegionResult(_field(r, "name", str, "a region name", where), _labels(r, "markers", where),
+                        _number(r.get("mean_correlation"), f"{where}.mean_correlation"),
+                        _number(r.get("threshold"), f"{where}.threshold"), samples, representatives)
 
 
 def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,
@@ -121,7 +187,3 @@ def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str 
         raise InputFileError(layout_path, f"{len(unknown)} layout markers are not in {session_name}: "
                              + ", ".join(unknown[:5]))
     return [index[label] for label in measured]
-
-
-def _num(value: Any) -> float:
-    return float("nan") if value is None else float(value)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -286,6 +288,35 @@ def test_takes_feed_their_regions(tmp_path):
     path.write_text(json.dumps({"takes": [{"name": "mouth", "start": 0, "end": 190}]}))
     with pytest.raises(InputFileError, match="outside"):
         read_takes(path, 100)
+
+
+#: damaged copies of the sample's layout (each found by fuzzing the CLI: a crash inside rig,
+#: evaluate or plan before read_layout checked types) and the field the error must name
+DAMAGED_LAYOUTS = [
+    (lambda d: d["clusters"][2].update(mirrored_from=True), "clusters[2].mirrored_from"),
+    (lambda d: d["clusters"][0].update(member_correlation=5), "clusters[0].member_correlation"),
+    (lambda d: d["regions"][2].update(representatives=True), "regions[2].representatives"),
+    (lambda d: d["clusters"][1].update(position=[1.0, "x", 2.0]), "clusters[1].position"),
+    (lambda d: d["clusters"][1].update(position=[1.0, 2.0]), "clusters[1].position"),
+    (lambda d: d["clusters"][3].update(members=[1, 2]), "clusters[3].members"),
+    (lambda d: d["clusters"][3].pop("representative"), "clusters[3].representative is missing"),
+    (lambda d: d["clusters"][0].update(side="left"), "clusters[0].side"),
+    (lambda d: d["regions"][0].update(samples=1.5), "regions[0].samples"),
+    (lambda d: d.update(source="x"), "source must be an object"),
+    (lambda d: d.update(clusters=[]), "no clusters"),
+    (lambda d: d["clusters"][1].update(representative=d["clusters"][0]["representative"]), "named twice"),
+]
+
+
+@pytest.mark.parametrize("damage, field", DAMAGED_LAYOUTS, ids=[f for _, f in DAMAGED_LAYOUTS])
+def test_a_damaged_layout_file_names_the_bad_field(tmp_path, damage, field):
+    doc = json.loads((Path(__file__).parent / "data" / "paper_layout_sample.json").read_text())
+    read_layout(Path(__file__).parent / "data" / "paper_layout_sample.json")  # the intact file reads
+    damage(doc)
+    path = tmp_path / "layout.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputFileError, match=re.escape(field)):
+        read_layout(path)
 
 
 def test_layout_file_round_trip_is_byte_identical(tmp_path):
