@@ -6,13 +6,15 @@ the sample's held-out performance (its ground truth) is captured through the rig
 layout's markers (``mocaptk synth``'s capture: normals of the ICT mesh, 0.3 mm detection noise,
 1 % dropouts, 0.2 % ghosts, robust triangulation, spikes removed, gaps <= 6 frames filled), the
 dense face is reconstructed by the evaluation's ridge fitted on the session, and scored against
-the true dense markers (RMSE mm over every frame and marker, mean of 3 capture seeds).
-"Exact" is the same layout with its markers measured exactly (no cameras).
+the true dense markers (RMSE mm over every frame and marker, mean of ``--seeds`` capture seeds,
+3 by default). "Exact" is the same layout with its markers measured exactly (no cameras). The
+"per seed" column pairs the two layouts' captures of each seed: the mean change, its standard
+error over the seeds, and in how many seeds the camera-aware layout scores lower.
 
 Rigs: ``cara`` and ``room`` (the presets, as ``synth`` uses them) and ``cara-right`` (only the
 two Cara cameras on the subject's right: a badly placed rig, from a rig file).
 
-    python benchmarks/bench_camera_layouts.py [--counts 20,30,48] [--session S.c3d] [--out table.md]
+    python benchmarks/bench_camera_layouts.py [--counts 20,30,48] [--seeds 3] [--session S.c3d] [--out table.md]
 
 ``--session``: another ``mocaptk synth`` session (with its ``_performance_truth.npz``), e.g. one
 made with ``--wide-zone`` (markers under the chin, on the eyelids and inner lips).
@@ -33,7 +35,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_c3d"
-SEEDS = 3
 
 
 def cpu_seconds() -> float:
@@ -46,6 +47,7 @@ def main() -> None:
     parser.add_argument("--counts", default="20,30,48")
     parser.add_argument("--rigs", default="cara,room,cara-right")
     parser.add_argument("--session", type=Path, default=SAMPLE / "dense_halfface.c3d")
+    parser.add_argument("--seeds", type=int, default=3, help="capture seeds per layout")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
 
@@ -71,23 +73,29 @@ def main() -> None:
     rigs = {"cara": ("cara", cara_rig()), "room": ("room", room_rig()),
             "cara-right": (str(right), cara_rig().subset([1, 3]))}
     lines = ["| rig | markers | camera-blind end-to-end mm | camera-aware end-to-end mm | change | "
-             "exact: blind / aware mm | markers changed |", "|---|---:|---:|---:|---:|---:|---:|"]
+             "per seed: change ± s.e., aware lower | exact: blind / aware mm | markers changed |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name in args.rigs.split(","):
         spec, production = rigs[name]
         aware = rig_aware(session, spec)(blind)
         for count in [int(c) for c in args.counts.split(",")]:
             layouts = {kind: select_layout(problem, count, method="hybrid").layout
                        for kind, problem in (("blind", blind), ("aware", aware))}
-            scores, exact = {}, {}
+            per_seed, scores, exact = {}, {}, {}
             for kind, layout in layouts.items():
-                scores[kind] = float(np.mean([rmse(end_to_end_errors(
+                per_seed[kind] = np.array([rmse(end_to_end_errors(
                     session.positions, layout, capture_layout(production, true_positions, normals, layout, seed=s),
-                    true_positions)) for s in range(SEEDS)]))
+                    true_positions)) for s in range(args.seeds)])
+                scores[kind] = float(np.mean(per_seed[kind]))
                 exact[kind] = rmse(end_to_end_errors(session.positions, layout, true_positions[:, layout],
                                                      true_positions))
+            paired = 100.0 * (per_seed["aware"] / per_seed["blind"] - 1.0)
+            error = paired.std(ddof=1) / np.sqrt(paired.size) if paired.size > 1 else float("nan")
+            wins = int(np.sum(per_seed["aware"] < per_seed["blind"]))
             changed = int(np.setdiff1d(layouts["aware"], layouts["blind"]).size)
             change = 100.0 * (scores["aware"] / scores["blind"] - 1.0)
             lines.append(f"| {name} | {count} | {scores['blind']:.4f} | {scores['aware']:.4f} | {change:+.1f} % | "
+                         f"{paired.mean():+.2f} ± {error:.2f} %, {wins} of {paired.size} | "
                          f"{exact['blind']:.4f} / {exact['aware']:.4f} | {changed} |")
             print(lines[-1], flush=True)
     wall, cpu = time.perf_counter() - started, cpu_seconds() - cpu0
