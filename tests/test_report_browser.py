@@ -23,6 +23,11 @@ LAYOUT_POINTS = ("(() => { const t = document.getElementById('scene').data"
                  ".find(d => d.name === 'layout markers'); return t.x.map((x, i) => [x, t.y[i], t.z[i]]); })()")
 
 
+#: JS: [[left, top, right, bottom], ...] px of every drawn layout-marker number.
+NUMBER_BOXES = ("[...document.querySelectorAll('#scene .annotation-text-g')].map(a => {"
+                " const r = a.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; })")
+
+
 @pytest.fixture(scope="module")
 def sample_report(tmp_path_factory):
     """``mocaptk cluster`` on the bundled sample (rig included): its output folder."""
@@ -93,6 +98,14 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     assert np.ptp(rows) > 500 and np.ptp(cols) > 350  # tall and wide like a face, not a dot
     # skin colours of the influence regions are there, not only marker dots
     assert len(np.unique((scene[drawn] // 32).astype(int), axis=0)) > 20
+
+    # the numbers as drawn cover no other number (before placeNumbers: 14 overlapping pairs)
+    boxes = np.array(browser.evaluate(NUMBER_BOXES), float)
+    assert len(boxes) == len(layout["clusters"])
+    apart = ((boxes[:, None, 2] <= boxes[None, :, 0]) | (boxes[None, :, 2] <= boxes[:, None, 0])
+             | (boxes[:, None, 3] <= boxes[None, :, 1]) | (boxes[None, :, 3] <= boxes[:, None, 1]))
+    np.fill_diagonal(apart, True)
+    assert apart.all(), np.argwhere(~apart)[:5].tolist()
 
     # the page's data holds exactly the layout's markers (mirrored ones included)
     points = browser.evaluate(LAYOUT_POINTS)

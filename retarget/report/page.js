@@ -144,7 +144,14 @@
   // Drawn marker position: off the skin by the stored lift (the data positions stay untouched).
   function drawn(pos, i, axis) { return nanToNull(pos[i][axis] + mesh.marker_lift[i][axis]); }
 
-  let annotations = [];  // the layout markers' numbers, set by traces()
+  let annotations = [], annotationMarkers = [];  // the layout markers' numbers and their markers, set by traces()
+  // Where a number sits by its marker: [xshift, yshift (px, up), xanchor, yanchor]; the first is
+  // the default, the others are tried in order when it would cover another number.
+  const SIDES = [[2, 1, "left", "bottom"], [-2, 1, "right", "bottom"], [2, -1, "left", "top"],
+                 [-2, -1, "right", "top"], [0, 5, "center", "bottom"], [0, -5, "center", "top"],
+                 [9, 7, "left", "bottom"], [-9, 7, "right", "bottom"], [9, -7, "left", "top"],
+                 [-9, -7, "right", "top"]];
+  let sideOf = {};  // layout marker -> SIDES index, chosen by placeNumbers() for the current view
   function traces() {
     const pos = markerPositions();
     const layoutEntries = shownLayout().filter(function (e) { return markerVisible(e.marker); });
@@ -219,9 +226,12 @@
       marker: {size: 4.5, color: layoutEntries.map(function (e) {
         return e.cluster ? e.cluster.colour : "#1f3b73";
       })}});
+    const numbered = layoutEntries.filter(function (e, k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null; });
+    annotationMarkers = state.show.numbers ? numbered.map(function (e) { return e.marker; }) : [];
     annotations = !state.show.numbers ? [] : layoutEntries.map(function (e, k) {
+      const side = SIDES[sideOf[e.marker] || 0];
       return {x: lx3[k], y: ly3[k], z: lz3[k], text: String(e.number), showarrow: false,
-              xanchor: "left", yanchor: "bottom", xshift: 2, yshift: 1,
+              xanchor: side[2], yanchor: side[3], xshift: side[0], yshift: side[1],
               font: {size: 11, color: "#000000"}, bgcolor: "rgba(255,255,255,0.55)", borderpad: 0};
     }).filter(function (a) { return a.x !== null && a.y !== null && a.z !== null; });
     return out;
@@ -381,11 +391,52 @@
   play.addEventListener("click", togglePlay);
   if (!clips.length) { play.disabled = true; slider.disabled = true; clipSelect.disabled = true; }
 
+  // Numbers placed on screen like guide.pdf's labels, as far as a few sides allow: each number,
+  // in marker order, takes the first side where its box covers no number placed before it (the
+  // boxes are the drawn annotations, so the view's projection is plotly's own). Chosen once per
+  // view (after the first draw and after the camera moves), so replay does not reshuffle them.
+  function placeNumbers() {
+    const drawnBoxes = Array.prototype.slice.call(gd.querySelectorAll(".annotation-text-g"));
+    if (!state.show.numbers || drawnBoxes.length !== annotations.length) return Promise.resolve();
+    const placed = [];
+    let changed = false;
+    annotations.forEach(function (_, k) {
+      const r = drawnBoxes[k].getBoundingClientRect();
+      const marker = annotationMarkers[k];
+      const now = SIDES[sideOf[marker] || 0];
+      // the marker's screen point, from the box and the side it was drawn at
+      const px = (now[2] === "left" ? r.left : now[2] === "right" ? r.right : (r.left + r.right) / 2) - now[0];
+      const py = (now[3] === "bottom" ? r.bottom : r.top) + now[1];
+      const box = function (side) {
+        const x0 = side[2] === "left" ? px + side[0] : side[2] === "right" ? px + side[0] - r.width : px + side[0] - r.width / 2;
+        const y0 = side[3] === "bottom" ? py - side[1] - r.height : py - side[1];
+        return [x0, y0, x0 + r.width, y0 + r.height];
+      };
+      const free = function (b) {
+        return placed.every(function (q) { return b[2] <= q[0] || q[2] <= b[0] || b[3] <= q[1] || q[3] <= b[1]; });
+      };
+      let pick = SIDES.findIndex(function (side) { return free(box(side)); });
+      if (pick < 0) pick = sideOf[marker] || 0;  // nowhere free: where it was
+      placed.push(box(SIDES[pick]));
+      if (pick !== (sideOf[marker] || 0)) { sideOf[marker] = pick; changed = true; }
+    });
+    return changed ? redraw() : Promise.resolve();
+  }
+  let placing = null;
+  function placeAfterCameraMoves() {  // gd.on exists once plotly has drawn
+    gd.on("plotly_relayout", function (change) {
+      if (!Object.keys(change).some(function (key) { return key.indexOf("scene.camera") === 0; })) return;
+      clearTimeout(placing);
+      placing = setTimeout(function () { (drawing || Promise.resolve()).then(placeNumbers); }, 150);
+    });
+  }
+
   window.mocaptkReport = {data: data, state: state, setFrame: setFrame, setClip: setClip, pick: pick,
                           markerPositions: markerPositions, ready: false, loadMs: null,
-                          view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(function () { return true; }); },
+                          view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(placeNumbers).then(function () { return true; }); },
                           settled: function () { return drawing || Promise.resolve(); }};
-  setClip(0).then(function () {
+  setClip(0).then(placeNumbers).then(function () {
+    placeAfterCameraMoves();
     window.mocaptkReport.ready = true;
     window.mocaptkReport.loadMs = performance.now();  // since navigation start
     window.mocaptkReport.drawMs = performance.now() - started;
