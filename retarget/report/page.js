@@ -285,7 +285,7 @@
     const label = document.createElement("label");
     const box = document.createElement("input");
     box.type = "checkbox"; box.checked = checked;
-    box.addEventListener("change", function () { onChange(box.checked); redraw(); });
+    box.addEventListener("change", function () { onChange(box.checked); redraw().then(placeNumbers); });
     label.appendChild(box);
     if (colour) { const s = document.createElement("span"); s.className = "swatch"; s.style.background = colour; label.appendChild(s); }
     label.appendChild(document.createTextNode(text));
@@ -315,7 +315,7 @@
   function pick(k) {
     state.colour = k; colourSelect.value = String(k);
     Object.keys(rowsByMap).forEach(function (key) { rowsByMap[key].forEach(function (tr) { tr.classList.toggle("picked", Number(key) === k); }); });
-    redraw();
+    redraw().then(placeNumbers);  // another layout: its own numbers
   }
   const tables = document.getElementById("tables");
   (data.tables || []).forEach(function (t) {
