@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mocaptk.errors import InputFileError
 from mocaptk.jsonio import read_json, write_json
 
@@ -98,6 +100,7 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
         clusters = tuple(_cluster(c, f"clusters[{i}]") for i, c in enumerate(_list(data, "clusters")))
         regions = tuple(_region(r, f"regions[{i}]") for i, r in enumerate(_list(data, "regions")))
         source, parameters = (_field(data, key, dict, "an object") for key in ("source", "parameters"))
+        _check_extras(data)
     except _Malformed as exc:
         raise InputFileError(path, f"malformed layout: {exc}") from None
     if not clusters:
@@ -136,9 +139,9 @@ def _labels(obj: Any, key: str, where: str) -> tuple[str, ...]:
     return tuple(values)
 
 
-def _number(value: Any, name: str) -> float:
-    """A JSON number (null: NaN, as the writer stores NaN)."""
-    if value is None:
+def _number(value: Any, name: str, *, null_ok: bool = False) -> float:
+    """A JSON number; with ``null_ok``, null is NaN (as the writer stores a NaN statistic)."""
+    if value is None and null_ok:
         return float("nan")
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _Malformed(f"{name} must be a number")
@@ -164,6 +167,22 @@ def _cluster(c: Any, where: str) -> Cluster:
                    tuple(_number(x, f"{where}.position") for x in position), side, mirrored_from)
 
 
+def _check_extras(data: dict) -> None:
+    """The optional top-level keys that rig, plan, evaluate and the report read back."""
+    if data.get("sagittal_plane") is not None:
+        plane = _field(data, "sagittal_plane", dict, "an object")
+        for key in ("point", "normal"):
+            values = _list(plane, key, "sagittal_plane")
+            if len(values) != 3 or not np.all(np.isfinite([_number(v, f"sagittal_plane.{key}") for v in values])):
+                raise _Malformed(f"sagittal_plane.{key} must be 3 finite numbers")
+        if not any(plane["normal"]):
+            raise _Malformed("sagittal_plane.normal must not be zero")
+    if data.get("stabilization") is not None:
+        stabilization = _field(data, "stabilization", dict, "an object")
+        if stabilization.get("rigid_labels") is not None:
+            _labels(stabilization, "rigid_labels", "stabilization")
+
+
 def _region(r: Any, where: str) -> RegionResult:
     if not isinstance(r, dict):
         raise _Malformed(f"{where} must be an object")
@@ -172,8 +191,10 @@ def _region(r: Any, where: str) -> RegionResult:
         raise _Malformed(f"{where}.samples must be a whole number")
     representatives = _labels(r, "representatives", where) if "representatives" in r else ()
     return RegionResult(_field(r, "name", str, "a region name", where), _labels(r, "markers", where),
-                        _number(r.get("mean_correlation"), f"{where}.mean_correlation"),
-                        _number(r.get("threshold"), f"{where}.threshold"), samples, representatives)
+                        _number(_field(r, "mean_correlation", object, "", where), f"{where}.mean_correlation",
+                                null_ok=True),
+                        _number(_field(r, "threshold", object, "", where), f"{where}.threshold", null_ok=True),
+                        samples, representatives)
 
 
 def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,

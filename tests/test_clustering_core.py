@@ -305,6 +305,11 @@ DAMAGED_LAYOUTS = [
     (lambda d: d.update(source="x"), "source must be an object"),
     (lambda d: d.update(clusters=[]), "no clusters"),
     (lambda d: d["clusters"][1].update(representative=d["clusters"][0]["representative"]), "named twice"),
+    (lambda d: d["sagittal_plane"].update(normal=["x", 0, 0]), "sagittal_plane.normal"),
+    (lambda d: d["sagittal_plane"].update(point=[0, 0]), "sagittal_plane.point"),
+    (lambda d: d["sagittal_plane"].update(normal=[0, 0, 0]), "sagittal_plane.normal must not be zero"),
+    (lambda d: d.update(stabilization=[]), "stabilization must be an object"),
+    (lambda d: d.update(stabilization={"rigid_labels": [1, 2]}), "stabilization.rigid_labels"),
 ]
 
 

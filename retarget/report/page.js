@@ -226,14 +226,15 @@
       marker: {size: 4.5, color: layoutEntries.map(function (e) {
         return e.cluster ? e.cluster.colour : "#1f3b73";
       })}});
-    const numbered = layoutEntries.filter(function (e, k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null; });
-    annotationMarkers = state.show.numbers ? numbered.map(function (e) { return e.marker; }) : [];
-    annotations = !state.show.numbers ? [] : layoutEntries.map(function (e, k) {
-      const side = SIDES[sideOf[e.marker] || 0];
-      return {x: lx3[k], y: ly3[k], z: lz3[k], text: String(e.number), showarrow: false,
+    const numbered = !state.show.numbers ? [] : layoutEntries.map(function (e, k) { return k; })
+      .filter(function (k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null; });
+    annotationMarkers = numbered.map(function (k) { return layoutEntries[k].marker; });
+    annotations = numbered.map(function (k) {
+      const side = SIDES[sideOf[layoutEntries[k].marker] || 0];
+      return {x: lx3[k], y: ly3[k], z: lz3[k], text: String(layoutEntries[k].number), showarrow: false,
               xanchor: side[2], yanchor: side[3], xshift: side[0], yshift: side[1],
               font: {size: 11, color: "#000000"}, bgcolor: "rgba(255,255,255,0.55)", borderpad: 0};
-    }).filter(function (a) { return a.x !== null && a.y !== null && a.z !== null; });
+    });
     return out;
   }
 
@@ -393,8 +394,8 @@
 
   // Numbers placed on screen like guide.pdf's labels, as far as a few sides allow: each number,
   // in marker order, takes the first side where its box covers no number placed before it (the
-  // boxes are the drawn annotations, so the view's projection is plotly's own). Chosen once per
-  // view (after the first draw and after the camera moves), so replay does not reshuffle them.
+  // boxes are the drawn annotations, so the view's projection is plotly's own). Chosen after the
+  // first draw, a toggle, a picked row and a camera move, never per frame: replay keeps them.
   function placeNumbers() {
     const drawnBoxes = Array.prototype.slice.call(gd.querySelectorAll(".annotation-text-g"));
     if (!state.show.numbers || drawnBoxes.length !== annotations.length) return Promise.resolve();
