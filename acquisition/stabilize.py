@@ -439,14 +439,14 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         r0, t0 = rot[ref_frame].copy(), trans[ref_frame].copy()
         rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
         trans = trans - np.einsum("fij,j->fi", rot, t0)
-    _bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)
+    bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)
     relative = _to_head(traj.positions, rot, trans)
     meta = dict(traj.metadata)
     meta["stabilized"] = {"rigid_labels": list(labels), "reference_frame": ref_frame}
     return StabilizeResult(traj.replace(positions=relative, metadata=meta), rot, trans, labels, rms, ref_frame)
 
 
-def _bridge_poses(rot: np.ndarray, trans: np.ndarray, segments: list[tuple[int, int]], *, max_gap: int) -> None:
+def bridge_poses(rot: np.ndarray, trans: np.ndarray, segments: list[tuple[int, int]], *, max_gap: int) -> None:
     """Interpolate missing poses (NaN) in place over interior runs of at most ``max_gap`` frames."""
     missing = np.isnan(rot[:, 0, 0])
     for s, e in segments:

@@ -180,7 +180,14 @@ def _check_extras(data: dict) -> None:
     if data.get("stabilization") is not None:
         stabilization = _field(data, "stabilization", dict, "an object")
         if stabilization.get("rigid_labels") is not None:
-            _labels(stabilization, "rigid_labels", "stabilization")
+            rigid = _labels(stabilization, "rigid_labels", "stabilization")
+            if stabilization.get("reference") is not None:
+                reference = _list(stabilization, "reference", "stabilization")
+                if len(reference) != len(rigid) or not all(
+                        isinstance(p, list) and len(p) == 3
+                        and np.all(np.isfinite([_number(v, "stabilization.reference") for v in p]))
+                        for p in reference):
+                    raise _Malformed("stabilization.reference must hold 3 finite numbers per rigid label")
 
 
 def _region(r: Any, where: str) -> RegionResult:
@@ -195,6 +202,13 @@ def _region(r: Any, where: str) -> RegionResult:
                                 null_ok=True),
                         _number(_field(r, "threshold", object, "", where), f"{where}.threshold", null_ok=True),
                         samples, representatives)
+
+
+def layout_rigid_set(layout: Layout) -> tuple[str, ...] | None:
+    """The layout's stabilization markers: its session's rigid head set, recorded whether or not
+    the session itself needed stabilizing (None: none recorded)."""
+    labels = (layout.extra.get("stabilization") or {}).get("rigid_labels")
+    return tuple(labels) if labels else None
 
 
 def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from mocaptk.errors import InputFileError, OptionError, source_error
+from mocaptk.errors import InputFileError, MocaptkError, OptionError, source_error
 from mocaptk.trajectories import Take, Trajectories
 
 from .correlation import consolidated_correlation
@@ -123,6 +123,17 @@ def stabilize(traj: Trajectories, *, rigid: Sequence[str] | None = None,
     return (result.trajectories if applied else traj), report
 
 
+def stabilization_markers(traj: Trajectories) -> tuple[str, ...]:
+    """The session's rigid head markers (detected as stabilization detects them), or none when
+    no 3 markers move as one body (a session of few markers, all on moving skin)."""
+    from mocaptk.acquisition.stabilize import detect_rigid_markers
+
+    try:
+        return detect_rigid_markers(traj)
+    except MocaptkError:
+        return ()
+
+
 def rigid_reference(session: Trajectories, rigid: Sequence[str]) -> np.ndarray:
     """The ``rigid`` markers' neutral positions (K, 3) mm in ``session`` (stabilized or already
     head-relative): the head frame a test or production capture is stabilized into."""
@@ -201,11 +212,15 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         neutral = None if neutral is None else np.asarray(neutral)[seen]
     if traj.n_markers < 2:
         raise source_error(file, f"need at least 2 markers with data, the session has {traj.n_markers}")
-    stabilization: dict[str, Any] = {}
+    if progress:
+        progress("stabilizing" if options.stabilize else "choosing the stabilization markers")
     if options.stabilize:
-        if progress:
-            progress("stabilizing")
         traj, stabilization = stabilize(traj, rigid=options.rigid)  # not applied: see stabilization_note
+    else:  # recorded all the same: a production capture is posed from them
+        stabilization = {"rigid_labels": list(stabilization_markers(traj)), "applied": False,
+                         "rigid_set_motion_rms_mm": None, "rms_residual_mm": None}
+    if stabilization["rigid_labels"]:
+        stabilization["reference"] = rigid_reference(traj, stabilization["rigid_labels"])
     labels = list(traj.labels)
     if neutral is None or stabilization.get("applied"):
         neutral = neutral_pose(traj.positions)
@@ -380,8 +395,8 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
 def stabilization_note(stabilization: dict[str, Any]) -> str | None:
     """The note for a session found already head-relative (the normal case with head-mounted cameras);
     None when it was stabilized or stabilization was not asked for."""
-    if not stabilization or stabilization.get("applied"):
-        return None
+    if not stabilization or stabilization.get("applied") or stabilization.get("rigid_set_motion_rms_mm") is None:
+        return None  # stabilized, or not asked for (the rigid set is then only recorded)
     return (f"the session is already head-relative (the rigid set {', '.join(stabilization['rigid_labels'])} "
             f"moves {stabilization['rigid_set_motion_rms_mm']:.2f} mm RMS < {HEAD_RELATIVE_RMS_MM} mm): "
             "not stabilized")
@@ -391,14 +406,13 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
                           rate: float | None = None, units: str | None = None,
                           rigid: Sequence[str] | None = None,
                           ) -> tuple[Trajectories, Trajectories | None, dict[str, Any]]:
-    """A session and an optional held-out test file, prepared alike (same markers, same stabilization
-    on the same rigid set: ``rigid``, or the one detected on the session).
+    """A session and an optional held-out test file, prepared alike: the session stabilized when
+    ``stabilized`` (on ``rigid``, or a detected set), the test taken into the session's head frame
+    on that rigid set (``rigid`` alone when the session is not stabilized: it is head-relative).
 
     Returns ``(session, test or None, source)``; a test file lacking session markers raises
     :class:`InputFileError`.
     """
-    if rigid is not None and not stabilized:
-        raise OptionError(RIGID_WITHOUT_STABILIZING)
     traj, source = load_session(str(session), rate=rate, units=units)
     if stabilized:
         traj, report = stabilize(traj, rigid=rigid)
@@ -411,6 +425,6 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
     if missing:
         raise InputFileError(test, f"lacks {len(missing)} markers of the session: {', '.join(missing[:5])}")
     perf = perf.select(traj.labels)
-    if stabilized:  # into the session's head frame, not the test's own reference frame
+    if rigid:  # into the session's head frame (whether or not the session itself needed stabilizing)
         perf, _ = stabilize(perf, rigid=rigid, reference=rigid_reference(traj, rigid))
     return traj, perf, source

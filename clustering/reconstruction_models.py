@@ -884,14 +884,16 @@ def model_from_arrays(kind: str, arrays: Mapping[str, np.ndarray]) -> FaceModel:
 
 
 def save_model(model: FaceModel, path: str | os.PathLike[str], *, header: Mapping[str, Any],
-               force: bool = True) -> Path:
+               extra: Mapping[str, np.ndarray] | None = None, force: bool = True) -> Path:
     """Write ``model`` as ``model.npz`` (deterministic bytes) with a JSON ``header`` entry.
 
     ``header`` describes the session and layout (labels, session identity); ``format``,
-    ``version`` and ``kind`` are added.
+    ``version`` and ``kind`` are added. ``extra``: arrays of the caller's saved beside the
+    model's (names must not clash with them; :func:`load_model` returns them apart).
     """
     head = {**header, "format": MODEL_FORMAT, "version": MODEL_VERSION, "kind": model.kind}
-    entries = {"header": np.frombuffer(dumps(head).encode(), dtype=np.uint8), **model.arrays()}
+    entries = {"header": np.frombuffer(dumps(head).encode(), dtype=np.uint8), **model.arrays(),
+               **(extra or {})}
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
         for name in sorted(entries):

@@ -21,6 +21,7 @@ The pure pipeline behind ``mocaptk solve``:
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,22 +30,26 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from mocaptk.acquisition.filtering import lowpass
-from mocaptk.acquisition.stabilize import POSE_CUTOFF_HZ, kabsch
 from mocaptk.clustering.layout import Layout
 from mocaptk.clustering.neutral import neutral_pose
-from mocaptk.clustering.reconstruction_models import (DEFAULT_KIND, DEFAULT_RIDGE, FaceModel,
+from mocaptk.clustering.reconstruction_models import (DEFAULT_KIND, DEFAULT_RIDGE, FaceModel, load_model,
                                                       batched_ridge, fit_model)
 from mocaptk.errors import InputFileError, OptionError
 from mocaptk.surface_mesh import marker_surface_mesh
 from mocaptk.trajectories import Trajectories
 
+from .actor_adaptation import Adaptation
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
+from .consistency import LayoutGaussian, Screen, screen_frames, training_consistency
+from .head_pose import HeadPoses, least_moving_markers, robust_head_poses
 from .influence import anchor_vertices
 
 __all__ = ["FaceSolver", "MeshMap", "SolvedChunk", "head_poses", "layout_frames", "solve_chunks",
-           "train_solver"]
+           "load_solver", "to_head_frame", "train_solver"]
 
+#: ``HeadPoses.source`` values: the layout's stabilization markers, or its least-moving markers.
+POSE_FROM_RIGID = "stabilization markers"
+POSE_FROM_LAYOUT = "least-moving layout markers"
 #: Frames solved at once (bounded memory for any capture length).
 CHUNK_FRAMES = 4096
 #: Dense markers each vertex of a learned mesh map is regressed from (:meth:`MeshMap.learned`).
@@ -58,9 +63,13 @@ class FaceSolver:
     """A trained model with what the solve needs to read captures.
 
     ``labels`` the dense markers (model columns); ``layout_labels`` the model's layout markers
-    (in ``model.layout`` order); ``rigid_labels`` / ``rigid_reference`` (R, 3) mm the rigid set
-    and its head-relative neutral shape when head motion is solved (else empty / None);
-    ``session`` the training session's identity (``path``, ``sha256``, ``frames``, ``markers``).
+    (in ``model.layout`` order); ``rigid_labels`` / ``rigid_reference`` (R, 3) mm the layout's
+    stabilization markers and their neutral shape in the session's head frame (empty / None for
+    a layout without them); ``fallback_labels`` / ``fallback_reference`` (K, 3) mm the
+    least-moving layout markers a capture without stabilization markers is posed from;
+    ``gaussian`` the layout markers' Gaussian (ghosts, consistency; None in old model files) and
+    ``training_consistency_mm`` its consistency on the session; ``session`` the training
+    session's identity (``path``, ``sha256``, ``frames``, ``markers``).
     """
 
     model: FaceModel
@@ -69,28 +78,65 @@ class FaceSolver:
     rigid_labels: tuple[str, ...]
     rigid_reference: np.ndarray | None
     session: dict[str, Any]
+    fallback_labels: tuple[str, ...] = ()
+    fallback_reference: np.ndarray | None = None
+    gaussian: LayoutGaussian | None = None
+    training_consistency_mm: float = float("nan")
 
     def header(self) -> dict[str, Any]:
-        """The JSON header of the saved model (see ``save_model``)."""
+        """The JSON header of the saved model (see ``save_model``); the numbers the solve uses go
+        in :meth:`extra_arrays` (JSON rounds them)."""
         return {"session": self.session, "labels": list(self.labels),
                 "layout_labels": list(self.layout_labels), "rigid_labels": list(self.rigid_labels),
-                "rigid_reference": None if self.rigid_reference is None else self.rigid_reference,
-                "units": "mm"}
+                "fallback_labels": list(self.fallback_labels), "units": "mm"}
+
+    def extra_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays saved beside the model: ``solver_rigid_reference``, ``solver_fallback_reference``,
+        ``solver_mean``, ``solver_cov`` (the Gaussian), ``solver_training_consistency``."""
+        out = {"solver_training_consistency": np.array(self.training_consistency_mm)}
+        for name, value in (("rigid_reference", self.rigid_reference),
+                            ("fallback_reference", self.fallback_reference)):
+            if value is not None:
+                out[f"solver_{name}"] = value
+        if self.gaussian is not None:
+            out.update({f"solver_{k}": v for k, v in self.gaussian.arrays().items()})
+        return out
 
     @classmethod
-    def from_header(cls, model: FaceModel, header: Mapping[str, Any]) -> FaceSolver:
-        reference = header.get("rigid_reference")
+    def from_header(cls, model: FaceModel, header: Mapping[str, Any],
+                    extra: Mapping[str, np.ndarray] | None = None) -> FaceSolver:
+        extra = extra or {}
+        gaussian = None
+        if "solver_mean" in extra and "solver_cov" in extra:
+            gaussian = LayoutGaussian.from_arrays({"mean": extra["solver_mean"], "cov": extra["solver_cov"]})
+        rigid = tuple(header.get("rigid_labels") or ())
+        fallback = tuple(header.get("fallback_labels") or ())
         return cls(model, tuple(header["labels"]), tuple(header["layout_labels"]),
-                   tuple(header.get("rigid_labels") or ()),
-                   None if reference is None else np.asarray(reference, dtype=np.float64),
-                   dict(header["session"]))
+                   rigid if "solver_rigid_reference" in extra else (),
+                   _array_or_none(extra.get("solver_rigid_reference")), dict(header["session"]),
+                   fallback if "solver_fallback_reference" in extra else (),
+                   _array_or_none(extra.get("solver_fallback_reference")), gaussian,
+                   float(extra.get("solver_training_consistency", float("nan"))))
+
+
+def load_solver(path: str | os.PathLike[str], *, session: Mapping[str, Any] | None = None) -> FaceSolver:
+    """A solver saved by ``mocaptk solve`` (``model.npz``: the model, its header and the layout
+    Gaussian); ``session`` as in :func:`~mocaptk.clustering.reconstruction_models.load_model`."""
+    model, header = load_model(path, session=session)
+    with np.load(path, allow_pickle=False) as data:  # readable: load_model just read it
+        extra = {k: data[k] for k in data.files if k.startswith("solver_")}
+    try:
+        return FaceSolver.from_header(model, header, extra)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputFileError(path, f"malformed model header ({exc})") from None
 
 
 def train_solver(layout: Layout, session: Trajectories, source: Mapping[str, Any], *,
                  kind: str = DEFAULT_KIND, ridge: float = DEFAULT_RIDGE,
                  rigid_labels: Sequence[str] = ()) -> FaceSolver:
-    """Fit the model of ``kind`` on ``session`` (already head-relative: stabilized on
-    ``rigid_labels`` if the layout was) for ``layout``'s markers present in it.
+    """Fit the model of ``kind`` on ``session`` (head-relative: stabilized on ``rigid_labels``
+    when it needed it) for ``layout``'s markers present in it, with the layout markers' Gaussian
+    and the fallback pose markers.
 
     ``source``: ``{"path", "sha256"}`` of the session file (its identity in the model file).
     """
@@ -101,13 +147,19 @@ def train_solver(layout: Layout, session: Trajectories, source: Mapping[str, Any
     model = fit_model(session.positions, session.index(layout_labels), kind=kind, ridge=ridge)
     # fit_model sorts the layout columns: keep the labels in the model's order
     layout_labels = tuple(session.labels[i] for i in model.layout)
-    reference = None
-    if rigid_labels:
-        reference = model.neutral[session.index(rigid_labels)]
+    rigid_labels = tuple(label for label in rigid_labels if label in known)
+    reference = model.neutral[session.index(rigid_labels)] if len(rigid_labels) >= 3 else None
+    train_layout = session.positions[:, model.layout]
+    neutral = model.neutral[model.layout]
+    motion = _motion_p95(train_layout, neutral)
+    fallback = least_moving_markers(neutral, motion, layout_labels)
+    gaussian = LayoutGaussian.fit(train_layout, ridge=ridge)
     identity = {"path": source.get("path"), "sha256": source.get("sha256"),
                 "frames": session.n_frames, "markers": session.n_markers}
-    return FaceSolver(model, tuple(session.labels), layout_labels, tuple(rigid_labels), reference,
-                      identity)
+    return FaceSolver(model, tuple(session.labels), layout_labels,
+                      rigid_labels if reference is not None else (), reference, identity,
+                      fallback, model.neutral[session.index(fallback)] if fallback else None,
+                      gaussian, training_consistency(gaussian, train_layout))
 
 
 def layout_frames(solver: FaceSolver, capture: Trajectories, path: str) -> np.ndarray:
@@ -123,55 +175,91 @@ def layout_frames(solver: FaceSolver, capture: Trajectories, path: str) -> np.nd
     return capture.positions[:, capture.index(solver.layout_labels)]
 
 
-def head_poses(solver: FaceSolver, capture: Trajectories) -> tuple[np.ndarray, np.ndarray] | None:
-    """Per capture frame ``(R (F, 3, 3), t (F, 3))`` with ``x_capture = R x_head + t`` (NaN where
-    fewer than 3 rigid markers are seen), or ``None`` when the solver has no rigid set."""
-    if solver.rigid_reference is None:
-        return None
-    missing = [label for label in solver.rigid_labels if label not in set(capture.labels)]
-    if missing:
-        raise OptionError(f"the capture lacks rigid markers {', '.join(missing[:5])} needed to "
-                          "remove head motion; use --no-stabilize for head-relative captures")
-    rigid = capture.select(list(solver.rigid_labels))
-    if POSE_CUTOFF_HZ < capture.rate / 2:
-        rigid = lowpass(rigid, cutoff_hz=POSE_CUTOFF_HZ)
-    seen = np.isfinite(rigid.positions).all(axis=2)
-    return kabsch(solver.rigid_reference, rigid.positions, seen.astype(float))
+def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
+    """The capture's head poses in the session's head frame: from the layout's stabilization
+    markers, or, when the capture has fewer than 3 of them, from the least-moving layout markers
+    (``HeadPoses.source`` says which); None when the solver has neither."""
+    known = set(capture.labels)
+    present = [k for k, label in enumerate(solver.rigid_labels) if label in known]
+    if solver.rigid_reference is not None and len(present) >= 3:
+        return robust_head_poses(solver.rigid_reference[present], capture,
+                                 [solver.rigid_labels[k] for k in present], source=POSE_FROM_RIGID)
+    if solver.fallback_reference is not None and all(label in known for label in solver.fallback_labels):
+        return robust_head_poses(solver.fallback_reference, capture, solver.fallback_labels,
+                                 source=POSE_FROM_LAYOUT)
+    return None
 
 
 @dataclass(frozen=True)
 class SolvedChunk:
     """Frames ``[start, start + len)`` solved: ``positions`` (f, M, 3) mm in the capture frame,
-    ``expected_error_mm`` (f,), ``missing`` (f, L) lost layout markers, ``solved`` (f,) bool."""
+    ``expected_error_mm`` (f,) the model's expected error for the markers used,
+    ``missing`` (f, L) layout markers not used (lost, or ``flagged``: present but contradicted by
+    the others, ghosts), ``consistency_mm`` (f,) the RMS leave-one-out residual of the markers
+    used, ``solved`` (f,) bool."""
 
     start: int
     positions: np.ndarray
     expected_error_mm: np.ndarray
     missing: np.ndarray
     solved: np.ndarray
+    flagged: np.ndarray | None = None
+    consistency_mm: np.ndarray | None = None
 
 
-def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray,
-                 poses: tuple[np.ndarray, np.ndarray] | None = None, *,
+def to_head_frame(x: np.ndarray, poses: HeadPoses | None, rows: slice = slice(None)) -> np.ndarray:
+    """Capture points (f, K, 3) mm of frames ``rows`` in the head frame: ``R^T (x - t)``."""
+    if poses is None:
+        return np.array(x, dtype=np.float64)
+    rot, trans = poses.rotations[rows], poses.translations[rows]
+    return np.einsum("fji,fmj->fmi", rot, x - trans[:, None])
+
+
+def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray, poses: HeadPoses | None = None, *,
+                 screen: Screen | None = None, adaptation: Adaptation | None = None,
                  chunk: int = CHUNK_FRAMES) -> Iterator[SolvedChunk]:
     """Solve ``layout_positions`` (F, L, 3) mm chunk by chunk.
 
     ``poses`` from :func:`head_poses`: frames are taken into head coordinates, solved, and put
-    back; a frame without a pose is not solved.
+    back; a frame without a pose is not solved. ``screen`` (from :func:`capture_screen` on the
+    head-relative frames): layout markers the others contradict are dropped before the solve.
+    ``adaptation``: another actor's neutral offsets (:mod:`.actor_adaptation`).
     """
     n_frames = layout_positions.shape[0]
     for start in range(0, n_frames, chunk):
-        x = np.array(layout_positions[start:start + chunk], dtype=np.float64)
-        if poses is not None:
-            rot, trans = poses[0][start:start + chunk], poses[1][start:start + chunk]
-            x = np.einsum("fji,fmj->fmi", rot, x - trans[:, None])  # R^T (x - t)
+        rows = slice(start, start + chunk)
+        x = to_head_frame(layout_positions[rows], poses, rows)
+        if adaptation is not None:
+            x = adaptation.to_session(x)
+        flagged = consistency = None
+        if screen is not None and solver.gaussian is not None:
+            flagged, consistency = screen_frames(solver.gaussian, screen, x)
+            x[flagged] = np.nan
         result = solver.model.predict(x)
         positions = result.positions
+        if adaptation is not None:
+            positions = adaptation.to_capture(positions)
         if poses is not None:
-            positions = np.einsum("fij,fmj->fmi", rot, positions) + trans[:, None]
+            positions = np.einsum("fij,fmj->fmi", poses.rotations[rows], positions) \
+                + poses.translations[rows][:, None]
         solved = np.isfinite(positions).all(axis=2).any(axis=1)
         error = np.where(solved, result.expected_error_mm, np.nan)
-        yield SolvedChunk(start, positions, error, result.missing, solved)
+        yield SolvedChunk(start, positions, error, result.missing, solved, flagged, consistency)
+
+
+def _motion_p95(frames: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """Per marker the 95th percentile distance (mm) from ``neutral`` (L, 3) over ``frames``
+    (F, L, 3) (every k-th frame, at most 8,192; inf for a marker never seen)."""
+    sample = frames[::max(1, -(-len(frames) // 8192))]
+    dist = np.linalg.norm(sample - neutral, axis=2)
+    out = np.full(dist.shape[1], np.inf)
+    seen = np.isfinite(dist).any(axis=0)
+    out[seen] = [np.percentile(d[np.isfinite(d)], 95) for d in dist[:, seen].T]
+    return out
+
+
+def _array_or_none(value: Any) -> np.ndarray | None:
+    return None if value is None else np.asarray(value, dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -19,18 +19,26 @@ from typing import Any
 import numpy as np
 
 from mocaptk.atomic import write_text
+from mocaptk.clustering.pipeline import HEAD_RELATIVE_RMS_MM
 from mocaptk.clustering.reconstruction_models import save_model
 from mocaptk.errors import OptionError
 from mocaptk.jsonio import write_json
 from mocaptk.trajectories import Trajectories
 
-from .solve import CHUNK_FRAMES, FaceSolver, MeshMap, head_poses, layout_frames, solve_chunks
+from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
+from .consistency import capture_screen, screen_frames
+from .head_pose import HeadPoses, refine_poses
+from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
+                    solve_chunks, to_head_frame)
 
 __all__ = ["SOLVE_FORMATS", "user_mesh", "write_solve_outputs"]
 
-SOLVE_FORMAT, SOLVE_VERSION = "mocaptk.solve", 1
+SOLVE_FORMAT, SOLVE_VERSION = "mocaptk.solve", 2
 #: Output kinds ``--formats`` chooses from (``c3d``, the per-frame CSV and solve.json are always written).
 SOLVE_FORMATS = ("npz", "usd", "glb")
+#: How much of the layout markers' excess inconsistency (over the training session's) shows in
+#: the dense markers' error (see :func:`estimated_error`).
+CONSISTENCY_WEIGHT = 1.0
 
 
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
@@ -38,6 +46,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                         subdivisions: int = 0, mesh_path: str | os.PathLike[str] | None = None,
                         stabilize: bool = True, save_trained: bool = True,
                         chunk: int = CHUNK_FRAMES, notes: Sequence[str] = (),
+                        adapt: bool = False, rest_frames: np.ndarray | None = None,
                         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Solve ``capture`` and write every output into ``staging`` (a fresh folder); returns the
     summary written to ``solve.json`` (``notes`` go into it). The mesh is the marker surface
@@ -48,7 +57,45 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         raise OptionError(f"unknown --formats {', '.join(unknown)} (choose from {', '.join(SOLVE_FORMATS)})")
     path = str(capture_source.get("path", "capture"))
     x = layout_frames(solver, capture, path)
+    notes = list(notes)
     poses = head_poses(solver, capture) if stabilize else None
+    if poses is not None and poses.motion_rms_mm < HEAD_RELATIVE_RMS_MM:
+        notes.append(f"the capture is already in the session's head frame (its {poses.source} "
+                     f"{', '.join(poses.labels)} sit {poses.motion_rms_mm:.2f} mm RMS from their "
+                     "session positions): head motion not removed")
+        poses = None
+    elif stabilize and poses is None:
+        notes.append("head motion not removed: the capture has neither the layout's stabilization "
+                     "markers nor its least-moving layout markers")
+    elif poses is not None and poses.source != POSE_FROM_RIGID:
+        notes.append(f"warning: the capture lacks the layout's stabilization markers "
+                     f"({', '.join(solver.rigid_labels) or 'none recorded'}): head motion taken from the "
+                     f"least-moving layout markers {', '.join(poses.labels)}; expression on them "
+                     "shows as head motion (see pose_residual_mm in solve_frames.csv)")
+    if poses is not None and poses.source != POSE_FROM_RIGID and solver.gaussian is not None:
+        # a few moving markers tilt the head with every brow raise: refine on all of them, ghosts out
+        head = to_head_frame(x, poses)
+        flagged, _ = screen_frames(solver.gaussian, capture_screen(
+            solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
+        poses = refine_poses(poses, solver.gaussian, np.where(flagged[..., None], np.nan, x))
+    head = to_head_frame(x, poses)
+    screen = adaptation = None
+    mismatch = None
+    if solver.gaussian is not None:
+        screen = capture_screen(solver.gaussian, head, training_mm=solver.training_consistency_mm)
+        neutral = solver.model.neutral[solver.model.layout]
+        offset = neutral_offset(neutral, solver.gaussian.cov, head, rest=rest_frames)
+        mismatch = neutral_mismatch(neutral, offset)
+        if adapt:
+            adaptation = adapt_to_capture(neutral, offset)
+            screen = capture_screen(solver.gaussian, adaptation.to_session(head),
+                                    training_mm=solver.training_consistency_mm)
+        elif mismatch.mismatch:
+            notes.append(f"warning: the capture's neutral differs from the session's by "
+                         f"{mismatch.shift_rms_mm:.1f} mm RMS (size x{mismatch.scale:.3f}): another "
+                         "actor, another scale or other units? --adapt-neutral solves relative to the "
+                         "capture's own neutral")
+    del head
     n_frames, n_dense = capture.n_frames, len(solver.labels)
     if mesh_path is None:
         mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
@@ -58,35 +105,41 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral)
     dense = np.full((n_frames, n_dense, 3), np.nan)
     error = np.full(n_frames, np.nan)
+    consistency = np.full(n_frames, np.nan)
     missing = np.zeros((n_frames, len(solver.layout_labels)), bool)
+    flagged = np.zeros((n_frames, len(solver.layout_labels)), bool)
     frames_file = None
     if "npz" in formats or "usd" in formats or "glb" in formats:
         frames_file = np.lib.format.open_memmap(staging / "mesh_frames.npy", mode="w+", dtype=np.float32,
                                                 shape=(n_frames, mesh.vertices.shape[0], 3))
-    for part in solve_chunks(solver, x, poses, chunk=chunk):
+    for part in solve_chunks(solver, x, poses, screen=screen, adaptation=adaptation, chunk=chunk):
         say(f"solving frames {part.start}-{part.start + len(part.positions)} of {n_frames}")
         rows = slice(part.start, part.start + len(part.positions))
         dense[rows], error[rows], missing[rows] = part.positions, part.expected_error_mm, part.missing
+        if part.flagged is not None:
+            flagged[rows], consistency[rows] = part.flagged, part.consistency_mm
         if frames_file is not None:
             frames_file[rows] = mesh.apply(part.positions)
+    estimated = estimated_error(error, consistency, solver.training_consistency_mm)
     solved = np.isfinite(dense).all(axis=2).any(axis=1)
     written = ["dense.c3d", "solve_frames.csv", "solve.json"]
     say("writing dense.c3d")
     from mocaptk.acquisition.c3d_write import write_c3d
 
-    residual = np.where(np.isfinite(dense).all(axis=2), error[:, None], np.nan)
+    residual = np.where(np.isfinite(dense).all(axis=2), estimated[:, None], np.nan)
     meta = {"takes": capture.takes, "source": path}
     write_c3d(Trajectories(dense, solver.labels, capture.rate, capture.first_frame, residual, meta),
               staging / "dense.c3d")
-    write_text(staging / "solve_frames.csv", _frames_csv(solved, error, missing, solver.layout_labels))
+    write_text(staging / "solve_frames.csv",
+               _frames_csv(solved, error, estimated, consistency, missing & ~flagged, flagged,
+                           poses, solver.layout_labels))
     if save_trained:
-        save_model(solver.model, staging / "model.npz", header=solver.header())
+        save_model(solver.model, staging / "model.npz", header=solver.header(), extra=solver.extra_arrays())
         written.append("model.npz")
     if frames_file is not None:
         frames_file.flush()
         _write_obj(staging / "mesh_neutral.obj", mesh.vertices, mesh.faces)
         written += ["mesh_neutral.obj"] + (["mesh_frames.npy"] if "npz" in formats else [])
-    notes = list(notes)
     if "usd" in formats:
         say("writing mesh.usd")
         from .export_usd import write_mesh_usd
@@ -111,9 +164,10 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         if "npz" not in formats:
             (staging / "mesh_frames.npy").unlink()
     mesh_info.update(vertices=int(mesh.vertices.shape[0]), triangles=int(mesh.faces.shape[0]))
-    summary = _summary(solver, capture, capture_source, solved=solved, error=error, missing=missing,
-                       mesh=mesh_info, head_motion=poses is not None, outputs=sorted(written),
-                       notes=notes)
+    summary = _summary(solver, capture, capture_source, solved=solved, error=error, estimated=estimated,
+                       consistency=consistency, missing=missing, flagged=flagged, poses=poses,
+                       mismatch=mismatch, adapted=adaptation is not None, mesh=mesh_info,
+                       outputs=sorted(written), notes=notes)
     write_json(staging / "solve.json", summary)
     return summary
 
@@ -132,16 +186,31 @@ def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray) -> tuple[MeshMa
                                 "max_residual_mm": alignment.max_mm}}
 
 
-def _frames_csv(solved: np.ndarray, error: np.ndarray, missing: np.ndarray,
+def _frames_csv(solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
+                lost: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
                 labels: Sequence[str]) -> str:
     names = np.asarray(labels, dtype=object)
     out = io.StringIO()
-    out.write("frame,solved,expected_error_mm,missing_count,missing_markers\n")
+    out.write("frame,solved,expected_error_mm,estimated_error_mm,consistency_mm,pose_residual_mm,"
+              "missing_count,missing_markers,flagged_count,flagged_markers\n")
+    pose = poses.residual_mm if poses is not None else np.full(len(solved), np.nan)
     for f in range(len(solved)):
-        lost = ";".join(names[missing[f]]) if missing[f].any() else ""
-        value = f"{error[f]:.3f}" if np.isfinite(error[f]) else ""
-        out.write(f"{f},{int(solved[f])},{value},{int(missing[f].sum())},{lost}\n")
+        values = ",".join(f"{v:.3f}" if np.isfinite(v) else "" for v in
+                          (error[f], estimated[f], consistency[f], pose[f]))
+        lost_names = ";".join(names[lost[f]]) if lost[f].any() else ""
+        ghost_names = ";".join(names[flagged[f]]) if flagged[f].any() else ""
+        out.write(f"{f},{int(solved[f])},{values},{int(lost[f].sum())},{lost_names},"
+                  f"{int(flagged[f].sum())},{ghost_names}\n")
     return out.getvalue()
+
+
+def estimated_error(expected: np.ndarray, consistency: np.ndarray, training_mm: float) -> np.ndarray:
+    """Per frame the error the solve reports (mm): the model's expected error, raised where the
+    layout markers agree less with each other than on the training session (consistency above
+    ``training_mm``: a face or expression the model does not explain)."""
+    excess = np.where(np.isfinite(consistency), consistency ** 2 - training_mm ** 2, 0.0) \
+        if np.isfinite(training_mm) else np.zeros_like(expected)
+    return np.sqrt(expected ** 2 + CONSISTENCY_WEIGHT ** 2 * np.maximum(excess, 0.0))
 
 
 def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -152,10 +221,18 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
 
 
 def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any], *,
-             solved: np.ndarray, error: np.ndarray, missing: np.ndarray, mesh: dict[str, Any],
-             head_motion: bool, outputs: list[str], notes: list[str]) -> dict[str, Any]:
-    finite = error[np.isfinite(error)]
+             solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
+             missing: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
+             mismatch: NeutralMismatch | None, adapted: bool, mesh: dict[str, Any],
+             outputs: list[str], notes: list[str]) -> dict[str, Any]:
     lost_rate = missing.mean(axis=0) if len(missing) else np.zeros(missing.shape[1])
+    head: dict[str, Any] = {"removed_and_restored": poses is not None,
+                            "rigid_labels": list(solver.rigid_labels)}
+    if poses is not None:
+        head.update(pose_from=poses.source, pose_labels=list(poses.labels),
+                    pose_residual_mm=_stats(poses.residual_mm),
+                    frames_without_pose=int((~np.isfinite(poses.rotations[:, 0, 0])).sum()),
+                    pose_markers_dropped=int(poses.dropped.sum()))
     return {
         "format": SOLVE_FORMAT, "version": SOLVE_VERSION, "units": "mm",
         "capture": {"path": source.get("path"), "sha256": source.get("sha256"),
@@ -163,15 +240,26 @@ def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any
         "session": solver.session,
         "model": {"kind": solver.model.kind, "layout_markers": list(solver.layout_labels),
                   "dense_markers": len(solver.labels),
-                  "expected_error_all_present_mm": solver.model.error_base},
-        "head_motion": {"removed_and_restored": head_motion, "rigid_labels": list(solver.rigid_labels)},
+                  "expected_error_all_present_mm": solver.model.error_base,
+                  "training_consistency_mm": solver.training_consistency_mm},
+        "head_motion": head,
         "frames": {"solved": int(solved.sum()), "unsolved": int((~solved).sum()),
                    "with_lost_markers": int(missing.any(axis=1).sum()),
+                   "with_flagged_markers": int(flagged.any(axis=1).sum()),
                    "unsolved_frames": np.flatnonzero(~solved)[:100].tolist()},
         "missing_rate": {label: float(r) for label, r in zip(solver.layout_labels, lost_rate) if r > 0},
-        "expected_error_mm": {"mean": float(finite.mean()) if finite.size else None,
-                              "p95": float(np.percentile(finite, 95)) if finite.size else None,
-                              "max": float(finite.max()) if finite.size else None},
+        "flagged_markers": int(flagged.sum()),
+        "expected_error_mm": _stats(error),
+        "consistency_mm": _stats(consistency),
+        "estimated_error_mm": _stats(estimated),
+        "neutral": {**(mismatch.as_dict() if mismatch is not None else {}), "adapted": adapted},
         "mesh": mesh,
         "outputs": outputs, "notes": notes,
     }
+
+
+def _stats(values: np.ndarray) -> dict[str, float | None]:
+    finite = values[np.isfinite(values)]
+    return {"mean": float(finite.mean()) if finite.size else None,
+            "p95": float(np.percentile(finite, 95)) if finite.size else None,
+            "max": float(finite.max()) if finite.size else None}

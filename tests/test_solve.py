@@ -131,9 +131,12 @@ def test_lost_markers_and_empty_frames_are_flagged_per_frame(workspace, tmp_path
                    tmp_path / "o", "--formats", "npz")
     assert done.returncode == 0, done.stderr
     assert "1 frames without any layout marker" in done.stdout
-    rows = [line.split(",") for line in (tmp_path / "o" / "solve_frames.csv").read_text().splitlines()[1:]]
-    assert rows[300][1:4] == ["0", "", str(capture.n_markers)]
-    assert rows[120][3] == "5" and float(rows[120][2]) > float(rows[0][2])
+    lines = (tmp_path / "o" / "solve_frames.csv").read_text().splitlines()
+    rows = [dict(zip(lines[0].split(","), line.split(","))) for line in lines[1:]]
+    assert (rows[300]["solved"], rows[300]["expected_error_mm"]) == ("0", "")
+    assert rows[300]["missing_count"] == str(capture.n_markers)
+    assert rows[120]["missing_count"] == "5"
+    assert float(rows[120]["expected_error_mm"]) > float(rows[0]["expected_error_mm"])
     dense = read_c3d(tmp_path / "o" / "dense.c3d").positions
     assert np.isnan(dense[300]).all() and np.isfinite(np.delete(dense, 300, axis=0)).all()
     summary = json.loads((tmp_path / "o" / "solve.json").read_text())

@@ -32,15 +32,6 @@ def evaluation_table(result: dict) -> str:
             f"is lost (gap-free frames; random: mean over the first {LOST_MARKER_SEEDS} seeds)\n")
 
 
-def layout_rigid_set(layout) -> tuple[str, ...] | None:
-    """The rigid head markers the layout's session was stabilized on (None: not stabilized, e.g.
-    already head-relative, or not recorded)."""
-    if not layout.parameters.get("stabilized"):  # a detected set is recorded even when not applied
-        return None
-    labels = layout.extra.get("stabilization", {}).get("rigid_labels")
-    return tuple(labels) if labels else None
-
-
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
                    units: str | None, rigid: tuple[str, ...] | None = None):
     """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
@@ -98,7 +89,7 @@ def evaluate(
 
     from mocaptk.atomic import claim_output
     from mocaptk.clustering.evaluation import evaluate_layout
-    from mocaptk.clustering.layout import measured_indices, read_layout
+    from mocaptk.clustering.layout import layout_rigid_set, measured_indices, read_layout
     from mocaptk.clustering.takes import read_takes
     from mocaptk.jsonio import write_json
 
@@ -110,9 +101,8 @@ def evaluate(
     claim_output(out_path.with_suffix(".html"), force=force, hint=OUT_HINT)
     lay = read_layout(layout)
     stabilized = bool(lay.parameters.get("stabilized"))
-    traj, test_positions, source = session_arrays(
-        session, test=test, stabilized=stabilized, rate=rate, units=units,
-        rigid=layout_rigid_set(lay) if stabilized else None)  # an unapplied rigid set is only a record
+    traj, test_positions, source = session_arrays(  # the test into the session's head frame, always
+        session, test=test, stabilized=stabilized, rate=rate, units=units, rigid=layout_rigid_set(lay))
     index = {label: i for i, label in enumerate(traj.labels)}
     measured = [traj.labels[i] for i in measured_indices(lay, traj.labels, layout_path=layout,
                                                          session_name=session.name)]

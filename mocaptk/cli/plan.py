@@ -56,7 +56,7 @@ def plan(
     from mocaptk.errors import InputFileError, OptionError
     from mocaptk.jsonio import write_json
     from .cluster import OUT_HINT
-    from .evaluate import layout_rigid_set
+    from mocaptk.clustering.layout import layout_rigid_set
 
     if not noise >= 0:
         raise OptionError(f"--noise must be >= 0 mm, got {noise}")

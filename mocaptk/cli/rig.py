@@ -52,12 +52,12 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
     the layout's; the dense ones give the held-out skinning check)."""
     from mocaptk.clustering.pipeline import load_session, rigid_reference, stabilize
     from mocaptk.retarget.build import Capture
-    from .evaluate import layout_rigid_set
+    from mocaptk.clustering.layout import layout_rigid_set
 
     stabilized = bool(layout.parameters.get("stabilized")) and not no_stabilize
-    rigid = layout_rigid_set(layout)
-    # the performances land in the session's head frame, the rig's
-    reference = rigid_reference(relative, rigid) if stabilized and rigid else None
+    rigid = None if no_stabilize else layout_rigid_set(layout)
+    # the performances land in the session's head frame, the rig's (whether or not the session moved)
+    reference = rigid_reference(relative, rigid) if rigid else None
     captures = [Capture(Path(str(session.metadata.get("source") or "session")).stem, relative,
                         session if stabilized else None)]
     for path in performances:
@@ -68,8 +68,8 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
         if missing:
             raise InputFileError(path, f"lacks {len(missing)} layout markers: "
                                        f"{', '.join(missing[:5])}")
-        steady = stabilize(perf, rigid=rigid, reference=reference)[0] if stabilized else perf
-        captures.append(Capture(path.stem, steady, perf if stabilized else None))
+        steady = stabilize(perf, rigid=rigid, reference=reference)[0] if rigid else perf
+        captures.append(Capture(path.stem, steady, perf if rigid else None))
     return captures
 
 
@@ -109,7 +109,7 @@ def rig(
     from mocaptk.clustering.layout import read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.build import write_rig_outputs
-    from .evaluate import layout_rigid_set
+    from mocaptk.clustering.layout import layout_rigid_set
 
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
     chosen = parse_formats(formats)

@@ -44,13 +44,30 @@ def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progres
                       captures=[Capture(name, relative, solved if rigid else None)], progress=progress)
 
 
+def parse_frame_range(text: str | None, option: str) -> range | None:
+    """``FIRST:LAST`` (0-based, LAST excluded) as a range; None for None."""
+    if text is None:
+        return None
+    try:
+        first, last = (int(part) for part in text.split(":"))
+    except ValueError:
+        raise OptionError(f"{option} must be FIRST:LAST frame numbers, got {text!r}") from None
+    if not 0 <= first < last:
+        raise OptionError(f"{option} must name at least one frame (0 <= FIRST < LAST), got {text!r}")
+    return range(first, last)
+
+
 def summary_text(summary: dict) -> str:
     """What solve prints, and its report's side panel shows (from solve.json's ``summary``)."""
     frames, model = summary["frames"], summary["model"]
+    mean = lambda key: summary[key]["mean"] if summary[key]["mean"] is not None else float("nan")  # noqa: E731
     lines = [f"solved {frames['solved']} of {summary['capture']['frames']} frames with {model['kind']} "
              f"({len(model['layout_markers'])} layout -> {model['dense_markers']} dense markers, mesh "
              f"{summary['mesh']['vertices']} vertices); {frames['with_lost_markers']} frames with "
-             f"lost markers, expected error mean {summary['expected_error_mm']['mean'] or float('nan'):.2f} mm"]
+             f"lost markers, {frames['with_flagged_markers']} with markers flagged as ghosts; error "
+             f"mean {mean('estimated_error_mm'):.2f} mm estimated (model expected {mean('expected_error_mm'):.2f} mm, "
+             f"layout-marker consistency {mean('consistency_mm'):.2f} mm vs "
+             f"{model['training_consistency_mm']:.2f} mm in training)"]
     if frames["unsolved"]:
         lines.append(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
                      "are not solved (see solve_frames.csv)")
@@ -79,8 +96,14 @@ def solve(
                               "aligned to the dense neutral as 'mocaptk rig --mesh' does."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength of the ridge models, relative "
                                 "to the mean input variance."),
-    no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
-                                      "if the layout was made on stabilized data."),
+    no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion (the "
+                                      "capture is already in the session's head frame)."),
+    adapt_neutral: bool = typer.Option(False, "--adapt-neutral", help="Another actor (or another "
+                                       "day): solve relative to the capture's own neutral, estimated "
+                                       "from the whole capture (or from --neutral frames)."),
+    neutral: str = typer.Option(None, "--neutral", metavar="FIRST:LAST", help="Capture frames at "
+                                "rest (0-based, LAST excluded) giving the capture's neutral; implies "
+                                "--adapt-neutral."),
     rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
                              "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
                              "'mocaptk rig --animate' writes them; needs the session)."),
@@ -94,12 +117,12 @@ def solve(
 
     from mocaptk.clustering.layout import read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
-    from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
+    from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS
     from mocaptk.jsonio import write_json
-    from mocaptk.retarget.solve import FaceSolver, train_solver
+    from mocaptk.retarget.solve import load_solver, train_solver
     from mocaptk.retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
-    from .evaluate import layout_rigid_set
+    from mocaptk.clustering.layout import layout_rigid_set
     from .report import write_solve_report
     from .rig import parse_formats
 
@@ -108,6 +131,7 @@ def solve(
     if model is not None and model_kind is not None:
         raise OptionError("--model-kind chooses a model to train; a --model file already has its kind")
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
+    rest = parse_frame_range(neutral, "--neutral")
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
@@ -116,8 +140,7 @@ def solve(
         traj, capture_source = load_session(str(capture), rate=rate, units=units)
         if model is not None:
             identity = {"sha256": lay.source.get("sha256")} if lay.source.get("sha256") else {}
-            face_model, header = load_model(model, session=identity)
-            solver = FaceSolver.from_header(face_model, header)
+            solver = load_solver(model, session=identity)
             unknown = [label for label in solver.layout_labels if label not in set(lay.labels)]
             if unknown:
                 raise InputFileError(model, f"its layout markers are not the layout's: {', '.join(unknown[:5])}")
@@ -138,10 +161,14 @@ def solve(
                  + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
         if rig and model is not None:
             raise OptionError("--rig needs the session (it builds the rig on it): leave out --model")
+        if rest is not None and rest.stop > traj.n_frames:
+            raise OptionError(f"--neutral {neutral}: the capture has {traj.n_frames} frames")
         with staged_folder(out, force=force) as staging:
             summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
                                           subdivisions=subdivisions, mesh_path=mesh,
                                           stabilize=not no_stabilize,
+                                          adapt=adapt_neutral or rest is not None,
+                                          rest_frames=None if rest is None else list(rest),
                                           save_trained=model is None, notes=notes, progress=say)
             if rig:
                 say("building the rig and baking the solve onto it")
