@@ -277,3 +277,104 @@ def test_a_given_mesh_is_aligned_and_follows_the_solve(workspace, tmp_path):
     assert mesh["alignment"]["rms_residual_mm"] < 3.0
     frames = np.load(tmp_path / "mp" / "mesh_frames.npy")
     assert np.isfinite(frames).all() and np.linalg.norm(frames - frames[:1], axis=2).max() > 3.0
+
+
+def moving_capture(source: Trajectories, labels, *, degrees: float, mm: float, ghosts: float,
+                   dropouts: float, seed: int = 3) -> tuple[Trajectories, np.ndarray, np.ndarray]:
+    """``source``'s ``labels`` under smooth head motion (up to ``degrees`` / ``mm``) about the face's
+    centre, with a share ``ghosts`` of points moved 5-270 mm and ``dropouts`` lost; returns the
+    capture, the rotations (F, 3, 3) / translations (F, 3) applied and the centre."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(source.n_frames) / source.rate
+    phase, freq = rng.uniform(0, 2 * np.pi, (2, 3, 1)), rng.uniform(0.1, 0.5, (2, 3, 1))
+    angles = np.deg2rad(degrees) * np.sin(2 * np.pi * freq[0] * t + phase[0]).T
+    shift = mm * np.sin(2 * np.pi * freq[1] * t + phase[1]).T
+    rot = Rotation.from_rotvec(angles).as_matrix()
+    centre = np.nanmean(source.positions[0], axis=0)
+    x = source.select(list(labels)).positions
+    x = np.einsum("fij,fmj->fmi", rot, x - centre) + centre + shift[:, None]
+    ghost = rng.random(x.shape[:2]) < ghosts
+    away = rng.normal(size=x.shape)
+    away *= (rng.uniform(5, 270, x.shape[:2]) / np.linalg.norm(away, axis=2))[..., None]
+    x[ghost] += away[ghost]
+    x[rng.random(x.shape[:2]) < dropouts] = np.nan
+    capture = Trajectories(x, tuple(labels), source.rate, metadata={"takes": []})
+    return capture, (rot, shift, centre), ghost
+
+
+def dense_rmse(out, truth: np.ndarray, motion, layout_labels) -> float:
+    """RMSE (mm) of the solved dense markers outside the layout against ``truth`` moved by ``motion``."""
+    rot, shift, centre = motion
+    dense = read_c3d(out / "dense.c3d")
+    moved = np.einsum("fij,fmj->fmi", rot, truth - centre) + centre + shift[:, None]
+    other = [k for k, label in enumerate(dense.labels) if label not in set(layout_labels)]
+    err = np.linalg.norm(dense.positions[:, other] - moved[:, other], axis=2)
+    return float(np.sqrt(np.mean(err ** 2)))
+
+
+@pytest.mark.slow
+def test_head_motion_ghosts_and_dropouts_on_a_head_relative_session(workspace, tmp_path):
+    """Issue 27: the sample session is already head-relative (not stabilized), the capture holds
+    the layout's markers and its stabilization markers only, and moves (8 deg / 15 mm), with 1 %
+    ghosts and 2 % dropouts: the solve stays within 1.3x of the still capture and flags the ghosts."""
+    root, layout = workspace
+    assert layout["parameters"]["stabilized"] is False
+    rigid = layout["stabilization"]["rigid_labels"]
+    assert 3 <= len(rigid) <= 6 and len(layout["stabilization"]["reference"]) == len(rigid)
+    performance = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz").positions
+    labels = [label for label in performance.labels if label in set(layout["layout"]) | set(rigid)]
+    results = {}
+    for name, kw in [("still", dict(degrees=0, mm=0, ghosts=0, dropouts=0)),
+                     ("moving", dict(degrees=8, mm=15, ghosts=0.01, dropouts=0.02))]:
+        capture, motion, ghost = moving_capture(performance, labels, **kw)
+        write_c3d(capture, tmp_path / f"{name}.c3d")
+        done = mocaptk("solve", root / "layout" / "layout.json", tmp_path / f"{name}.c3d", "--out",
+                       tmp_path / name, "--formats", "npz")
+        assert done.returncode == 0, done.stderr
+        results[name] = dense_rmse(tmp_path / name, truth, motion, layout["layout"]), ghost
+    summary = json.loads((tmp_path / "moving" / "solve.json").read_text())
+    assert summary["head_motion"]["pose_from"] == "stabilization markers"
+    still, moving = results["still"][0], results["moving"][0]
+    assert moving < 1.3 * still, (moving, still)
+    ghosts = results["moving"][1]
+    lines = (tmp_path / "moving" / "solve_frames.csv").read_text().splitlines()
+    flagged = sum(int(line.split(",")[8]) for line in lines[1:])
+    layout_ghosts = int(ghosts[:, [labels.index(m) for m in summary["model"]["layout_markers"]]].sum())
+    assert flagged >= 0.95 * layout_ghosts and flagged <= 1.1 * layout_ghosts, (flagged, layout_ghosts)
+
+
+def test_a_capture_without_stabilization_markers_is_solved_with_a_warning(solved):
+    out, done = solved
+    summary = json.loads((out / "solve.json").read_text())
+    assert summary["head_motion"]["pose_from"] == "least-moving layout markers"
+    assert any("lacks the layout's stabilization markers" in note for note in summary["notes"])
+    header = (out / "solve_frames.csv").read_text().splitlines()[0].split(",")
+    assert {"estimated_error_mm", "consistency_mm", "pose_residual_mm", "flagged_markers"} <= set(header)
+
+
+def test_another_face_size_is_warned_and_adapted(workspace, solved, tmp_path):
+    """A capture 8 % larger than the session's actor (another face, or other units): solve warns,
+    its estimated error rises with the inconsistency, and --adapt-neutral lowers the error."""
+    root, layout = workspace
+    out, _ = solved
+    capture = read_c3d(root / "perf_layout.c3d")
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz").positions
+    centre = np.nanmean(capture.positions[0], axis=0)
+    write_c3d(capture.replace(positions=(capture.positions - centre) * 1.08 + centre), tmp_path / "big.c3d")
+    errors = {}
+    for name, extra in (("plain", ()), ("adapted", ("--adapt-neutral",))):
+        done = mocaptk("solve", root / "layout" / "layout.json", tmp_path / "big.c3d", "--out",
+                       tmp_path / name, "--formats", "npz", "--model", out / "model.npz", *extra)
+        assert done.returncode == 0, done.stderr
+        summary = json.loads((tmp_path / name / "solve.json").read_text())
+        errors[name] = dense_rmse(tmp_path / name, (truth - centre) * 1.08 + centre,
+                                  (np.eye(3)[None].repeat(len(truth), 0), np.zeros((len(truth), 3)), centre),
+                                  layout["layout"]), summary
+    plain, adapted = errors["plain"][1], errors["adapted"][1]
+    assert plain["neutral"]["mismatch"] and any("neutral differs" in n for n in plain["notes"])
+    assert plain["estimated_error_mm"]["mean"] > 3 * plain["expected_error_mm"]["mean"]
+    assert errors["adapted"][0] < 0.8 * errors["plain"][0], (errors["adapted"][0], errors["plain"][0])
+    assert adapted["neutral"]["adapted"]
