@@ -628,9 +628,13 @@ def guide_rows(build: RigBuild) -> list[GuideMarker]:
     clusters = build.layout.clusters
     members = influence_members(clusters)
     nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
+    stabilization = build.layout.extra.get("stabilization") or {}
+    heads = [(label, side_tag(label) or "C", np.asarray(pos, float)) for label, pos in
+             zip(stabilization.get("rigid_labels") or (), stabilization.get("reference") or ())]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
                          [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],
-                         members, nose, mirrored_from=[c.mirrored_from for c in clusters])
+                         members, nose, mirrored_from=[c.mirrored_from for c in clusters],
+                         stabilization=heads)
 
 
 def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.PathLike[str], *,

@@ -48,6 +48,8 @@ DOT_MM = 1.5
 LABEL_PT = 7
 #: Table rows list at most this many lines of replaced dense markers (the rest is counted).
 REPLACES_MAX_LINES = 40
+#: Region name of the stabilization (head) markers: drawn as squares, listed last, no rig joint.
+STABILIZATION = "stabilization"
 #: Creation date written into the PDF, fixed so the same input gives the same bytes.
 _FIXED_DATE = datetime.datetime(2024, 1, 1, tzinfo=datetime.timezone.utc)
 
@@ -89,9 +91,12 @@ def pair_names(labels: Sequence[str], sides: Sequence[str],
 def guide_markers(labels: Sequence[str], regions: Sequence[str], sides: Sequence[str],
                   positions: np.ndarray, members: Sequence[Sequence[str]],
                   nose_tip: np.ndarray, mirrored_from: Sequence[str | None] | None = None,
+                  stabilization: Sequence[tuple[str, str, np.ndarray]] = (),
                   ) -> list[GuideMarker]:
     """Guide rows for the layout markers (positions (J, 3) mm, rig frame); ``mirrored_from``:
-    per marker, the label it mirrors (None: measured), for the pair names."""
+    per marker, the label it mirrors (None: measured), for the pair names; ``stabilization``:
+    ``(label, side, position)`` of the head markers a capture is posed from, named ``H1``, ``H2``
+    ... (region :data:`STABILIZATION`, no rig joint: number 0)."""
     names = pair_names(labels, sides, mirrored_from or [None] * len(labels))
     out = []
     for k, (label, region, side, pos, group) in enumerate(zip(labels, regions, sides,
@@ -99,6 +104,9 @@ def guide_markers(labels: Sequence[str], regions: Sequence[str], sides: Sequence
         out.append(GuideMarker(k + 1, names[k], label, region, side, np.asarray(pos, float),
                                np.asarray(pos, float) - nose_tip,
                                tuple(m for m in group if m != label)))
+    for k, (label, side, pos) in enumerate(stabilization):
+        out.append(GuideMarker(0, f"H{k + 1}", label, STABILIZATION, side, np.asarray(pos, float),
+                               np.asarray(pos, float) - nose_tip, ()))
     return out
 
 
@@ -289,7 +297,10 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     for m, (x, y), box in zip(markers, dots, boxes):
         r, g, b = (int(255 * c) for c in region_colour(m.region, tint=-0.2))
         pdf.set_fill_color(r, g, b)
-        pdf.ellipse(x - DOT_MM, y - DOT_MM, 2 * DOT_MM, 2 * DOT_MM, style="F")
+        if m.region == STABILIZATION:  # a head marker: a square, never mistaken for a face dot
+            pdf.rect(x - DOT_MM, y - DOT_MM, 2 * DOT_MM, 2 * DOT_MM, style="F")
+        else:
+            pdf.ellipse(x - DOT_MM, y - DOT_MM, 2 * DOT_MM, 2 * DOT_MM, style="F")
         pdf.text(box[0] + 0.2, box[3] - 0.35, m.name)  # baseline just above the box's bottom
     bx, by = MARGIN + 16, height - MARGIN - 18
     _scale_bars(pdf, bx, by)
@@ -299,7 +310,8 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
         "Front projection, true size: markers on the sides of the face sit further apart on the "
         "skin than on paper. Dashed: face outline and midline. Character's left is on the "
         "right, as seen facing the performer. A marker and its mirror share a number (16L / 16R). "
-        "Check both bars before cutting a mask."))
+        "Squares H1, H2 ...: head (stabilization) markers on skin that does not move, placed like "
+        "the others; every capture needs them. Check both bars before cutting a mask."))
 
 
 def _scale_bars(pdf, bx: float, by: float) -> None:
@@ -328,8 +340,8 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
     line_h = 3.4
     width, height = A4
     # pairs together (16L, 16R), in number order
-    rows = sorted(markers, key=lambda m: (int(m.name.rstrip("LRC")), m.name))
-    wrapped: dict[int, list[str]] = {}
+    rows = sorted(markers, key=lambda m: (m.region == STABILIZATION, int(m.name.strip("HLRC")), m.name))
+    wrapped: dict[str, list[str]] = {}
     first = True
     while rows or first:
         first = False
@@ -347,14 +359,16 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
         while rows:
             m = rows[0]
             lateral, vertical, depth = _describe(m.from_nose)
-            if m.number not in wrapped:  # once per row, also when it moves to the next page
-                wrapped[m.number] = _replaces_lines(pdf, m.replaces, cols[-1][1] - 1)
-            lines = wrapped[m.number]
+            if m.name not in wrapped:  # once per row, also when it moves to the next page
+                wrapped[m.name] = _replaces_lines(pdf, m.replaces, cols[-1][1] - 1) \
+                    if m.region != STABILIZATION else ["head (stabilization) marker: every capture needs it"]
+            lines = wrapped[m.name]
             row_h = line_h * len(lines) + 1.2
             if y + row_h > height - MARGIN:
                 break
             rows.pop(0)
-            values = [m.name, str(m.number), m.label, m.region, m.side, lateral, vertical, depth]
+            values = [m.name, str(m.number) if m.number else "-", m.label, m.region, m.side,
+                      lateral, vertical, depth]
             r, g, b = (int(255 * c) for c in region_colour(m.region, tint=0.75))
             pdf.set_fill_color(r, g, b)
             pdf.rect(MARGIN, y, sum(w for _, w in cols), row_h, style="F")
