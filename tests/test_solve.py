@@ -378,3 +378,22 @@ def test_another_face_size_is_warned_and_adapted(workspace, solved, tmp_path):
     assert plain["estimated_error_mm"]["mean"] > 3 * plain["expected_error_mm"]["mean"]
     assert errors["adapted"][0] < 0.8 * errors["plain"][0], (errors["adapted"][0], errors["plain"][0])
     assert adapted["neutral"]["adapted"]
+
+
+def test_clean_reference_stabilizes_into_the_sessions_head_frame(workspace, tmp_path):
+    """``clean --reference layout.json``: a moving capture lands in the session's head frame (the
+    layout's stabilization markers on their recorded positions), not in its own frame 0."""
+    root, layout = workspace
+    performance = read_c3d(SAMPLES / "dense_halfface_performance.c3d").frames(0, 600)
+    capture, motion, _ = moving_capture(performance, performance.labels, degrees=8, mm=15, ghosts=0,
+                                        dropouts=0)
+    write_c3d(capture, tmp_path / "moving.c3d")
+    done = mocaptk("clean", tmp_path / "moving.c3d", tmp_path / "clean.c3d", "--reference",
+                   root / "layout" / "layout.json", "--fill-max-gap", "0")
+    assert done.returncode == 0, done.stderr
+    cleaned = read_c3d(tmp_path / "clean.c3d")
+    err = np.linalg.norm(cleaned.positions - performance.positions, axis=2)
+    assert np.sqrt(np.nanmean(err ** 2)) < 1.0, np.sqrt(np.nanmean(err ** 2))  # mm: noise + rigid-set skin
+    done = mocaptk("clean", tmp_path / "moving.c3d", tmp_path / "x.c3d", "--reference",
+                   root / "layout" / "layout.json", "--rigid", "NOSE_02_C,EYE_12_L,CHIN_01_C")
+    assert done.returncode == 2 and "--reference" in done.stderr and not (tmp_path / "x.c3d").exists()

@@ -10,6 +10,21 @@ from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
 
 
+def layout_head_frame(path: Path):
+    """A layout's stabilization markers and their positions (K, 3) mm in its session's head frame."""
+    import numpy as np
+
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.errors import InputFileError
+
+    stabilization = read_layout(path).extra.get("stabilization") or {}
+    labels, positions = stabilization.get("rigid_labels"), stabilization.get("reference")
+    if not labels or positions is None:
+        raise InputFileError(path, "records no stabilization markers with their reference positions "
+                             "(made by an older mocaptk: run cluster again)")
+    return tuple(labels), np.asarray(positions, dtype=np.float64)
+
+
 @app.command()
 def clean(
     source: Path = typer.Argument(..., help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
@@ -17,6 +32,9 @@ def clean(
     stabilize: bool = typer.Option(True, "--stabilize/--no-stabilize",
                                    help="Remove rigid head motion (positions become head-relative)."),
     rigid: Rigid = None,
+    reference: Path = typer.Option(None, "--reference", metavar="LAYOUT", help="Stabilize into the "
+                                   "head frame of this layout.json's session, on its stabilization "
+                                   "markers (so the result lines up with the session and its layout)."),
     pose_cutoff: float = typer.Option(12.0, "--pose-cutoff", metavar="HZ",
                                       help="Fit the head pose to the rigid markers low-passed at this "
                                            "cut-off (their noise stays out of the pose; the output is not "
@@ -44,13 +62,17 @@ def clean(
     from mocaptk.acquisition.gapfill import fill_gaps
     from mocaptk.acquisition.stabilize import stabilize_head
     from mocaptk.atomic import claim_output
-    from mocaptk.errors import OptionError
+    from mocaptk.errors import InputFileError, OptionError
     from mocaptk.jsonio import write_json
     from .info import read_marker_file
 
     fmt = output_format(target)
     if rigid and not stabilize:
         raise OptionError("--rigid needs --stabilize")
+    if reference is not None and (rigid or not stabilize):
+        raise OptionError("--reference stabilizes on the layout's own markers: it goes with neither "
+                          "--rigid nor --no-stabilize")
+    head = None if reference is None else layout_head_frame(reference)
     claim_output(target, force=force)
     if report is not None:
         claim_output(report, force=force)
@@ -62,7 +84,13 @@ def clean(
     doc: dict = {"format": "mocaptk-clean-report", "version": 1, "source": str(source)}
     before = 100 * traj.gap_stats().total_missing_fraction
     if stabilize:
-        result = stabilize_head(traj, rigid_labels=rigid_labels(rigid), pose_cutoff_hz=pose_cutoff or None)
+        if head is not None:
+            missing = [label for label in head[0] if label not in set(traj.labels)]
+            if missing:
+                raise InputFileError(source, f"lacks the stabilization markers of {reference.name}: "
+                                     f"{', '.join(missing[:5])}")
+        result = stabilize_head(traj, rigid_labels=head[0] if head else rigid_labels(rigid),
+                                reference=head[1] if head else None, pose_cutoff_hz=pose_cutoff or None)
         traj = result.trajectories
         fitted = np.isfinite(result.rms_residual_mm)
         no_pose = int(np.isnan(result.rotations[:, 0, 0]).sum())
