@@ -226,6 +226,16 @@
       marker: {size: 4.5, color: layoutEntries.map(function (e) {
         return e.cluster ? e.cluster.colour : "#1f3b73";
       })}});
+    // the stabilization (head) markers every capture is posed from: squares, H1, H2 ... as in guide.pdf
+    const heads = (data.stabilization || []).filter(function (h) { return markerVisible(h.marker); });
+    out.push({type: "scatter3d", mode: "markers", name: "stabilization markers",
+      x: heads.map(function (h) { return drawn(pos, h.marker, 0); }),
+      y: heads.map(function (h) { return drawn(pos, h.marker, 1); }),
+      z: heads.map(function (h) { return drawn(pos, h.marker, 2); }),
+      customdata: heads.map(function (h) { return h.marker; }),
+      hovertext: heads.map(function (h) { return h.name + " " + h.label + " (stabilization marker)"; }),
+      hovertemplate: "%{hovertext}<extra></extra>",
+      marker: {size: 5.5, symbol: "square", color: "#202020"}});
     const numbered = !state.show.numbers ? [] : layoutEntries.map(function (e, k) { return k; })
       .filter(function (k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null; });
     annotationMarkers = numbered.map(function (k) { return layoutEntries[k].marker; });

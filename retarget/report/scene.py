@@ -127,8 +127,16 @@ def scene_data(cloud: DenseCloud, *, layout: Layout | None = None, build: RigBui
         "region_colours": {r: hex_colour(region_colour(r)) for r in set(region_names)},
         "mirror_plane": _rig_plane(layout, cloud) if not captured.all() else None,
         "mesh": _mesh(cloud, build, cluster_of, clusters),
+        "stabilization": _stabilization(layout, lookup),
     }
     return data
+
+
+def _stabilization(layout: Layout | None, lookup: dict[str, int]) -> list[dict]:
+    """The layout's stabilization markers as the guide names them (``H1``, ``H2`` ...)."""
+    labels = ((layout.extra.get("stabilization") or {}).get("rigid_labels") or ()) if layout else ()
+    return [{"name": f"H{k + 1}", "label": label, "marker": lookup[label]}
+            for k, label in enumerate(labels) if label in lookup]
 
 
 #: The method's region order (top of the face to the bottom), others after.
