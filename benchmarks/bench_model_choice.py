@@ -136,38 +136,9 @@ def layouts(bed: BedSet) -> dict[str, np.ndarray]:
     return out
 
 
-def ridge_cv_model(train: np.ndarray, layout: np.ndarray):
-    """``ridge`` whose strength is chosen by leave-one-block-out CV on the training frames."""
-    from mocaptk.clustering.reconstruction_models import fit_model
-
-    strengths = np.array([1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1])
-    flat = train.reshape(len(train), -1)
-    data = flat[np.isfinite(flat).all(axis=1)]
-    cols = (3 * layout[:, None] + np.arange(3)).ravel()
-    bounds = np.linspace(0, len(data), min(6, len(data) // 2) + 1).astype(int)
-    squared = np.zeros(len(strengths))
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        kept = np.r_[data[:start], data[stop:]]
-        mean = kept.mean(axis=0)
-        centred = kept - mean
-        cross = centred[:, cols].T @ centred
-        gram = cross[:, cols]
-        base = float(np.trace(gram)) / cols.size
-        held = data[start:stop]
-        for i, s in enumerate(strengths):
-            coef = np.linalg.solve(gram + s * base * np.eye(cols.size), cross)
-            squared[i] += np.sum(((held[:, cols] - mean[cols]) @ coef + mean - held) ** 2)
-    best = float(strengths[int(np.argmin(squared))])
-    model = fit_model(train, layout, kind="ridge", ridge=best, expected_error=False)
-    model.cv_strength = best
-    return model
-
-
 def fit(kind: str, options: dict, train: np.ndarray, layout: np.ndarray):
     from mocaptk.clustering.reconstruction_models import fit_model
 
-    if kind == "ridge-cv":
-        return ridge_cv_model(train, layout)
     return fit_model(train, layout, kind=kind, expected_error=False, **options)
 
 
@@ -193,7 +164,7 @@ def run_set(bed: BedSet, candidates=CANDIDATES) -> dict:
                 s, p = outside_rmse(pred, fold.truth, idx)
                 sq, points = sq + s, points + p
                 if kind == "ridge-cv":
-                    extra.setdefault("strengths", []).append(model.cv_strength)
+                    extra.setdefault("strengths", []).append(model.ridge)
                 if kind == "tapered-ridge":
                     extra.setdefault("taper_mm", []).append(round(model.taper_mm, 1))
             row[name] = {"rmse_mm": float(np.sqrt(sq / max(points, 1))), **extra}
