@@ -13,22 +13,14 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from mocaptk.surface_mesh import vertex_normals
+
 from .ict import NARROW_VERTICES, IctFace
 
 #: Eyelid vertices (moved more than this by a blink, mm) take no marker: a studio never puts one there.
 EYELID_MM = 1.0
 #: Within this distance of x = 0 (mm) a marker is on the midline (``_C``).
 MIDLINE_MM = 1.5
-
-
-def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted normals."""
-    tri = points[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(points)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], cross)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def edge_graph(points: np.ndarray, faces: np.ndarray):
