@@ -28,6 +28,8 @@ SETS = {
     "tb-half-a": {"identity_seed": 11, "count": 100, "half": True, "marker_seed": 5},
     "tb-half-b": {"identity_seed": 23, "count": 100, "half": True, "marker_seed": 13},
 }
+#: The studio bench's set: tb-full-a's actor with 4 headband markers (``hb0_C`` ...) that only the head moves.
+STUDIO_SETS = {"tb-full-a-hb": {**SETS["tb-full-a"], "rigid": True}}
 
 
 def ensure_set(face_tarball: Path, folder: Path, name: str) -> Path:
@@ -36,5 +38,5 @@ def ensure_set(face_tarball: Path, folder: Path, name: str) -> Path:
     if not (out / "performance_truth.npz").exists():
         from .ict import load_ict
         from .session import write_set
-        write_set(load_ict(face_tarball), out, **SETS[name])
+        write_set(load_ict(face_tarball), out, **{**SETS, **STUDIO_SETS}[name])
     return out
