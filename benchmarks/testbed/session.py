@@ -47,7 +47,8 @@ def make_actor(face: IctFace, *, identity_seed: int, count: int, half: bool, mar
     rest = face.neutral + np.einsum("i,ivc->vc", coeffs, face.identities)
     vertices, labels = place_markers(face, rest, count=count, half=half, seed=marker_seed)
     band = headband(face, rest) if rigid else np.zeros((0, 3))
-    return Actor(coeffs, rest, vertices, tuple(labels), band, tuple(f"hb{i}_C" for i in range(len(band))))
+    sides = np.where(band[:, 0] > 0, "L", "R")  # the actor's left is +x
+    return Actor(coeffs, rest, vertices, tuple(labels), band, tuple(f"hb{i}_{s}" for i, s in enumerate(sides)))
 
 
 def truth_positions(face: IctFace, actor: Actor, weights: np.ndarray) -> np.ndarray:

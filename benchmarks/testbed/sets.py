@@ -28,7 +28,7 @@ SETS = {
     "tb-half-a": {"identity_seed": 11, "count": 100, "half": True, "marker_seed": 5},
     "tb-half-b": {"identity_seed": 23, "count": 100, "half": True, "marker_seed": 13},
 }
-#: The studio bench's set: tb-full-a's actor with 4 headband markers (``hb0_C`` ...) that only the head moves.
+#: The studio bench's set: tb-full-a's actor with 4 headband markers (``hb0_R`` ... ``hb3_L``) that only the head moves.
 STUDIO_SETS = {"tb-full-a-hb": {**SETS["tb-full-a"], "rigid": True}}
 
 
