@@ -41,11 +41,16 @@ class Actor:
 
 
 def make_actor(face: IctFace, *, identity_seed: int, count: int, half: bool, marker_seed: int,
-               rigid: bool = False) -> Actor:
-    """An identity (coefficients ~ N(0, 1.2²) on ICT's identity shapes) and its marker set."""
+               rigid: bool = False, like: Actor | None = None) -> Actor:
+    """An identity (coefficients ~ N(0, 1.2²) on ICT's identity shapes) and its marker set, or
+    ``like``'s marker set (same vertices and labels: another actor wearing the same layout, for
+    cross-actor tests)."""
     coeffs = np.random.default_rng([identity_seed, 5]).normal(0.0, 1.2, size=len(face.identities))
     rest = face.neutral + np.einsum("i,ivc->vc", coeffs, face.identities)
-    vertices, labels = place_markers(face, rest, count=count, half=half, seed=marker_seed)
+    if like is None:
+        vertices, labels = place_markers(face, rest, count=count, half=half, seed=marker_seed)
+    else:
+        vertices, labels = like.vertices, list(like.labels)
     band = headband(face, rest) if rigid else np.zeros((0, 3))
     sides = np.where(band[:, 0] > 0, "L", "R")  # the actor's left is +x
     return Actor(coeffs, rest, vertices, tuple(labels), band, tuple(f"hb{i}_{s}" for i, s in enumerate(sides)))
