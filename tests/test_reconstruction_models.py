@@ -77,7 +77,9 @@ def test_every_kind_solves_the_held_out_performance(sample, models):
     assert scores["pdm-linear"] < scores["thin-shell"]
     assert scores["pdm-biquadratic"] < scores["thin-shell"]
     assert scores["local-ridge"] < 0.9 * scores["ridge"]
-    assert scores[DEFAULT_KIND] < 0.9 * scores["ridge"]
+    assert scores["tapered-ridge"] < 0.9 * scores["ridge"]  # on our own synth only (docs/testbed.md)
+    # the default holds against ridge on every set of the test bed (tests/test_model_default.py)
+    assert scores[DEFAULT_KIND] <= 1.02 * scores["ridge"]
 
 
 def test_tapered_ridge_chooses_a_finite_taper_by_cross_validation(sample, models):

@@ -84,9 +84,9 @@ def solve(
                                  "one recorded in layout.json, looked up beside it)."),
     model: Path = typer.Option(None, "--model", help="A model.npz saved by an earlier solve "
                                "(must come from the layout's session)."),
-    model_kind: str = typer.Option(None, "--model-kind", help="ridge, local-ridge, tapered-ridge "
-                                   "(default, the best on held-out data), thin-shell, pdm-linear, "
-                                   "pdm-biquadratic."),
+    model_kind: str = typer.Option(None, "--model-kind", help="ridge-cv (default: its strength "
+                                   "chosen on the session, docs/testbed.md), ridge, local-ridge, "
+                                   "tapered-ridge, thin-shell, pdm-linear, pdm-biquadratic."),
     formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
                                 "usd, glb (clips up to 600 frames); dense.c3d is always written."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
@@ -95,7 +95,7 @@ def solve(
                               "OFF; any unit, Y up, facing +Z) instead of the marker surface: "
                               "aligned to the dense neutral as 'mocaptk rig --mesh' does."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength of the ridge models, relative "
-                                "to the mean input variance."),
+                                "to the mean input variance (ridge-cv chooses its own)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion (the "
                                       "capture is already in the session's head frame)."),
     adapt_neutral: bool = typer.Option(False, "--adapt-neutral", help="Another actor (or another "
