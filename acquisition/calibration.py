@@ -140,22 +140,25 @@ def chained_stereo(board: Board, views: Sequence[Sequence[View]],
     return poses
 
 
-def rotate(rvecs: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Rotate ``points (N, 3)`` by Rodrigues vectors ``rvecs (N, 3)`` (row by row)."""
-    theta = np.linalg.norm(rvecs, axis=1, keepdims=True)
+def rotation_matrices(rvecs: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)`` rotation matrices of Rodrigues vectors ``rvecs (K, 3)``."""
+    theta = np.sqrt(np.sum(rvecs * rvecs, axis=1))[:, None, None]
     safe = np.where(theta > 1e-12, theta, 1.0)
-    axis = rvecs / safe
-    cos, sin = np.cos(theta), np.sin(theta)
-    dot = np.sum(axis * points, axis=1, keepdims=True)
-    return points * cos + np.cross(axis, points) * sin + axis * dot * (1 - cos)
+    k = rvecs[:, :, None] / safe  # (K, 3, 1) unit axis (any axis when theta = 0)
+    zero = np.zeros(len(rvecs))
+    cross = np.stack([zero, -rvecs[:, 2], rvecs[:, 1], rvecs[:, 2], zero, -rvecs[:, 0],
+                      -rvecs[:, 1], rvecs[:, 0], zero], 1).reshape(-1, 3, 3) / safe
+    return (np.cos(theta) * np.eye(3) + np.sin(theta) * cross
+            + (1 - np.cos(theta)) * k * k.transpose(0, 2, 1))
 
 
 def _project(intr: np.ndarray, cam_pose: np.ndarray, board_pose: np.ndarray,
              objects: np.ndarray) -> np.ndarray:
-    """Pixels of board points: ``intr (N, 9)`` (fx, fy, cx, cy, k1, k2, p1, p2, k3), poses
-    ``(N, 6)`` (rvec, tvec) board -> world and world -> camera, ``objects (N, 3)`` mm."""
-    world = rotate(board_pose[:, :3], objects) + board_pose[:, 3:]
-    cam = rotate(cam_pose[:, :3], world) + cam_pose[:, 3:]
+    """Pixels of board points: per observation ``intr (N, 9)`` (fx, fy, cx, cy, k1, k2, p1, p2,
+    k3), rotations ``(N, 3, 3)`` and translations ``(N, 3)`` of the board -> world and
+    world -> camera poses (``cam_pose``, ``board_pose`` as pairs), ``objects (N, 3)`` mm."""
+    world = np.einsum("nij,nj->ni", board_pose[0], objects) + board_pose[1]
+    cam = np.einsum("nij,nj->ni", cam_pose[0], world) + cam_pose[1]
     x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
     fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr.T
     r2 = x * x + y * y
@@ -221,7 +224,9 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
 
     def residuals(x: np.ndarray) -> np.ndarray:
         intr, cams, boards = unpack(x)
-        return (_project(intr[cam_idx], cams[cam_idx], boards[frm_idx], objs) - pixels).ravel()
+        r_cams, r_boards = rotation_matrices(cams[:, :3]), rotation_matrices(boards[:, :3])
+        return (_project(intr[cam_idx], (r_cams[cam_idx], cams[cam_idx, 3:]),
+                         (r_boards[frm_idx], boards[frm_idx, 3:]), objs) - pixels).ravel()
 
     sparsity = lil_matrix((2 * n_obs, len(x0)), dtype=np.int8)
     rows = np.arange(n_obs)
@@ -233,8 +238,9 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
             sparsity[2 * rows[moving] + axis, cam_off + (cam_idx[moving] - 1) * 6 + k] = 1
             sparsity[2 * rows + axis, frame_off + frm_idx * 6 + k] = 1
     initial = residuals(x0)
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac", method="trf",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=200)
+    fit = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac", method="trf", tr_solver="lsmr",
+                        tr_options={"atol": 1e-12, "btol": 1e-12},
+                        xtol=1e-10, ftol=1e-9, gtol=1e-10, max_nfev=100)
     intr, cams, _ = unpack(fit.x)
     error = fit.fun.reshape(-1, 2)
     camera_rms = [float(np.sqrt(np.mean(np.sum(error[cam_idx == c] ** 2, axis=1))))

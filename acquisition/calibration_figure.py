@@ -1,4 +1,4 @@
-"""The calibration check picture: detected board corners against their reprojections."""
+"""Check pictures: detected board corners against their reprojections; panels side by side."""
 
 from __future__ import annotations
 
@@ -35,11 +35,13 @@ def _pt(p: np.ndarray) -> tuple[int, int]:
     return int(round(float(p[0]))), int(round(float(p[1])))
 
 
-def mosaic(panels: Sequence[np.ndarray]) -> np.ndarray:
-    """Panels side by side (same height), with a legend strip below."""
+CORNER_LEGEND = (f"green ring: detected corner   red dot: reprojection   yellow: residual "
+                 f"x{ARROW_GAIN:g}")
+
+
+def mosaic(panels: Sequence[np.ndarray], *, legend: str = CORNER_LEGEND) -> np.ndarray:
+    """Panels side by side (same height), with a ``legend`` strip below."""
     row = np.hstack([np.pad(p, ((0, 0), (0, 6), (0, 0)), constant_values=255) for p in panels])
-    legend = np.full((40, row.shape[1], 3), 255, np.uint8)
-    cv2.putText(legend, f"green ring: detected corner   red dot: reprojection   yellow: residual "
-                        f"x{ARROW_GAIN:g}", (10, 27), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1,
-                cv2.LINE_AA)
-    return np.vstack([row, legend])
+    strip = np.full((40, row.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, legend, (10, 27), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([row, strip])

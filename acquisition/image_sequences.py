@@ -80,3 +80,12 @@ class ImageSource:
                 index += 1
         finally:
             capture.release()
+
+
+def camera_sources(paths: list[Path]) -> list[Path]:
+    """Per-camera folders / videos: ``paths``, or the sub-folders of one folder of camera folders."""
+    if len(paths) == 1 and paths[0].is_dir():
+        subfolders = sorted(p for p in paths[0].iterdir() if p.is_dir() and not p.name.startswith("."))
+        if subfolders:
+            return subfolders
+    return paths

@@ -2,7 +2,7 @@
 rig's extrinsics) from photos or videos of a checkerboard or ChArUco board.
 
 Each CAMERA is a folder of photos or a video file (sampled every ``--step`` frames), in camera
-order. Beside RIG.json it writes ``<stem>_corners.png``: per camera, the view with the largest
+order, or one folder of camera folders (sorted by name). Beside RIG.json it writes ``<stem>_corners.png``: per camera, the view with the largest
 error, detected corners against their reprojections.
 """
 
@@ -55,7 +55,7 @@ def calibrate(
                                                  chained_stereo, rig_from_poses)
     from mocaptk.acquisition.calibration_figure import corner_panel, mosaic
     from mocaptk.acquisition.cameras import save_rig
-    from mocaptk.acquisition.image_sequences import ImageSource
+    from mocaptk.acquisition.image_sequences import ImageSource, camera_sources
     from mocaptk.atomic import check_writable, write_bytes
     from mocaptk.errors import InputFileError, OptionError
 
@@ -72,7 +72,7 @@ def calibrate(
     picture = out.with_name(f"{out.stem}_corners.png")
     for path in (out, picture):
         check_writable(path, force=force)
-    cameras = [ImageSource(path, step=step) for path in sources]
+    cameras = [ImageSource(path, step=step) for path in camera_sources(sources)]
 
     views, sizes, fits = [], [], []
     for source in cameras:
@@ -90,8 +90,12 @@ def calibrate(
         if not quiet:
             typer.echo(f"{source.path.name}: {len(fit.view_rms)}/{len(found)} views kept, RMS "
                        f"{fit.rms:.3f} px, focal {fit.matrix[0, 0]:.1f} x {fit.matrix[1, 1]:.1f} px")
+            unseen = [name for name, reason in fit.dropped.items() if reason == "board not found"]
+            if unseen:
+                typer.echo(f"  dropped {len(unseen)} view(s), board not found: {', '.join(unseen)}")
             for view_name, reason in fit.dropped.items():
-                typer.echo(f"  dropped {view_name}: {reason}")
+                if reason != "board not found":
+                    typer.echo(f"  dropped {view_name}: {reason}")
 
     names = [source.path.stem for source in cameras]
     report = {name: {"rms_px": fit.rms, "views_kept": len(fit.view_rms),
