@@ -17,7 +17,7 @@ from .app import app
 
 # The order of `mocaptk --help` (pipeline order: files -> capture -> cleaning -> layout ->
 # evaluation -> rig; then batch); each command is defined in the module of its name.
-COMMANDS = ("info", "convert", "synth", "calibrate", "detect", "triangulate", "clean", "cluster", "sweep",
+COMMANDS = ("info", "convert", "synth", "calibrate", "detect", "reconstruct", "triangulate", "clean", "cluster", "sweep",
             "evaluate", "compare", "rig", "plan", "solve", "batch")
 
 

@@ -1,0 +1,234 @@
+"""Unlabelled 2-D blobs of a calibrated rig -> unlabelled 3-D points -> fragments.
+
+Per frame: every camera pair proposes the blob pairs within ``tolerance_px`` of each other's
+epipolar line; each proposal is triangulated (two-view DLT in undistorted normalized
+coordinates) and collects, in every other camera, the nearest blob within ``tolerance_px`` of
+its reprojection. Proposals with the same views are one hypothesis. Hypotheses of three or more
+views are accepted best first over the whole frame (most views, then smallest reprojection
+error), each blob used once; then a two-view hypothesis is accepted only when its two blobs are
+each other's only epipolar partner among the blobs still unused (two-view matches are where
+ghosts come from). Accepted points are refitted
+by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing views
+(outlier rejection). Points are then linked frame to frame into fragments: a constant-velocity
+prediction of each live fragment is matched to the next frame's points by an optimal
+assignment (Hungarian) within ``link_mm``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from .cameras import CameraRig
+from .triangulate import triangulate_points
+
+TOLERANCE_PX = 1.0
+LINK_MM = 4.0
+
+
+@dataclass
+class Reconstruction:
+    """``points (F, P, 3)`` mm, NaN-padded per frame; ``views (F, P)`` inlier views;
+    ``fragments (F, P)`` int fragment id of each point (-1 none)."""
+
+    points: np.ndarray
+    views: np.ndarray
+    fragments: np.ndarray
+
+    @property
+    def n_fragments(self) -> int:
+        return int(self.fragments.max()) + 1 if self.fragments.size else 0
+
+    def trajectories_array(self) -> np.ndarray:
+        """``(F, n_fragments, 3)`` positions of every fragment, NaN outside it."""
+        out = np.full((self.points.shape[0], self.n_fragments, 3), np.nan)
+        f, p = np.nonzero(self.fragments >= 0)
+        out[f, self.fragments[f, p]] = self.points[f, p]
+        return out
+
+    def fragment_lengths(self) -> np.ndarray:
+        return np.bincount(self.fragments[self.fragments >= 0], minlength=self.n_fragments)
+
+
+def _normalized(rig: CameraRig, blobs: np.ndarray) -> np.ndarray:
+    """Undistorted normalized coordinates of ``blobs (C, F, B, 2)`` px (NaN kept)."""
+    out = np.full(blobs.shape, np.nan)
+    for c, camera in enumerate(rig):
+        finite = np.isfinite(blobs[c, ..., 0])
+        if finite.any():
+            out[c][finite] = cv2.undistortPoints(blobs[c][finite].reshape(-1, 1, 2), camera.matrix,
+                                                 camera.distortion).reshape(-1, 2)
+    return out
+
+
+def _two_view(p_i: np.ndarray, p_j: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """DLT points ``(N, 3)`` from normalized ``x_i, x_j (N, 2)`` and projections ``(3, 4)``."""
+    rows = np.stack([x_i[:, :1] * p_i[2] - p_i[0], x_i[:, 1:] * p_i[2] - p_i[1],
+                     x_j[:, :1] * p_j[2] - p_j[0], x_j[:, 1:] * p_j[2] - p_j[1]], axis=1)
+    v = np.linalg.svd(rows)[2][:, -1]
+    return v[:, :3] / v[:, 3:]
+
+
+def reconstruct(rig: CameraRig, blobs: np.ndarray, *, merged: np.ndarray | None = None,
+                tolerance_px: float = TOLERANCE_PX, link_mm: float = LINK_MM,
+                outlier_threshold_px: float = 3.0) -> Reconstruction:
+    """Unlabelled 3-D points and fragments from ``blobs (C, F, B, 2)`` px (NaN padding) of
+    ``rig``; blobs flagged in ``merged (C, F, B)`` (two markers in one) are not used."""
+    blobs = np.array(blobs, dtype=np.float64)
+    if merged is not None:
+        blobs[merged] = np.nan
+    n_cams, n_frames = blobs.shape[:2]
+    norm = _normalized(rig, blobs)
+    projections = [np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig]
+    focal = np.array([cam.focal_px for cam in rig])
+    essentials = {}
+    for i in range(n_cams):
+        for j in range(i + 1, n_cams):
+            rotation = rig[j].rotation @ rig[i].rotation.T
+            t = rig[j].tvec - rotation @ rig[i].tvec
+            cross = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+            essentials[i, j] = cross @ rotation
+    chosen_views: list[np.ndarray] = []  # (C,) blob index or -1, per accepted point
+    chosen_frame: list[int] = []
+    previous = np.zeros((0, 3))
+    for f in range(n_frames):
+        views, previous = _frame_hypotheses(norm[:, f], projections, essentials, focal,
+                                            tolerance_px, previous, link_mm)
+        chosen_views += views
+        chosen_frame += [f] * len(views)
+    if not chosen_views:
+        empty = np.zeros((n_frames, 0))
+        return Reconstruction(np.zeros((n_frames, 0, 3)), empty.astype(int), empty.astype(int))
+    picks = np.array(chosen_views)
+    frames = np.array(chosen_frame)
+    observations = np.full((n_cams, len(picks), 2), np.nan)
+    for c in range(n_cams):
+        used = picks[:, c] >= 0
+        observations[c, used] = blobs[c, frames[used], picks[used, c]]
+    points, inliers = triangulate_points(rig, observations, min_views=2,
+                                         outlier_threshold_px=outlier_threshold_px)
+    good = np.isfinite(points[:, 0])
+    points, frames, counts = points[good], frames[good], inliers[:, good].sum(axis=0)
+    per_frame = np.bincount(frames, minlength=n_frames)
+    width = int(per_frame.max()) if len(per_frame) else 0
+    out = np.full((n_frames, width, 3), np.nan)
+    out_views = np.zeros((n_frames, width), int)
+    slot = np.arange(len(frames)) - np.concatenate([[0], np.cumsum(per_frame)[:-1]])[frames]
+    out[frames, slot] = points
+    out_views[frames, slot] = counts
+    return Reconstruction(out, out_views, link_fragments(out, link_mm=link_mm))
+
+
+def _frame_hypotheses(norm: np.ndarray, projections: list[np.ndarray], essentials: dict,
+                      focal: np.ndarray, tolerance_px: float, previous: np.ndarray,
+                      near_mm: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """Accepted view sets ``(C,)`` (blob index per camera, -1 unused) of one frame and their
+    two-view points ``(A, 3)`` mm; ``norm (C, B, 2)`` normalized blobs (NaN padding),
+    ``previous (P, 3)`` the last frame's points (to pick among ambiguous two-view matches)."""
+    n_cams = len(projections)
+    present = [np.nonzero(np.isfinite(norm[c, :, 0]))[0] for c in range(n_cams)]
+    trees = [cKDTree(norm[c, present[c]] * focal[c]) if len(present[c]) else None for c in range(n_cams)]
+    hypotheses: dict[tuple, tuple[float, np.ndarray]] = {}  # views -> (error px, point mm)
+    for (i, j), essential in essentials.items():
+        if not len(present[i]) or not len(present[j]):
+            continue
+        xi = np.column_stack([norm[i, present[i]], np.ones(len(present[i]))])
+        xj = np.column_stack([norm[j, present[j]], np.ones(len(present[j]))])
+        lines = xi @ essential.T  # epipolar lines in camera j of the blobs of camera i
+        distance = np.abs(lines @ xj.T) / np.hypot(lines[:, :1], lines[:, 1:2]) * focal[j]
+        a, b = np.nonzero(distance < tolerance_px)
+        if not len(a):
+            continue
+        points = _two_view(projections[i], projections[j], norm[i, present[i][a]], norm[j, present[j][b]])
+        support = np.full((len(a), n_cams), -1)
+        support[:, i], support[:, j] = present[i][a], present[j][b]
+        errors = np.zeros(len(a))
+        for k in range(n_cams):
+            cam = projections[k]
+            depth = points @ cam[2, :3] + cam[2, 3]
+            projected = (points @ cam[:2, :3].T + cam[:2, 3]) / depth[:, None] * focal[k]
+            if k in (i, j):
+                residual = np.linalg.norm(projected - norm[k, support[:, k]] * focal[k], axis=1)
+                errors += np.where(depth > 0, residual, np.inf)
+            elif trees[k] is not None:
+                gap, nearest = trees[k].query(projected, distance_upper_bound=tolerance_px)
+                hit = np.isfinite(gap) & (depth > 0)
+                support[hit, k] = present[k][nearest[hit]]
+                errors += np.where(hit, gap, 0.0)
+        errors /= (support >= 0).sum(axis=1)
+        for row, error, point in zip(support, errors, points):
+            key = tuple(row)
+            if np.isfinite(error) and error < hypotheses.get(key, (np.inf,))[0]:
+                hypotheses[key] = (error, point)
+    used = [set() for _ in range(n_cams)]
+    accepted: list[tuple] = []
+
+    def accept(key: tuple) -> None:
+        for c, v in enumerate(key):
+            if v >= 0:
+                used[c].add(v)
+        accepted.append(key)
+
+    def free(key: tuple) -> bool:
+        return all(v < 0 or v not in used[c] for c, v in enumerate(key))
+
+    # >= 3 views: best first over the whole frame
+    for key in sorted(hypotheses, key=lambda key: (-sum(v >= 0 for v in key), hypotheses[key][0])):
+        if sum(v >= 0 for v in key) >= 3 and free(key):
+            accept(key)
+    pairs = [key for key in hypotheses if sum(v >= 0 for v in key) == 2]
+    # two views near a point of the last frame (a marker moves < near_mm per frame), nearest first
+    if len(previous) and pairs:
+        distance, _ = cKDTree(previous).query(np.array([hypotheses[k][1] for k in pairs]))
+        for d, key in sorted(zip(distance, pairs)):
+            if d < near_mm and free(key):
+                accept(key)
+    # two views: only a pair of blobs that are each other's only unused epipolar partner
+    for _ in range(2):  # accepting unique pairs can make others unique
+        candidates = [key for key in pairs if free(key)]
+        count: dict[tuple[int, int], int] = {}
+        for key in candidates:
+            for cv in enumerate(key):
+                count[cv] = count.get(cv, 0) + 1
+        for key in candidates:
+            if all(count[c, v] == 1 for c, v in enumerate(key) if v >= 0):
+                accept(key)
+    points = np.array([hypotheses[key][1] for key in accepted]).reshape(-1, 3)
+    return [np.array(key) for key in accepted], points
+
+
+def link_fragments(points: np.ndarray, *, link_mm: float = LINK_MM) -> np.ndarray:
+    """Fragment id ``(F, P)`` of every point of ``points (F, P, 3)`` (NaN padding: -1): each
+    live fragment's next position is predicted at constant velocity and matched to the next
+    frame's points by the Hungarian assignment within ``link_mm``; unmatched points start new
+    fragments, unmatched fragments end."""
+    n_frames, width = points.shape[:2]
+    ids = np.full((n_frames, width), -1)
+    live: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # id -> (last, previous)
+    next_id = 0
+    for f in range(n_frames):
+        present = np.nonzero(np.isfinite(points[f, :, 0]))[0]
+        current = points[f, present]
+        keys = list(live)
+        matched_rows: dict[int, int] = {}
+        if keys and len(present):
+            predicted = np.array([2 * last - prev if prev is not None else last
+                                  for last, prev in (live[k] for k in keys)])
+            cost = np.linalg.norm(predicted[:, None] - current[None], axis=2)
+            rows, cols = linear_sum_assignment(np.where(cost < link_mm, cost, 1e6))
+            matched_rows = {c: keys[r] for r, c in zip(rows, cols) if cost[r, c] < link_mm}
+        new_live = {}
+        for col, index in enumerate(present):
+            fragment = matched_rows.get(col)
+            if fragment is None:
+                fragment, next_id = next_id, next_id + 1
+                new_live[fragment] = (current[col], None)
+            else:
+                new_live[fragment] = (current[col], live[fragment][0])
+            ids[f, index] = fragment
+        live = new_live
+    return ids
