@@ -66,11 +66,13 @@ def _normalized(rig: CameraRig, blobs: np.ndarray) -> np.ndarray:
 
 
 def _two_view(p_i: np.ndarray, p_j: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
-    """DLT points ``(N, 3)`` from normalized ``x_i, x_j (N, 2)`` and projections ``(3, 4)``."""
+    """Linear (inhomogeneous DLT) points ``(N, 3)`` mm from normalized ``x_i, x_j (N, 2)`` and
+    projections ``(3, 4)``: 4 equations, 3 unknowns, normal equations solved per point."""
     rows = np.stack([x_i[:, :1] * p_i[2] - p_i[0], x_i[:, 1:] * p_i[2] - p_i[1],
                      x_j[:, :1] * p_j[2] - p_j[0], x_j[:, 1:] * p_j[2] - p_j[1]], axis=1)
-    v = np.linalg.svd(rows)[2][:, -1]
-    return v[:, :3] / v[:, 3:]
+    a, b = rows[:, :, :3], -rows[:, :, 3]
+    normal = np.einsum("nki,nkj->nij", a, a)
+    return np.linalg.solve(normal, np.einsum("nki,nk->ni", a, b)[..., None])[..., 0]
 
 
 def reconstruct(rig: CameraRig, blobs: np.ndarray, *, merged: np.ndarray | None = None,
@@ -132,7 +134,7 @@ def _frame_hypotheses(norm: np.ndarray, projections: list[np.ndarray], essential
     n_cams = len(projections)
     present = [np.nonzero(np.isfinite(norm[c, :, 0]))[0] for c in range(n_cams)]
     trees = [cKDTree(norm[c, present[c]] * focal[c]) if len(present[c]) else None for c in range(n_cams)]
-    hypotheses: dict[tuple, tuple[float, np.ndarray]] = {}  # views -> (error px, point mm)
+    keys, errs, pts = [], [], []  # per proposal: views (C,), error px, point mm
     for (i, j), essential in essentials.items():
         if not len(present[i]) or not len(present[j]):
             continue
@@ -159,46 +161,48 @@ def _frame_hypotheses(norm: np.ndarray, projections: list[np.ndarray], essential
                 hit = np.isfinite(gap) & (depth > 0)
                 support[hit, k] = present[k][nearest[hit]]
                 errors += np.where(hit, gap, 0.0)
-        errors /= (support >= 0).sum(axis=1)
-        for row, error, point in zip(support, errors, points):
-            key = tuple(row)
-            if np.isfinite(error) and error < hypotheses.get(key, (np.inf,))[0]:
-                hypotheses[key] = (error, point)
-    used = [set() for _ in range(n_cams)]
-    accepted: list[tuple] = []
+        keys.append(support)
+        errs.append(errors / (support >= 0).sum(axis=1))
+        pts.append(points)
+    if not keys:
+        return [], np.zeros((0, 3))
+    keys, errs, pts = np.concatenate(keys), np.concatenate(errs), np.concatenate(pts)
+    n_views = (keys >= 0).sum(axis=1)
+    order = np.lexsort((errs, -n_views))  # most views, then smallest error
+    order = order[np.isfinite(errs[order])]
+    width = int(keys.max()) + 2
+    used = np.zeros((n_cams, width), bool)  # column -1 (unused camera) is never set
+    cams = np.arange(n_cams)
+    accepted: list[int] = []
 
-    def accept(key: tuple) -> None:
-        for c, v in enumerate(key):
-            if v >= 0:
-                used[c].add(v)
-        accepted.append(key)
+    def take(rows) -> None:
+        for row in rows:
+            key = keys[row]
+            if not used[cams, key].any():  # an index of -1 reads the last column: always False
+                used[cams[key >= 0], key[key >= 0]] = True
+                accepted.append(row)
 
-    def free(key: tuple) -> bool:
-        return all(v < 0 or v not in used[c] for c, v in enumerate(key))
-
-    # >= 3 views: best first over the whole frame
-    for key in sorted(hypotheses, key=lambda key: (-sum(v >= 0 for v in key), hypotheses[key][0])):
-        if sum(v >= 0 for v in key) >= 3 and free(key):
-            accept(key)
-    pairs = [key for key in hypotheses if sum(v >= 0 for v in key) == 2]
+    take(order[n_views[order] >= 3])  # >= 3 views: best first over the whole frame
+    pairs = order[n_views[order] == 2]
     # two views near a point of the last frame (a marker moves < near_mm per frame), nearest first
-    if len(previous) and pairs:
-        distance, _ = cKDTree(previous).query(np.array([hypotheses[k][1] for k in pairs]))
-        for d, key in sorted(zip(distance, pairs)):
-            if d < near_mm and free(key):
-                accept(key)
+    if len(previous) and len(pairs):
+        distance = cKDTree(previous).query(pts[pairs])[0]
+        near = np.argsort(distance, kind="stable")
+        take(pairs[near[distance[near] < near_mm]])
     # two views: only a pair of blobs that are each other's only unused epipolar partner
     for _ in range(2):  # accepting unique pairs can make others unique
-        candidates = [key for key in pairs if free(key)]
-        count: dict[tuple[int, int], int] = {}
-        for key in candidates:
-            for cv in enumerate(key):
-                count[cv] = count.get(cv, 0) + 1
-        for key in candidates:
-            if all(count[c, v] == 1 for c, v in enumerate(key) if v >= 0):
-                accept(key)
-    points = np.array([hypotheses[key][1] for key in accepted]).reshape(-1, 3)
-    return [np.array(key) for key in accepted], points
+        free = pairs[~used[cams, keys[pairs]].any(axis=1)]
+        if not len(free):
+            break
+        cam_a = np.argmax(keys[free] >= 0, axis=1)
+        cam_b = n_cams - 1 - np.argmax(keys[free][:, ::-1] >= 0, axis=1)
+        blob_a, blob_b = keys[free, cam_a], keys[free, cam_b]
+        count = np.zeros((n_cams, width), int)
+        np.add.at(count, (cam_a, blob_a), 1)
+        np.add.at(count, (cam_b, blob_b), 1)
+        take(free[(count[cam_a, blob_a] == 1) & (count[cam_b, blob_b] == 1)])
+    accepted_rows = np.array(accepted, dtype=int)
+    return list(keys[accepted_rows]), pts[accepted_rows].reshape(-1, 3)
 
 
 def link_fragments(points: np.ndarray, *, link_mm: float = LINK_MM) -> np.ndarray:
