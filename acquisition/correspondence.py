@@ -6,8 +6,9 @@ coordinates) and collects, in every other camera, the nearest blob within ``tole
 its reprojection. Proposals with the same views are one hypothesis. Hypotheses of three or more
 views are accepted best first over the whole frame (most views, then smallest reprojection
 error), each blob used once; then a two-view hypothesis is accepted only when its two blobs are
-each other's only epipolar partner among the blobs still unused (two-view matches are where
-ghosts come from). Accepted points are refitted
+each other's only epipolar partner among the blobs still unused, or when it lies within
+``SURFACE_MM`` of the face as the points accepted so far sample it (two-view matches are where
+ghosts come from: a ghost of two rays lies in front of or behind the face). Accepted points are refitted
 by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing views
 (outlier rejection). Points are then linked frame to frame into fragments: a constant-velocity
 prediction of each live fragment is matched to the next frame's points by an optimal
@@ -28,6 +29,10 @@ from .triangulate import triangulate_points
 
 TOLERANCE_PX = 1.0
 LINK_MM = 4.0
+#: An ambiguous two-view match is kept when it lies within SURFACE_MM of the plane through its
+#: SURFACE_NEIGHBOURS nearest points of >= 3 views (nearest to the face first, each blob once).
+SURFACE_MM = 1.5
+SURFACE_NEIGHBOURS = 6
 
 
 @dataclass
@@ -201,8 +206,25 @@ def _frame_hypotheses(norm: np.ndarray, projections: list[np.ndarray], essential
         np.add.at(count, (cam_a, blob_a), 1)
         np.add.at(count, (cam_b, blob_b), 1)
         take(free[(count[cam_a, blob_a] == 1) & (count[cam_b, blob_b] == 1)])
+    # ambiguous two views: the candidate on the face, as sampled by the points accepted so far
+    free = pairs[~used[cams, keys[pairs]].any(axis=1)]
+    if len(free) and len(accepted) >= SURFACE_NEIGHBOURS:
+        off = _off_surface(pts[np.array(accepted)], pts[free])
+        near = np.argsort(off, kind="stable")
+        take(free[near[off[near] < SURFACE_MM]])
     accepted_rows = np.array(accepted, dtype=int)
     return list(keys[accepted_rows]), pts[accepted_rows].reshape(-1, 3)
+
+
+def _off_surface(surface: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Distance (mm) of each of ``points (N, 3)`` from the plane through its
+    ``SURFACE_NEIGHBOURS`` nearest ``surface (S, 3)`` points (a ghost of two rays lies in front
+    of or behind the face)."""
+    _, index = cKDTree(surface).query(points, k=SURFACE_NEIGHBOURS)
+    patch = surface[index]  # (N, k, 3)
+    centre = patch.mean(axis=1)
+    normal = np.linalg.svd(patch - centre[:, None])[2][:, -1]
+    return np.abs(np.einsum("ni,ni->n", points - centre, normal))
 
 
 def link_fragments(points: np.ndarray, *, link_mm: float = LINK_MM) -> np.ndarray:
