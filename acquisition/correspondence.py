@@ -5,10 +5,11 @@ epipolar line; each proposal is triangulated (two-view DLT in undistorted normal
 coordinates) and collects, in every other camera, the nearest blob within ``tolerance_px`` of
 its reprojection. Proposals with the same views are one hypothesis. Hypotheses of three or more
 views are accepted best first over the whole frame (most views, then smallest reprojection
-error), each blob used once; then a two-view hypothesis is accepted only when its two blobs are
-each other's only epipolar partner among the blobs still unused, or when it lies within
-``SURFACE_MM`` of the face as the points accepted so far sample it (two-view matches are where
-ghosts come from: a ghost of two rays lies in front of or behind the face). Accepted points are refitted
+error), each blob used once; then a two-view hypothesis is accepted only when it lies within
+``link_mm`` of a point of the previous frame, when its two blobs are each other's only epipolar
+partner among the blobs still unused, or when it lies within ``SURFACE_MM`` of the face as the
+points accepted so far sample it (two-view matches are where ghosts come from: a ghost of two
+rays lies in front of or behind the face). Accepted points are refitted
 by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing views
 (outlier rejection). Points are then linked frame to frame into fragments: a constant-velocity
 prediction of each live fragment is matched to the next frame's points by an optimal

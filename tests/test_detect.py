@@ -82,3 +82,9 @@ def test_cameras_with_different_frame_counts(tmp_path, run_cli):
     result = run_cli("detect", tmp_path / "a", tmp_path / "b", "--out", tmp_path / "d.npz")
     assert result.exit_code == 2 and "one image per frame" in result.stderr
     assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
+def test_synth_images_needs_a_rig(tmp_path, run_cli):
+    result = run_cli("synth", tmp_path / "s.c3d", "--rig", "none", "--images", tmp_path / "img")
+    assert result.exit_code == 2 and "--images needs a camera rig" in result.stderr
+    assert not (tmp_path / "img").exists() and not (tmp_path / "s.c3d").exists()
