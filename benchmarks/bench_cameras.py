@@ -72,8 +72,8 @@ def real_intrinsics() -> None:
     print(f"\n({clock})\n")
 
 
-def rig_extrinsics(name: str, rig, board: Board, n_views: int) -> None:
-    poses = board_poses(rig, board, n_views, seed=1, max_tilt_deg=30.0)
+def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: float | None = None) -> None:
+    poses = board_poses(rig, board, n_views, seed=1, max_tilt_deg=30.0, spread_mm=spread_mm)
     resolution = texture_resolution(rig, board, poses)
     with Clock() as render:
         views = []
@@ -92,7 +92,8 @@ def rig_extrinsics(name: str, rig, board: Board, n_views: int) -> None:
     adjusted = rig_from_poses(rig.names, result.intrinsics, result.rig_poses, [c.image_size for c in rig])
     b_mm, b_deg = pose_errors(baseline, rig)
     a_mm, a_deg = pose_errors(adjusted, rig)
-    print(f"### {name}: {len(rig)} cameras, {n_views} board poses ({board.corners[0]}x{board.corners[1]}, "
+    print(f"### {name}: {len(rig)} cameras, {n_views} board poses (centres within "
+          f"+-{spread_mm or 0.3 * max(board.size_mm()):g} mm) ({board.corners[0]}x{board.corners[1]}, "
           f"{board.square:g} mm), views per camera {[len(f.view_rms) for f in fits]}")
     print("| method | centre err mm (max / mean) | orientation err deg (max / mean) | RMS px |")
     print("|---|---|---|---|")
@@ -191,6 +192,8 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--views", type=int, default=24, help="Cara board poses (room: x2)")
+    parser.add_argument("--room-spread", type=float, default=None,
+                        help="Board centres within +-this of the aim point, mm (default 0.3 x board)")
     parser.add_argument("--only", default="real,cara,room,images",
                         help="Comma-separated sections: real, cara, room, images")
     args = parser.parse_args()
@@ -202,7 +205,8 @@ def main() -> None:
     if "cara" in only:
         rig_extrinsics("Cara-like", cara_rig(), PRESET_BOARDS["cara"], args.views)
     if "room" in only:
-        rig_extrinsics("room", room_rig(), PRESET_BOARDS["room"], 2 * args.views)
+        rig_extrinsics("room", room_rig(), PRESET_BOARDS["room"], 2 * args.views,
+                       spread_mm=args.room_spread)
     if "images" in only:
         detection_and_reconstruction("3-4. Dense session", 8.0, args.frames)
         detection_and_reconstruction("3-4. Sparse layout", 20.0, args.frames)
