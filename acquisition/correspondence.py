@@ -81,14 +81,11 @@ def _two_view(p_i: np.ndarray, p_j: np.ndarray, x_i: np.ndarray, x_j: np.ndarray
     return np.linalg.solve(normal, np.einsum("nki,nk->ni", a, b)[..., None])[..., 0]
 
 
-def reconstruct(rig: CameraRig, blobs: np.ndarray, *, merged: np.ndarray | None = None,
-                tolerance_px: float = TOLERANCE_PX, link_mm: float = LINK_MM,
-                outlier_threshold_px: float = 3.0) -> Reconstruction:
+def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLERANCE_PX,
+                link_mm: float = LINK_MM, outlier_threshold_px: float = 3.0) -> Reconstruction:
     """Unlabelled 3-D points and fragments from ``blobs (C, F, B, 2)`` px (NaN padding) of
-    ``rig``; blobs flagged in ``merged (C, F, B)`` (two markers in one) are not used."""
-    blobs = np.array(blobs, dtype=np.float64)
-    if merged is not None:
-        blobs[merged] = np.nan
+    ``rig`` (the halves of split merged blobs among them: a poor split is an outlier view)."""
+    blobs = np.asarray(blobs, dtype=np.float64)
     n_cams, n_frames = blobs.shape[:2]
     norm = _normalized(rig, blobs)
     projections = [np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig]

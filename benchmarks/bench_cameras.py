@@ -4,7 +4,7 @@
 2. Rig extrinsics from rendered ChArUco views of the Cara-like and room rigs: bundle adjustment
    vs OpenCV's chained stereoCalibrate (centre error mm, orientation error deg, vs truth).
 3. Blob detection on rendered frames of a dense synthetic face session (139 markers, 8 mm):
-   centre RMS, recall, false blobs, merged flags, frames/s.
+   centre RMS, recall, false blobs, merged flags (merged blobs split in two), frames/s.
 4. Unlabelled reconstruction on the same frames (dense) and on a sparse 20 mm layout, with
    labelled triangulation of the same detections (labels from the truth: today's path) beside.
 
@@ -128,7 +128,7 @@ def detection_and_reconstruction(label: str, spacing: float, frames: int) -> Non
                for f in range(frames)] for c in range(len(rig))]
     n_markers = points.shape[1]
     with Clock() as clock:
-        found = [[detect_blobs(image) for image in row] for row in images]
+        found = [[detect_blobs(image, split=True) for image in row] for row in images]
     score = None
     for c in range(len(rig)):
         for f in range(frames):
@@ -138,19 +138,18 @@ def detection_and_reconstruction(label: str, spacing: float, frames: int) -> Non
     print(f"## {label}: {n_markers} markers ({spacing:g} mm layout), {frames} frames, Cara rig 4 x 720x1280")
     print(f"detection: isolated-marker centre RMS {score.rms_px:.3f} px, recall {score.recall:.2%} of "
           f"{score.isolated} visible unmerged, false blobs {score.false_rate:.2%} of {score.blobs}, "
-          f"merged flags {score.merged_blobs} ({score.merged_flagged} on truly merged markers; "
+          f"merged-blob halves {score.merged_blobs} ({score.merged_flagged} on truly merged markers; "
           f"{truth.merged[np.isfinite(truth.pixels[..., 0])].mean():.1%} of visible marker views merge); "
           f"{frames / clock.wall:.0f} frames/s of 4 cameras wall, {frames / clock.cpu:.0f} per CPU-second, "
           f"1 thread ({clock})")
     width = max(len(b.centres) for row in found for b in row)
     blobs = np.full((len(rig), frames, width, 2), np.nan)
-    merged = np.zeros((len(rig), frames, width), bool)
     for c in range(len(rig)):
         for f in range(frames):
             k = len(found[c][f].centres)
-            blobs[c, f, :k], merged[c, f, :k] = found[c][f].centres, found[c][f].merged
+            blobs[c, f, :k] = found[c][f].centres
     with Clock() as rec_clock:
-        result = reconstruct(rig, blobs, merged=merged)
+        result = reconstruct(rig, blobs)  # split halves of merged blobs used; bad ones are outliers
     # baseline: the same detections labelled by the truth (unmerged blob within 1 px of its marker)
     labelled = np.full((len(rig), frames, n_markers, 2), np.nan)
     for c in range(len(rig)):

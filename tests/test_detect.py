@@ -53,6 +53,11 @@ def test_a_merged_pair_is_one_flagged_blob():
     pair = np.argmin(blobs.centres[:, 0])
     assert blobs.merged[pair] and not blobs.merged[1 - pair]
     assert np.linalg.norm(blobs.centres[1 - pair] - pixels[2]) < 0.1
+    halves = detect_blobs(image, split=True)
+    assert len(halves.centres) == 3 and halves.merged.sum() == 2
+    split = halves.centres[halves.merged]
+    gaps = np.linalg.norm(split[:, None] - pixels[None, :2], axis=2)
+    assert gaps.min(axis=1).max() < 1.0 and set(gaps.argmin(axis=1)) == {0, 1}
 
 
 def test_detect_command_writes_unlabelled_detections(tmp_path, run_cli):

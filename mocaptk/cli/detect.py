@@ -1,8 +1,9 @@
 """``mocaptk detect IMAGES... --out detections.npz``: unlabelled marker centres per camera and frame.
 
 IMAGES is one folder of images (or one video) per camera, in camera order, or a single folder
-whose sub-folders are the cameras (as ``mocaptk synth --images`` writes them). Beside the
-output it writes ``<stem>_overlay.png``: each camera's first frame with its blobs circled.
+whose sub-folders are the cameras (as ``mocaptk synth --images`` writes them). A merged blob
+(two markers in one) is written as two flagged centres on its major axis. Beside the output it
+writes ``<stem>_overlay.png``: each camera's first frame with its blobs circled.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def detect(
     for source in sources:
         row = []
         for index, (_, image) in enumerate(source.frames()):
-            blobs = detect_blobs(image, min_area=min_area, max_area=max_area)
+            blobs = detect_blobs(image, min_area=min_area, max_area=max_area, split=True)
             row.append((blobs.centres, blobs.merged, blobs.area))
             if index == 0:
                 panels.append(_overlay(image, blobs, source.path.name))
@@ -61,7 +62,7 @@ def detect(
     detections = pack(per_image, [s.path.name for s in sources], rate)
     save_detections(detections, out, force=force)
     write_bytes(overlay, cv2.imencode(".png", mosaic(panels, legend="green: marker blob   orange: "
-                                                            "merged blob (two or more markers)"))[1].tobytes(),
+                                                            "half of a merged blob (split in two)"))[1].tobytes(),
                 force=force)
     counts = np.isfinite(detections.points2d[..., 0]).sum(axis=2)
     if not quiet:

@@ -47,8 +47,7 @@ def reconstruct(
         order = list(range(len(rig)))  # unnamed folders (cam1, cam2...): camera order
     else:
         order = [names.index(name) for name in rig.names]
-    result = reconstruct_points(rig, detections.points2d[order], merged=detections.merged[order],
-                                tolerance_px=tolerance, link_mm=link)
+    result = reconstruct_points(rig, detections.points2d[order], tolerance_px=tolerance, link_mm=link)
     positions = result.trajectories_array()
     frame_rate = rate or detections.rate or rig.rate or 60.0
     traj = Trajectories(positions=positions, labels=[f"*{i + 1}" for i in range(positions.shape[1])],
