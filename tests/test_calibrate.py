@@ -112,3 +112,27 @@ def test_a_video_that_cannot_be_decoded(tmp_path, run_cli):
 def test_synced_needs_charuco(tmp_path, run_cli):
     result = run_cli("calibrate", tmp_path, "--synced", "--out", tmp_path / "rig.json")
     assert result.exit_code == 2 and "--synced needs --board charuco" in result.stderr
+
+
+def test_intrinsics_from_a_video(tmp_path, run_cli):
+    """A ChArUco video (rendered through a known Cara camera, MJPG-compressed) sampled frame by frame."""
+    from mocaptk.acquisition.cameras import cara_rig
+    from mocaptk.acquisition.synth_board_views import (PRESET_BOARDS, board_poses, render_views,
+                                                       texture_resolution)
+
+    rig, board = cara_rig(), PRESET_BOARDS["cara"]
+    camera = rig[0]
+    poses = board_poses(rig, board, 16, seed=2, max_tilt_deg=30.0)
+    video = tmp_path / "cam.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, camera.image_size)
+    for image in render_views(camera, board, poses, px_per_mm=texture_resolution(rig, board, poses)):
+        if image is not None:
+            writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    out = tmp_path / "rig.json"
+    result = run_cli("calibrate", video, "--board", "charuco", "--corners", "6x4", "--square", "20",
+                     "--marker", "10", "--step", "1", "--out", out)
+    assert result.exit_code == 0, result.stderr
+    fitted = load_rig(out)[0]
+    assert abs(fitted.focal_px / camera.focal_px - 1) < 0.005
+    assert np.abs(fitted.matrix[:2, 2] - camera.matrix[:2, 2]).max() < 3.0
