@@ -3,7 +3,6 @@ the true cameras and OpenCV's chained stereoCalibrate in the same run."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from mocaptk.acquisition.calibration import (View, calibrate_intrinsics, chained_stereo,
