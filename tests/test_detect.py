@@ -93,3 +93,11 @@ def test_synth_images_needs_a_rig(tmp_path, run_cli):
     result = run_cli("synth", tmp_path / "s.c3d", "--rig", "none", "--images", tmp_path / "img")
     assert result.exit_code == 2 and "--images needs a camera rig" in result.stderr
     assert not (tmp_path / "img").exists() and not (tmp_path / "s.c3d").exists()
+
+
+def test_synth_images_refuses_a_full_folder_before_writing(tmp_path, run_cli):
+    (tmp_path / "img").mkdir()
+    (tmp_path / "img" / "old.txt").write_text("x")
+    result = run_cli("synth", tmp_path / "s.c3d", "--images", tmp_path / "img")
+    assert result.exit_code == 2 and "not empty" in result.stderr
+    assert not (tmp_path / "s.c3d").exists()

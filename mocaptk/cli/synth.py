@@ -116,7 +116,7 @@ def synth(
     from mocaptk.acquisition.gapfill import fill_gaps
     from mocaptk.acquisition.synth_layout import dense_layout
     from mocaptk.acquisition.triangulate import compile_notice
-    from mocaptk.atomic import check_writable
+    from mocaptk.atomic import check_writable, claim_output
     from mocaptk.errors import OptionError
 
     if rig not in (*RIG_PRESETS, "none"):
@@ -136,6 +136,8 @@ def synth(
     paths = companion_paths(target, performance=performance > 0)
     for path in paths.values():
         check_writable(path, force=force)
+    if images is not None:  # refused before the slow part, not after the session is written
+        claim_output(images, force=force, folder=True)
 
     console = Console(stderr=True, quiet=quiet)
     with console.status("loading the ICT-FaceKit face model..."):
