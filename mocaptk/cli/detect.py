@@ -83,8 +83,13 @@ def _overlay(image, blobs, title: str):
         radius = int(np.sqrt(area / np.pi)) + 4
         cv2.circle(colour, (int(round(x)), int(round(y))), radius,
                    (0, 140, 255) if merged else (0, 220, 0), 1, cv2.LINE_AA)
+    if len(blobs.centres):  # the box around the blobs, 40 px margin
+        x0, y0 = np.maximum(np.floor(blobs.centres.min(axis=0)).astype(int) - 40, 0)
+        x1, y1 = np.ceil(blobs.centres.max(axis=0)).astype(int) + 41
+        colour = colour[y0:y1, x0:x1]
     scale = PANEL_HEIGHT / colour.shape[0]
-    colour = cv2.resize(colour, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    colour = cv2.resize(colour, None, fx=scale, fy=scale,
+                        interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
     cv2.putText(colour, f"{title}: {len(blobs.centres)} blobs", (10, 28), cv2.FONT_HERSHEY_SIMPLEX,
                 0.7, (255, 255, 255), 2, cv2.LINE_AA)
     return colour
