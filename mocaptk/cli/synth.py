@@ -98,6 +98,11 @@ def synth(
     model_path: Path = typer.Option(None, "--model", metavar="PATH",
                                     help="ICT-FaceKit FaceXModel .tar.xz or folder (default "
                                          "$MOCAPTK_ICT_FACEKIT or ../shared/data/...)."),
+    images: Path = typer.Option(None, "--images", metavar="DIR",
+                                help="Also render the session's first --image-frames frames per camera "
+                                     "(DIR/markers, true 2-D positions beside) and ChArUco views "
+                                     "(DIR/charuco); see docs/optics.md."),
+    image_frames: int = typer.Option(120, "--image-frames", help="Frames rendered with --images."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
     quiet: Quiet = False,
 ) -> None:
@@ -111,7 +116,7 @@ def synth(
     from mocaptk.acquisition.gapfill import fill_gaps
     from mocaptk.acquisition.synth_layout import dense_layout
     from mocaptk.acquisition.triangulate import compile_notice
-    from mocaptk.atomic import check_writable
+    from mocaptk.atomic import check_writable, claim_output
     from mocaptk.errors import OptionError
 
     if rig not in (*RIG_PRESETS, "none"):
@@ -124,11 +129,15 @@ def synth(
     if noise < 0 or gaps < 0 or max_gap < 0 or not 0 <= dropout <= 1 or not 0 <= ghosts <= 1:
         raise OptionError("--noise/--gaps/--max-gap must be ≥ 0 and --dropout/--ghosts within "
                           "[0, 1]")
+    if images is not None and (rig == "none" or image_frames < 1):
+        raise OptionError("--images needs a camera rig (--rig cara or room) and --image-frames >= 1")
     identity_coefficients = _parse_identity(identity)
     fmt = output_format(target)
     paths = companion_paths(target, performance=performance > 0)
     for path in paths.values():
         check_writable(path, force=force)
+    if images is not None:  # refused before the slow part, not after the session is written
+        claim_output(images, force=force, folder=True)
 
     console = Console(stderr=True, quiet=quiet)
     with console.status("loading the ICT-FaceKit face model..."):
@@ -175,6 +184,12 @@ def synth(
                    f"RMSE vs truth {rmse:.3f} mm")
         del traj
     truth = truths["session"]
+    if images is not None:
+        from mocaptk.acquisition.synth_images import write_image_set
+
+        with console.status(f"rendering images into {images}..."):
+            typer.echo(write_image_set(images, model, truth, camera_rig, rig_name=rig,
+                                       frames=image_frames, seed=seed, force=force))
     ss.write_regions_file(truth, paths["regions"], force=force)
     ss.write_takes_file(truth.takes, paths["takes"], force=force)
     counts = ", ".join(f"{region} {len(labels)}" for region, labels in truth.regions_dict().items())

@@ -1,0 +1,91 @@
+"""One camera's images: a folder of photos / a PNG sequence, or a video file, read as 8-bit grey.
+
+Photos are taken in name order (natural: ``2`` before ``10``); a video is sampled every
+``step`` frames. All images of one camera must have the same size.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mocaptk.errors import InputFileError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+
+
+def _natural_key(path: Path) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+@dataclass(frozen=True)
+class ImageSource:
+    """A folder of images or a video file of one camera."""
+
+    path: Path
+    step: int = 1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))
+        if not self.path.exists():
+            raise InputFileError(self.path, "no such file or folder")
+        if self.path.is_dir() and not self.files():
+            raise InputFileError(self.path, f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+
+    @property
+    def is_video(self) -> bool:
+        return not self.path.is_dir()
+
+    def files(self) -> list[Path]:
+        return sorted((p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+                      key=_natural_key)
+
+    def frames(self) -> Iterator[tuple[str, np.ndarray]]:
+        """``(name, grey uint8 image)`` of every photo, or every ``step``-th video frame."""
+        size = None
+        for name, image in (self._video() if self.is_video else self._photos()):
+            shape = image.shape[1], image.shape[0]
+            if size is None:
+                size = shape
+            elif shape != size:
+                raise InputFileError(self.path, f"{name} is {shape[0]}x{shape[1]} px, the first "
+                                                f"image is {size[0]}x{size[1]}: one camera's images "
+                                                "must share one size")
+            yield name, image
+
+    def _photos(self) -> Iterator[tuple[str, np.ndarray]]:
+        for file in self.files():
+            image = cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise InputFileError(file, "cannot decode this image")
+            yield file.name, image
+
+    def _video(self) -> Iterator[tuple[str, np.ndarray]]:
+        capture = cv2.VideoCapture(os.fspath(self.path))
+        try:
+            ok, frame = capture.read()
+            if not ok:
+                raise InputFileError(self.path, "cannot decode this as an image folder or a video")
+            index = 0
+            while ok:
+                if index % self.step == 0:
+                    yield f"frame {index}", cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                ok, frame = capture.read()
+                index += 1
+        finally:
+            capture.release()
+
+
+def camera_sources(paths: list[Path]) -> list[Path]:
+    """Per-camera folders / videos: ``paths``, or the sub-folders of one folder of camera folders."""
+    if len(paths) == 1 and paths[0].is_dir():
+        subfolders = sorted(p for p in paths[0].iterdir() if p.is_dir() and not p.name.startswith("."))
+        if subfolders:
+            return subfolders
+    return paths

@@ -1,0 +1,215 @@
+"""The optical pipeline measured against truth, each with its baseline in the same run.
+
+1. ``calibrate`` intrinsics on the real Pose2Sim photos vs their Qualisys calibration.
+2. Rig extrinsics from rendered ChArUco views of the Cara-like and room rigs: bundle adjustment
+   vs OpenCV's chained stereoCalibrate (centre error mm, orientation error deg, vs truth).
+3. Blob detection on rendered frames of a dense synthetic face session (139 markers, 8 mm):
+   centre RMS, recall, false blobs, merged flags (merged blobs split in two), frames/s.
+4. Unlabelled reconstruction on the same frames (dense) and on a sparse 20 mm layout, with
+   labelled triangulation of the same detections (labels from the truth: today's path) beside.
+
+Run: ``MOCAPTK_SHARED_DATA=../shared/data python benchmarks/bench_cameras.py [--frames 60]``.
+Times are wall and CPU seconds with the 1-minute load average (the machine is shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mocaptk.acquisition.blob_detection import detect_blobs
+from mocaptk.acquisition.boards import Board
+from mocaptk.acquisition.calibration import (View, bundle_adjust, calibrate_intrinsics,
+                                             chained_stereo, pose_errors, rig_from_poses)
+from mocaptk.acquisition.cameras import cara_rig, load_rig, room_rig
+from mocaptk.acquisition.correspondence import reconstruct
+from mocaptk.acquisition.image_sequences import ImageSource
+from mocaptk.acquisition.synth_board_views import (PRESET_BOARDS, board_poses, render_views,
+                                                   texture_resolution)
+from mocaptk.acquisition.synth_images import (marker_truth, render_markers, score_detections,
+                                              skin_shading)
+from mocaptk.acquisition.triangulate import triangulate
+
+SHARED = Path(os.environ.get("MOCAPTK_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+class Clock:
+    def __enter__(self):
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
+
+    def __str__(self):
+        return f"wall {self.wall:.1f} s, CPU {self.cpu:.1f} s, load {os.getloadavg()[0]:.1f}"
+
+
+def real_intrinsics() -> None:
+    folder = SHARED / "multicam" / "pose2sim_demo" / "calibration"
+    qualisys = load_rig(folder / "Calib.qca.txt")
+    board = Board("checkerboard", (4, 7), 60.0)
+    print("## 1. Intrinsics, real Pose2Sim photos (4x7, 60 mm) vs Qualisys")
+    print("| camera | views kept | RMS px | fx err | fy err | cx, cy vs Qualisys px |")
+    print("|---|---|---|---|---|---|")
+    with Clock() as clock:
+        for i, truth in enumerate(qualisys, start=1):
+            source = ImageSource(folder / "intrinsics" / f"int_cam0{i}_img")
+            views, size = [], None
+            for name, image in source.frames():
+                size = image.shape[1], image.shape[0]
+                views.append(View(name, *board.detect(image)))
+            fit = calibrate_intrinsics(board, views, size)
+            fx, fy = fit.matrix[0, 0] / truth.matrix[0, 0] - 1, fit.matrix[1, 1] / truth.matrix[1, 1] - 1
+            pp = fit.matrix[:2, 2] - truth.matrix[:2, 2]
+            print(f"| {truth.name} | {len(fit.view_rms)}/{len(views)} | {fit.rms:.3f} | {fx:+.2%} | "
+                  f"{fy:+.2%} | {pp[0]:+.1f}, {pp[1]:+.1f} |")
+    print(f"\n({clock})\n")
+
+
+def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: float | None = None) -> None:
+    poses = board_poses(rig, board, n_views, seed=1, max_tilt_deg=30.0, spread_mm=spread_mm)
+    resolution = texture_resolution(rig, board, poses)
+    with Clock() as render:
+        views = []
+        for c, camera in enumerate(rig):
+            views.append([View(f"v{v}", *board.detect(image)) if image is not None
+                          else View(f"v{v}", np.zeros(0, int), np.zeros((0, 2)))
+                          for v, image in enumerate(render_views(camera, board, poses,
+                                                                 px_per_mm=resolution, seed=c))])
+    with Clock() as base_clock:
+        fits = [calibrate_intrinsics(board, v, cam.image_size) for v, cam in zip(views, rig)]
+        start = chained_stereo(board, views, fits)
+    baseline = rig_from_poses(rig.names, [(f.matrix, f.distortion) for f in fits], start,
+                              [c.image_size for c in rig])
+    with Clock() as ba_clock:
+        result = bundle_adjust(board, views, fits, start)
+    adjusted = rig_from_poses(rig.names, result.intrinsics, result.rig_poses, [c.image_size for c in rig])
+    b_mm, b_deg = pose_errors(baseline, rig)
+    a_mm, a_deg = pose_errors(adjusted, rig)
+    print(f"### {name}: {len(rig)} cameras, {n_views} board poses (centres within "
+          f"+-{spread_mm or 0.3 * max(board.size_mm()):g} mm) ({board.corners[0]}x{board.corners[1]}, "
+          f"{board.square:g} mm), views per camera {[len(f.view_rms) for f in fits]}")
+    print("| method | centre err mm (max / mean) | orientation err deg (max / mean) | RMS px |")
+    print("|---|---|---|---|")
+    print(f"| OpenCV calibrateCamera + chained stereoCalibrate | {b_mm.max():.3f} / {b_mm[1:].mean():.3f} | "
+          f"{b_deg.max():.3f} / {b_deg[1:].mean():.3f} | {result.initial_rms:.3f} |")
+    print(f"| bundle adjustment (this) | {a_mm.max():.3f} / {a_mm[1:].mean():.3f} | "
+          f"{a_deg.max():.3f} / {a_deg[1:].mean():.3f} | {result.final_rms:.3f} |")
+    print(f"\nper camera (BA) centre mm {np.round(a_mm, 3).tolist()}, deg {np.round(a_deg, 3).tolist()}")
+    print(f"(render+detect {render}; OpenCV baseline {base_clock}; BA {ba_clock})\n")
+
+
+def face_session(spacing: float, frames: int):
+    from mocaptk.acquisition import synth_session as ss
+    from mocaptk.acquisition.face_model import load_face_model
+    from mocaptk.acquisition.synth_layout import dense_layout
+
+    model = load_face_model(None)
+    layout = dense_layout(model, mode="half", spacing_mm=spacing, seed=0)
+    truth = ss.performance_session(model, layout, seed=0, seconds=frames / 60.0, rate=60.0,
+                                   noise_mm=0.0, gaps_per_minute=0.0).truth
+    normals = ss.marker_normals(model, truth)
+    return truth.positions[:frames], normals
+
+
+def detection_and_reconstruction(label: str, spacing: float, frames: int) -> None:
+    rig = cara_rig()
+    points, normals = face_session(spacing, frames)
+    truth = marker_truth(rig, points, normals)
+    rng = np.random.default_rng(0)
+    backgrounds = [skin_shading(cam, c) for c, cam in enumerate(rig)]
+    images = [[render_markers(backgrounds[c], truth.pixels[c, f], truth.radius[c, f], rng=rng)[0]
+               for f in range(frames)] for c in range(len(rig))]
+    n_markers = points.shape[1]
+    with Clock() as clock:
+        found = [[detect_blobs(image, split=True) for image in row] for row in images]
+    score = None
+    for c in range(len(rig)):
+        for f in range(frames):
+            one = score_detections(truth.pixels[c, f], truth.radius[c, f], truth.merged[c, f],
+                                   found[c][f].centres, found[c][f].merged)
+            score = one if score is None else score + one
+    print(f"## {label}: {n_markers} markers ({spacing:g} mm layout), {frames} frames, Cara rig 4 x 720x1280")
+    print(f"detection: isolated-marker centre RMS {score.rms_px:.3f} px, recall {score.recall:.2%} of "
+          f"{score.isolated} visible unmerged, false blobs {score.false_rate:.2%} of {score.blobs}, "
+          f"merged-blob halves {score.merged_blobs} ({score.merged_flagged} on truly merged markers; "
+          f"{truth.merged[np.isfinite(truth.pixels[..., 0])].mean():.1%} of visible marker views merge); "
+          f"{frames / clock.wall:.0f} frames/s of 4 cameras wall, {frames / clock.cpu:.0f} per CPU-second, "
+          f"1 thread ({clock})")
+    width = max(len(b.centres) for row in found for b in row)
+    blobs = np.full((len(rig), frames, width, 2), np.nan)
+    for c in range(len(rig)):
+        for f in range(frames):
+            k = len(found[c][f].centres)
+            blobs[c, f, :k] = found[c][f].centres
+    with Clock() as rec_clock:
+        result = reconstruct(rig, blobs)  # split halves of merged blobs used; bad ones are outliers
+    # baseline: the same detections labelled by the truth (unmerged blob within 1 px of its marker)
+    labelled = np.full((len(rig), frames, n_markers, 2), np.nan)
+    for c in range(len(rig)):
+        for f in range(frames):
+            keep = ~found[c][f].merged
+            centres = found[c][f].centres[keep]
+            if len(centres):
+                distance, index = cKDTree(centres).query(np.nan_to_num(truth.pixels[c, f], nan=-1e6))
+                hit = distance < 1.0
+                labelled[c, f, hit] = centres[index[hit]]
+    with Clock() as tri_clock:
+        baseline = triangulate(rig, labelled).positions
+    seen2 = np.isfinite(truth.pixels[..., 0]).sum(axis=0) >= 2
+    rows = []
+    for name, per_frame, clk in (("labelled triangulation (truth labels; today's path)",
+                                  lambda f: baseline[f], tri_clock),
+                                 ("unlabelled reconstruct (this)", lambda f: result.points[f], rec_clock)):
+        good = ghosts = total = 0
+        for f in range(frames):
+            present = per_frame(f)[np.isfinite(per_frame(f)[:, 0])]
+            if len(present):
+                good += int((cKDTree(present).query(points[f])[0][seen2[f]] < 1.0).sum())
+                ghosts += int((cKDTree(points[f]).query(present)[0] > 2.0).sum())
+                total += len(present)
+        rows.append(f"| {name} | {good / seen2.sum():.2%} | {ghosts / max(total, 1):.2%} | "
+                    f"{frames / clk.wall:.0f} wall, {frames / clk.cpu:.0f} per CPU-s ({clk}) |")
+    print("| method | marker-frames seen by >= 2 cameras within 1 mm | ghost points (> 2 mm from every marker) | frames/s |")
+    print("|---|---|---|---|")
+    print("\n".join(rows))
+    lengths = result.fragment_lengths()
+    unmerged = (np.isfinite(truth.pixels[..., 0]) & ~truth.merged).sum(axis=0)
+    print(f"\nfragments: {len(lengths)} for {n_markers} markers; length median {np.median(lengths):.0f}, "
+          f"p10 {np.percentile(lengths, 10):.0f}, max {lengths.max()} of {frames} frames. Marker-frames "
+          f"by unmerged views: 2: {(unmerged == 2).sum()}, >=3: {(unmerged >= 3).sum()}, <2 (lost to "
+          f"merging/occlusion though seen by >= 2): {(seen2 & (unmerged < 2)).sum()}\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--views", type=int, default=24, help="Cara board poses (room: x2)")
+    parser.add_argument("--room-spread", type=float, default=None,
+                        help="Board centres within +-this of the aim point, mm (default 0.3 x board)")
+    parser.add_argument("--only", default="real,cara,room,images",
+                        help="Comma-separated sections: real, cara, room, images")
+    args = parser.parse_args()
+    only = args.only.split(",")
+    if "real" in only:
+        real_intrinsics()
+    if "cara" in only or "room" in only:
+        print("## 2. Rig extrinsics from rendered ChArUco views (errors relative to camera 1)")
+    if "cara" in only:
+        rig_extrinsics("Cara-like", cara_rig(), PRESET_BOARDS["cara"], args.views)
+    if "room" in only:
+        rig_extrinsics("room", room_rig(), PRESET_BOARDS["room"], 2 * args.views,
+                       spread_mm=args.room_spread)
+    if "images" in only:
+        detection_and_reconstruction("3-4. Dense session", 8.0, args.frames)
+        detection_and_reconstruction("3-4. Sparse layout", 20.0, args.frames)
+
+
+if __name__ == "__main__":
+    main()

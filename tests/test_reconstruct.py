@@ -1,0 +1,86 @@
+"""Unlabelled reconstruction (``mocaptk reconstruct``) from rendered, detected blobs of a moving
+marker set: points within 1 mm of the truth, no ghosts, fragments linked; bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.acquisition.cameras import cara_rig
+from mocaptk.acquisition.correspondence import link_fragments, reconstruct
+from mocaptk.acquisition.detections_file import Detections, save_detections
+from mocaptk.acquisition.projection import ellipsoid_markers
+from mocaptk.acquisition.synth_images import write_marker_images
+
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """80 markers on a face-sized ellipsoid drifting 0.3 mm per frame, rendered and detected."""
+    from mocaptk.cli import main
+
+    folder = tmp_path_factory.mktemp("rec")
+    points, normals = ellipsoid_markers(1, 80, max_yaw=1.1, seed=3)
+    drift = np.arange(FRAMES)[:, None, None] * np.array([0.3, 0.1, 0.0])
+    points, normals = points + drift, np.repeat(normals, FRAMES, 0)
+    rig = cara_rig()
+    (folder / "markers").mkdir()
+    truth = write_marker_images(folder / "markers", rig, points, normals, labels=[f"M{i}" for i in range(80)])
+    try:
+        main(["detect", str(folder / "markers"), "--out", str(folder / "det.npz")])
+    except SystemExit as exc:
+        assert exc.code == 0
+    return folder, rig, points, truth
+
+
+def test_points_of_three_views_are_found_within_a_millimetre(session, run_cli):
+    folder, rig, points, truth = session
+    out = folder / "raw.c3d"
+    result = run_cli("reconstruct", folder / "markers" / "rig.json", folder / "det.npz", "--out", out,
+                     "--force")
+    assert result.exit_code == 0, result.stderr
+    traj = read_c3d(out)
+    assert all(label.startswith("*") for label in traj.labels)
+    unmerged_views = (np.isfinite(truth.pixels[..., 0]) & ~truth.merged).sum(axis=0)  # (F, M)
+    found = np.zeros(unmerged_views.shape, bool)
+    ghosts = total = 0
+    for f in range(FRAMES):
+        present = traj.positions[f][np.isfinite(traj.positions[f, :, 0])]
+        found[f] = cKDTree(present).query(points[f])[0] < 1.0
+        ghosts += int((cKDTree(points[f]).query(present)[0] > 2.0).sum())
+        total += len(present)
+    assert found[unmerged_views >= 3].mean() >= 0.99
+    seen = np.isfinite(truth.pixels[..., 0]).sum(axis=0) >= 2  # merged views included (split blobs)
+    assert found[seen].mean() >= 0.98
+    assert ghosts <= 0.01 * total
+    # one fragment per marker for the whole take (markers seen throughout)
+    lengths = np.isfinite(traj.positions[..., 0]).sum(axis=0)
+    assert np.median(lengths) == FRAMES
+
+
+def test_fragments_follow_constant_velocity():
+    t = np.arange(6)[:, None, None]
+    a = np.array([[0.0, 0, 0]]) + t * [[3.0, 0, 0]]  # 3 mm per frame: prediction keeps it
+    b = np.array([[15.0, 1, 0]]) - t * [[3.0, 0, 0]]  # crosses the other between frames 2 and 3
+    ids = link_fragments(np.concatenate([a, b], axis=1))
+    assert len(set(ids[:, 0])) == 1 and len(set(ids[:, 1])) == 1 and ids[0, 0] != ids[0, 1]
+
+
+def test_camera_count_differs_from_the_rig(session, tmp_path, run_cli):
+    folder, rig, _, _ = session
+    detections = Detections(np.zeros((3, 1, 1, 2)), np.zeros((3, 1, 1), bool), np.zeros((3, 1, 1)),
+                            ["a", "b", "c"])
+    save_detections(detections, tmp_path / "d.npz", force=False)
+    result = run_cli("reconstruct", folder / "markers" / "rig.json", tmp_path / "d.npz", "--out",
+                     tmp_path / "raw.c3d")
+    assert result.exit_code == 2 and "3 cameras, the rig rig.json has 4" in result.stderr
+    assert result.stderr.count("\n") == 1 and not (tmp_path / "raw.c3d").exists()
+
+
+def test_reconstruct_without_blobs_is_empty():
+    rig = cara_rig()
+    result = reconstruct(rig, np.full((4, 3, 2, 2), np.nan))
+    assert result.points.shape == (3, 0, 3) and result.n_fragments == 0
