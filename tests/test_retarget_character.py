@@ -1,0 +1,161 @@
+"""``mocaptk retarget`` on the bundled sample: the generic ARKit rig, Live Link Face CSV read back
+by its documented columns, weights against the held-out performance's truth, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import SAMPLES
+
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.acquisition.c3d_write import write_c3d
+from mocaptk.acquisition.synth_session import load_ground_truth
+from mocaptk.retarget.character import ARKIT_NAMES, arkit_name, load_character
+from mocaptk.retarget.livelink_csv import LIVELINK_COLUMNS, timecode
+from mocaptk.retarget.weight_solve import solve_weights
+
+
+def arkit_truth(truth) -> np.ndarray:
+    """The truth's ICT weights (F, 53) as ARKit's 52 (split L/R shapes averaged, tongueOut 0)."""
+    out = np.zeros((len(truth.weights), 52))
+    for j, name in enumerate(truth.blendshape_names):
+        target = arkit_name(name) or arkit_name(name[:-2])
+        split = arkit_name(name) is None
+        out[:, ARKIT_NAMES.index(target)] += truth.weights[:, j] * (0.5 if split else 1.0)
+    return out
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory, run_cli_module):
+    root = tmp_path_factory.mktemp("retarget")
+    shutil.copy(SAMPLES / "dense_halfface.c3d", root)
+    assert run_cli_module("cluster", root / "dense_halfface.c3d", "--out", root / "layout",
+                          "--formats", "none", "--quiet").exit_code == 0
+    layout = json.loads((root / "layout" / "layout.json").read_text())
+    performance = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    capture = performance.select([label for label in layout["layout"] if label in set(performance.labels)])
+    write_c3d(capture.replace(residuals=None, metadata={"takes": []}), root / "perf_layout.c3d")
+    done = run_cli_module("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
+                          "--character", "arkit", "--out", root / "out", "--formats", "none")
+    assert done.exit_code == 0, done.stderr
+    return root, done
+
+
+@pytest.fixture(scope="module")
+def run_cli_module():
+    from mocaptk.cli import main
+    from conftest import CliResult
+
+    def run(*args):
+        try:
+            main([str(a) for a in args])
+            code = 0
+        except SystemExit as exc:
+            code = int(exc.code or 0)
+        return CliResult(code, "", "")
+    return run
+
+
+def test_generic_rig_has_the_52_arkit_shapes_on_the_bundled_face():
+    rig = load_character("arkit")
+    assert rig.names == ARKIT_NAMES and rig.deltas.shape == (52, len(rig.vertices), 3)
+    motion = np.abs(rig.deltas).max(axis=(1, 2))
+    assert motion[ARKIT_NAMES.index("tongueOut")] == 0  # ICT has none: a zero shape
+    assert (np.delete(motion, ARKIT_NAMES.index("tongueOut")) > 1.0).all()  # mm, every other moves
+    assert motion[ARKIT_NAMES.index("jawOpen")] > 20  # the jaw drops centimetres
+    # ICT's browInnerUp_L/_R are summed: the combined shape moves both brows
+    brow = np.linalg.norm(rig.deltas[ARKIT_NAMES.index("browInnerUp")], axis=1)
+    x = rig.vertices[:, 0]
+    assert brow[x > 5].max() > 3 and brow[x < -5].max() > 3
+
+
+def test_arkit_names_match_across_spellings():
+    assert arkit_name("mouthSmile_L") == arkit_name("MouthSmileLeft") == "mouthSmileLeft"
+    assert arkit_name("eye_blink_right") == "eyeBlinkRight" and arkit_name("JawOpen") == "jawOpen"
+    assert arkit_name("smile") is None
+
+
+def test_timecode_counts_frames_within_the_second():
+    assert timecode(0, 60.0) == "00:00:00:00.000"
+    assert timecode(61, 60.0) == "00:00:01:01.000"
+    assert timecode(60 * 3661 + 59, 60.0) == "01:01:01:59.000"
+
+
+def test_solve_is_zero_at_the_neutral_and_recovers_known_weights():
+    rng = np.random.default_rng(3)
+    basis = rng.normal(size=(6, 20, 3))
+    truth = np.clip(rng.normal(0.3, 0.3, size=(50, 6)), 0, 1)
+    d = np.einsum("fs,smc->fmc", truth, basis)
+    d[5, :4] = np.nan  # lost markers are dropped, never filled
+    solved = solve_weights(basis, d, l1=0.0, smooth=0.0)
+    assert np.abs(solved.weights - truth).max() < 1e-4 and solved.lost[5] == 4
+    assert np.abs(solve_weights(basis, np.zeros((3, 20, 3))).weights).max() == 0
+
+
+@pytest.mark.slow
+def test_blendshapes_csv_reads_back_by_its_documented_columns(workspace):
+    root, _ = workspace
+    with open(root / "out" / "blendshapes.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert tuple(rows[0].keys()) == LIVELINK_COLUMNS and len(LIVELINK_COLUMNS) == 2 + 52 + 9
+    assert len(rows) == 1200 and rows[61]["Timecode"] == "00:00:01:01.000"
+    assert {r["BlendShapeCount"] for r in rows} == {"61"}
+    weights = np.load(root / "out" / "weights.npz")
+    jaw = np.array([float(r["JawOpen"]) for r in rows])
+    assert np.allclose(jaw, weights["weights"][:, list(weights["names"]).index("jawOpen")], atol=1e-6)
+    assert max(float(r["HeadYaw"]) for r in rows) == 0.0  # the sample has no head motion
+
+
+@pytest.mark.slow
+def test_weights_recover_the_held_out_performance_truth(workspace):
+    root, _ = workspace
+    truth = arkit_truth(load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz"))
+    solved = np.load(root / "out" / "weights.npz")["weights"]
+    assert solved.shape == truth.shape and np.isfinite(solved).all()
+    assert solved.min() >= 0 and solved.max() <= 1
+    moving = (truth > 0.1).any(axis=0)
+    mae = np.abs(solved - truth).mean(axis=0)[moving]
+    r = np.array([np.corrcoef(solved[:, k], truth[:, k])[0, 1] for k in np.flatnonzero(moving)])
+    assert mae.mean() <= 0.05 and r.mean() >= 0.9  # the issue's targets
+    summary = json.loads((root / "out" / "retarget.json").read_text())
+    assert summary["format"] == "mocaptk.retarget" and summary["version"] == 1
+    assert len(summary["frames"]["residual_mm"]) == 1200
+    follows = {s["name"]: s["follows"] for s in summary["shapes"]}
+    assert follows["eyeBlinkRight"] == "eyeBlinkLeft"  # a half face: the unseen side mirrors
+
+
+@pytest.mark.slow
+def test_saved_calibration_for_another_rig_is_refused(workspace, tmp_path, run_cli):
+    root, _ = workspace
+    cal = np.load(root / "out" / "calibration.npz")
+    arrays = {k: cal[k] for k in cal.files}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["shapes"] = header["shapes"][:40]
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "other.npz", **arrays)
+    done = run_cli("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
+                   "--character", "arkit", "--calibration", tmp_path / "other.npz",
+                   "--out", tmp_path / "o", "--formats", "none")
+    assert done.exit_code == 2 and not (tmp_path / "o").exists()
+    assert done.stderr.strip() == (f"mocaptk: error: {tmp_path / 'other.npz'}: calibrated for 40 "
+                                   "shapes, the character has 52")
+
+
+def test_capture_lacking_layout_markers_and_character_without_shapes(workspace, tmp_path, run_cli):
+    root, _ = workspace
+    capture = read_c3d(root / "perf_layout.c3d")
+    write_c3d(capture.select(list(capture.labels[3:])), tmp_path / "short.c3d")
+    done = run_cli("retarget", root / "layout" / "layout.json", tmp_path / "short.c3d",
+                   "--character", "arkit", "--out", tmp_path / "o", "--formats", "none")
+    assert done.exit_code == 2 and "lacks 3 of the layout's" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+    import trimesh
+    trimesh.creation.icosphere().export(tmp_path / "plain.glb")
+    done = run_cli("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
+                   "--character", tmp_path / "plain.glb", "--out", tmp_path / "o", "--formats", "none")
+    assert done.exit_code == 2 and not (tmp_path / "o").exists()
+    assert done.stderr.strip().endswith("the character has no blend shapes (morph targets)")
