@@ -147,6 +147,7 @@ def write_character_usd(path: Path, character: Character, weights: np.ndarray, r
         for token, delta in zip(tokens, character.deltas):
             shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(token))
             moving = np.flatnonzero(np.abs(delta).max(axis=1) > 0)  # sparse: only moving points
+            moving = moving if moving.size else np.zeros(1, dtype=np.int64)  # a zero shape: one zero point
             shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moving], np.float32)))
             shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moving.astype(np.int32)))
             targets.append(shape.GetPath())

@@ -10,6 +10,7 @@ import shutil
 import numpy as np
 import pytest
 from conftest import SAMPLES
+from readers import installed
 
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.acquisition.c3d_write import write_c3d
@@ -40,7 +41,7 @@ def workspace(tmp_path_factory, run_cli_module):
     capture = performance.select([label for label in layout["layout"] if label in set(performance.labels)])
     write_c3d(capture.replace(residuals=None, metadata={"takes": []}), root / "perf_layout.c3d")
     done = run_cli_module("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
-                          "--character", "arkit", "--out", root / "out", "--formats", "none")
+                          "--character", "arkit", "--out", root / "out", "--quiet")
     assert done.exit_code == 0, done.stderr
     return root, done
 
@@ -159,3 +160,52 @@ def test_capture_lacking_layout_markers_and_character_without_shapes(workspace, 
                    "--character", tmp_path / "plain.glb", "--out", tmp_path / "o", "--formats", "none")
     assert done.exit_code == 2 and not (tmp_path / "o").exists()
     assert done.stderr.strip().endswith("the character has no blend shapes (morph targets)")
+
+
+@pytest.mark.slow
+def test_character_files_are_valid_and_byte_identical(workspace):
+    from pxr import Usd, UsdSkel, UsdValidation
+
+    from mocaptk.retarget.export_character import character_glb_bytes
+    from mocaptk.retarget.export_character_fbx import character_fbx_bytes
+
+    root, _ = workspace
+    out, rig = root / "out", load_character("arkit")
+    weights = np.load(out / "weights.npz")["weights"]
+    assert (out / "character.glb").read_bytes() == character_glb_bytes(rig, weights, 60.0)
+    assert (out / "character.fbx").read_bytes() == character_fbx_bytes(rig, weights, 60.0)
+    stage = Usd.Stage.Open(str(out / "character.usd"))
+    assert stage.GetTimeCodesPerSecond() == 60.0 and stage.GetEndTimeCode() == 1199
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Skeleton/Animation"))
+    assert list(anim.GetBlendShapesAttr().Get()) == list(ARKIT_NAMES)
+    np.testing.assert_allclose(np.array(anim.GetBlendShapeWeightsAttr().Get(700)), weights[700], atol=1e-7)
+    registry = UsdValidation.ValidationRegistry()  # what usdchecker runs
+    errors = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators()).Validate(stage)
+    assert not errors, [e.GetMessage() for e in errors]
+    report = installed.run_validator(out / "character.glb")
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["character.fbx", "character.glb", "character.usd"])
+def test_blender_imports_animated_shape_keys_matching_our_mesh(workspace, tmp_path, name):
+    import subprocess
+
+    from conftest import REPO
+
+    python = installed.blender_python()
+    root, _ = workspace
+    rig = load_character("arkit")
+    weights = np.load(root / "out" / "weights.npz")["weights"]
+    frames = np.array([0, 250, 500, 800, 1199])
+    expected = rig.vertices + np.tensordot(weights[frames].astype(np.float64),
+                                           rig.deltas.astype(np.float64), axes=(1, 0))
+    np.savez(tmp_path / "expected.npz", names=np.array(rig.names), rate=np.array(60.0), frames=frames,
+             vertices=expected, rest=rig.vertices)
+    done = subprocess.run([str(python), str(REPO / "scripts" / "check_character_blender.py"),
+                           str(root / "out" / name), str(tmp_path / "expected.npz")],
+                          capture_output=True, text=True, timeout=600)
+    report = json.loads(done.stdout[done.stdout.index("{"):])
+    assert report["names_match"] and report["animated_keys"] == 52 and report["keys_per_curve"] == [1200]
+    assert report["max_error_mm"] < 0.01
+    assert report["ok"], report

@@ -43,7 +43,7 @@ def retarget(
                                  "default 0.05)."),
     prior: float = typer.Option(None, "--prior", help="Pull of the actor's calibrated shapes "
                                 "towards the character's (default 1)."),
-    formats: str = typer.Option("glb,usd", "--formats", help="Character files: glb, usd "
+    formats: str = typer.Option("glb,usd,fbx", "--formats", help="Character files: glb, usd, fbx "
                                 "(or none)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
                                       "if the layout was made on stabilized data."),
