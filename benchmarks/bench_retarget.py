@@ -169,5 +169,108 @@ def accuracy() -> None:
                         print(f"|  | worst r: {', '.join(f'{k} {v[1]:.2f}' for k, v in worst)} | | | |")
 
 
+def lost() -> None:
+    """Weights error as layout markers are lost: 0/5/20 % per frame at random, lower lip 10 s."""
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.retarget_outputs import retarget_capture
+    from mocaptk.retarget.solve import train_solver
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        print("| actor | lost | mean MAE | mean r | mesh RMSE mm | NaN weights |\n|---|---|---|---|---|---|")
+        for name, session, performance, truth_path in datasets(work):
+            actor = Actor(session)
+            truth = arkit_truth(load_ground_truth(truth_path))
+            capture = read_c3d(performance)
+            folder = work / f"layout_{session.stem}_default"
+            if not (folder / "layout.json").is_file():
+                mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force")
+            solver = train_solver(read_layout(folder / "layout.json"), actor.session, {})
+            labels = list(solver.layout_labels)
+            columns = capture.index(labels)
+            mouth = [i for i, label in enumerate(labels) if label.startswith("MOUTH")]
+            heights = capture.positions[:, columns[mouth], 1]
+            lower = [mouth[k] for k in np.flatnonzero(np.nanmedian(heights, axis=0) < np.nanmedian(heights))]
+            rng = np.random.default_rng(0)
+            cases = [(f"{p} % per frame", p) for p in (0, 5, 20)] + [(f"lower lip ({len(lower)}) 10 s", None)]
+            for label, percent in cases:
+                pos = capture.positions.copy()
+                if percent is None:
+                    pos[300:300 + int(10 * capture.rate), columns[lower]] = np.nan
+                else:
+                    gone = rng.random((capture.n_frames, len(labels))) < percent / 100
+                    view = pos[:, columns]
+                    view[gone] = np.nan
+                    pos[:, columns] = view
+                result = retarget_capture(actor.retargeter, solver, capture.replace(positions=pos), "capture")
+                s = scores(result.weights, truth, actor.rig)
+                print(f"| {name} | {label} | {s['mae']:.3f} | {s['r']:.3f} | {s['mesh_rmse_mm']:.2f} | "
+                      f"{int(np.isnan(result.weights).sum())} |")
+
+
+def speed() -> None:
+    """Frames/s of the weight solve (the generic rig's 52 shapes at 50 of its moving vertices,
+    the sample performance's true weights, 0.2 mm noise, 5 % lost) against scipy's lsq_linear."""
+    from scipy.optimize import lsq_linear
+
+    from mocaptk.retarget.weight_solve import solve_weights
+
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.character import load_character
+
+    rng = np.random.default_rng(1)
+    rig = load_character("arkit")
+    motion = np.linalg.norm(rig.deltas, axis=2).max(axis=0)
+    moving = np.flatnonzero(motion > 1.0)  # mm: the face that moves
+    basis = rig.deltas[:, rng.choice(moving, 50, replace=False)].astype(np.float64)  # 50 markers
+    truth = np.tile(arkit_truth(load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")), (17, 1))[:20_000]
+    d = np.einsum("fs,smc->fmc", truth, basis) + rng.normal(scale=0.2, size=(len(truth), 50, 3))
+    d[rng.random(d.shape[:2]) < 0.05] = np.nan
+    solve_weights(basis, d[:10])  # compile
+    load = os.getloadavg()[0]
+    wall, cpu = time.perf_counter(), time.process_time()
+    solve_weights(basis, d)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    a = basis.reshape(52, -1).T
+    n = 300
+    w2, c2 = time.perf_counter(), time.process_time()
+    for frame in d[:n].reshape(n, -1):
+        ok = np.isfinite(frame)
+        lsq_linear(a[ok], frame[ok], bounds=(0, 1))
+    w2, c2 = time.perf_counter() - w2, time.process_time() - c2
+    print(f"load {load:.1f}; ours: {len(d) / wall:,.0f} frames/s wall ({len(d) / cpu:,.0f} per CPU-s); "
+          f"scipy lsq_linear (bounded, no L1/smoothness): {n / w2:,.0f} frames/s wall ({n / c2:,.0f} per CPU-s); "
+          f"ratio {(len(d) / wall) / (n / w2):.0f}x")
+
+
+def memory() -> None:
+    """Peak RSS of a 72,000-frame retarget (the sample's performance tiled 60x, 48 layout markers)."""
+    code = """
+import resource, numpy as np, sys
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.clustering.layout import read_layout
+from mocaptk.retarget.character import load_character
+from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+from mocaptk.retarget.solve import train_solver
+session = read_c3d(sys.argv[1]); capture = read_c3d(sys.argv[2])
+solver = train_solver(read_layout(sys.argv[3]), session, {})
+r = fit_retargeter(load_character('arkit'), session)
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+long = capture.select(list(solver.layout_labels))
+long = long.replace(positions=np.tile(long.positions, (60, 1, 1)), residuals=None)
+result = retarget_capture(r, solver, long, 'long')
+print(long.n_frames, 'frames; peak RSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 'MiB (after fit', base / 1024, 'MiB)')
+"""
+    with tempfile.TemporaryDirectory() as tmp:
+        mocaptk("cluster", SAMPLES / "dense_halfface.c3d", "--out", Path(tmp) / "layout", "--formats", "none",
+                "--quiet")
+        done = subprocess.run([sys.executable, "-c", code, str(SAMPLES / "dense_halfface.c3d"),
+                               str(SAMPLES / "dense_halfface_performance.c3d"), str(Path(tmp) / "layout" / "layout.json")],
+                              capture_output=True, text=True)
+        print(done.stdout or done.stderr[-2000:])
+
+
 if __name__ == "__main__":
-    {"accuracy": accuracy}[sys.argv[1]]()
+    {"accuracy": accuracy, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()

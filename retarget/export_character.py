@@ -95,21 +95,16 @@ def character_glb_bytes(character: Character, weights: np.ndarray, rate: float) 
 
 def write_character_usd(path: Path, character: Character, weights: np.ndarray, rate: float) -> Path:
     """Write the UsdSkel character (mm, Y up) with ``weights`` (F, S) as time samples."""
-    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
+    from pxr import Gf, Tf, UsdGeom, UsdSkel, Vt
+
+    from .export_usd import new_stage
 
     rest = np.asarray(character.vertices, dtype=np.float32)
     faces = np.asarray(character.faces, dtype=np.int32)
     tokens = _unique_tokens([Tf.MakeValidIdentifier(n) for n in character.names])
     n_frames = len(weights)
     with atomic_path(path, force=True) as tmp:
-        layer = Sdf.Layer.CreateNew(str(tmp), args={"format": "usdc"})
-        stage = Usd.Stage.Open(layer)
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-        UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-        stage.SetTimeCodesPerSecond(float(rate))
-        stage.SetFramesPerSecond(float(rate))
-        stage.SetStartTimeCode(0)
-        stage.SetEndTimeCode(max(n_frames - 1, 0))
+        layer, stage = new_stage(tmp, path, rate=rate, n_frames=n_frames)
         root = UsdSkel.Root.Define(stage, "/Character")
         stage.SetDefaultPrim(root.GetPrim())
         skeleton = UsdSkel.Skeleton.Define(stage, "/Character/Skeleton")

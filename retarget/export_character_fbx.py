@@ -13,8 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from .character import Character
-from .export_fbx import (_KEY_DATA, _LINEAR_KEY_FLAGS, _TEMPLATES, MM_TO_CM, _documents,
-                         _global_settings, _header_extension, _material, _model, _p, _creator,
+from .export_fbx import (_KEY_DATA, _LINEAR_KEY_FLAGS, MM_TO_CM, _creator, _documents,
+                         _global_settings, _header_extension, _material, _model, _p, definitions,
                          ktime)
 from .fbx_binary import CREATION_TIME, FILE_ID, Int64, Node, encode_fbx
 
@@ -86,18 +86,9 @@ def character_fbx_bytes(character: Character, weights: np.ndarray, rate: float) 
 
 
 def _definitions(n_shapes: int) -> Node:
-    counts = [("GlobalSettings", 1), ("Geometry", 1 + n_shapes), ("Model", 1), ("Material", 1),
-              ("Deformer", 1 + n_shapes), ("AnimationStack", 1), ("AnimationLayer", 1),
-              ("AnimationCurveNode", n_shapes), ("AnimationCurve", n_shapes)]
-    node = Node("Definitions", [], [Node("Version", [100]), Node("Count", [sum(c for _, c in counts)])])
-    for kind, count in counts:
-        entry = Node("ObjectType", [kind], [Node("Count", [count])])
-        if kind in _TEMPLATES:
-            template, props = _TEMPLATES[kind]
-            entry.children.append(Node("PropertyTemplate", [template],
-                                       [Node("Properties70", [], [_p(*p) for p in props])]))
-        node.children.append(entry)
-    return node
+    return definitions([("GlobalSettings", 1), ("Geometry", 1 + n_shapes), ("Model", 1), ("Material", 1),
+                        ("Deformer", 1 + n_shapes), ("AnimationStack", 1), ("AnimationLayer", 1),
+                        ("AnimationCurveNode", n_shapes), ("AnimationCurve", n_shapes)])
 
 
 def _geometry(character: Character) -> Node:

@@ -152,7 +152,8 @@ def arkit_columns(character: Character, weights: np.ndarray) -> np.ndarray:
 def write_retarget_outputs(retargeter: Retargeter, result: RetargetResult, capture: Trajectories,
                            capture_source: Mapping[str, Any], session: Mapping[str, Any],
                            staging: Path, *, options: Mapping[str, Any],
-                           formats: Sequence[str] = CHARACTER_FORMATS, notes: Sequence[str] = (),
+                           formats: Sequence[str] = CHARACTER_FORMATS, extra_outputs: Sequence[str] = (),
+                           notes: Sequence[str] = (),
                            progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Write the outputs into ``staging``; returns the summary written to ``retarget.json``."""
     say = progress or (lambda _: None)
@@ -167,7 +168,7 @@ def write_retarget_outputs(retargeter: Retargeter, result: RetargetResult, captu
     write_text(staging / "blendshapes.csv", livelink_csv(arkit_columns(character, weights), capture.rate,
                                                           head=result.head))
     save_calibration(staging / "calibration.npz", retargeter, session)
-    written = ["weights.npz", "blendshapes.csv", "calibration.npz", "retarget.json"]
+    written = ["weights.npz", "blendshapes.csv", "calibration.npz", "retarget.json", *extra_outputs]
     if formats:
         from .export_character import write_character_files
         written += write_character_files(staging, character, weights, capture.rate, formats=formats,
@@ -176,6 +177,41 @@ def write_retarget_outputs(retargeter: Retargeter, result: RetargetResult, captu
                        outputs=sorted(written), notes=notes)
     write_json(staging / "retarget.json", summary)
     return summary
+
+
+def write_renders(staging: Path, retargeter: Retargeter, solver: FaceSolver, capture: Trajectories,
+                  result: RetargetResult, *, stabilize: bool = True) -> list[str]:
+    """``retarget_frames.png`` (actor = solved dense markers, beside the character at rest, widest
+    jaw, strongest smile, blink) and ``correspondence.png``; returns the names written."""
+    from mocaptk.surface_mesh import marker_surface_mesh
+
+    from .retarget_renders import pick_frames, render_correspondence, render_frames
+    from .solve import solve_chunks
+
+    character = retargeter.character
+    picks = pick_frames(character.names, result.weights)
+    frames = np.array(list(picks.values()))
+    x = layout_frames(solver, capture, "capture")[frames]
+    poses = head_poses(solver, capture) if stabilize else None
+    sub = None if poses is None else (poses[0][frames], poses[1][frames])
+    dense = next(solve_chunks(solver, x, sub)).positions
+    if sub is not None:  # show the actor head-relative, as the character is
+        dense = np.einsum("fji,fmj->fmi", sub[0], dense - sub[1][:, None])
+        x = np.einsum("fji,fmj->fmi", sub[0], x - sub[1][:, None])
+    neutral = retargeter.calibration.neutral
+    seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+    _, faces = marker_surface_mesh(neutral[seen])
+    render_frames(staging / "retarget_frames.png", actor_faces=np.asarray(faces), actor=dense[:, seen],
+                  layout=x, character=character, weights=result.weights[frames],
+                  titles=[f"{title} (frame {frame})" for title, frame in picks.items()])
+    written = ["retarget_frames.png"]
+    if retargeter.correspondence is not None:
+        points = retargeter.correspondence.points(character.vertices, character.faces)
+        rows = [retargeter.labels.index(label) for label in result.layout_labels]
+        render_correspondence(staging / "correspondence.png", character=character, points=points,
+                              layout=points[rows])
+        written.append("correspondence.png")
+    return written
 
 
 def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectories,

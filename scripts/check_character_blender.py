@@ -2,11 +2,11 @@
 
 Runs in the bpy venv (see scripts/check_fbx_blender.py); mocaptk is not needed there:
 
-    .tools/bpyvenv/bin/python scripts/check_character_blender.py character.fbx expected.npz
+    .tools/bpyvenv/bin/python scripts/check_character_blender.py expected.npz character.fbx [more files]
 
 ``expected.npz`` (written by the test) holds ``names`` (S,), ``rate``, ``frames`` (K,) capture frame
 numbers and ``vertices`` (K, V, 3) mm: the product's own mesh at those frames (rig frame: Y up).
-Prints one JSON report; exits 0 when every check passes: one mesh with a shape key per shape,
+Prints a JSON list of reports, one per file; exits 0 when every check passes: one mesh with a shape key per shape,
 the keys' values animated (one key per capture frame), the scene at the capture's rate (FBX, glTF;
 Blender's USD importer keeps its scene rate whatever the stage's ``timeCodesPerSecond``: a USD's
 keys are checked one per time code), and the
@@ -26,8 +26,14 @@ TOLERANCE_MM = 0.01
 BLENDER_TO_RIG = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-def main(path: str, expected_path: str) -> int:
+def main(expected_path: str, *paths: str) -> int:
     expected = np.load(expected_path)
+    reports = [check(path, expected) for path in paths]
+    print(json.dumps(reports, indent=2))
+    return 0 if all(r["ok"] for r in reports) else 1
+
+
+def check(path: str, expected) -> dict:
     rate = float(expected["rate"])
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -42,8 +48,7 @@ def main(path: str, expected_path: str) -> int:
     report: dict = {"file": path, "meshes_with_shape_keys": len(meshes), "scene_fps": scene.render.fps / scene.render.fps_base}
     if len(meshes) != 1:
         report["ok"] = False
-        print(json.dumps(report, indent=2))
-        return 1
+        return report
     obj = meshes[0]
     keys = obj.data.shape_keys
     names = [k.name for k in keys.key_blocks][1:]
@@ -62,8 +67,7 @@ def main(path: str, expected_path: str) -> int:
     report["ok"] = bool(report["names_match"] and len(curves) >= len(names) - 1
                         and report["max_error_mm"] < TOLERANCE_MM
                         and (abs(report["scene_fps"] - rate) < 1e-6 or path.endswith((".usd", ".usda", ".usdc"))))
-    print(json.dumps(report, indent=2))
-    return 0 if report["ok"] else 1
+    return report
 
 
 def _fcurves(action) -> list:
@@ -99,4 +103,4 @@ def _matched_error(rest: np.ndarray, moved: np.ndarray, target: np.ndarray, targ
 
 
 if __name__ == "__main__":
-    sys.exit(main(*sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:3]))
+    sys.exit(main(*sys.argv[1:]))

@@ -45,6 +45,9 @@ def retarget(
                                 "towards the character's (default 1)."),
     formats: str = typer.Option("glb,usd,fbx", "--formats", help="Character files: glb, usd, fbx "
                                 "(or none)."),
+    renders: bool = typer.Option(True, "--renders/--no-renders", help="Write retarget_frames.png "
+                                 "(actor beside character at rest, widest jaw, smile, blink) and "
+                                 "correspondence.png."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
                                       "if the layout was made on stabilized data."),
     rate: Rate = None,
@@ -61,7 +64,8 @@ def retarget(
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.character import load_character
     from mocaptk.retarget.retarget_outputs import (CHARACTER_FORMATS, fit_retargeter, load_calibration,
-                                                   retarget_capture, write_retarget_outputs)
+                                                   retarget_capture, write_renders,
+                                                   write_retarget_outputs)
     from mocaptk.retarget.rom_calibration import DEFAULT_PRIOR
     from mocaptk.retarget.solve import train_solver
     from mocaptk.retarget.weight_solve import DEFAULT_L1, DEFAULT_SMOOTH
@@ -105,7 +109,12 @@ def retarget(
                                   smooth=options["smooth"], stabilize=not no_stabilize)
         identity = {"path": source.get("path"), "sha256": source.get("sha256")}
         with staged_folder(out, force=force) as staging:
+            pictures = []
+            if renders:
+                say("rendering the actor beside the character")
+                pictures = write_renders(staging, retargeter, solver, traj, result, stabilize=not no_stabilize)
             summary = write_retarget_outputs(retargeter, result, traj, capture_source, identity, staging,
-                                             options=options, formats=chosen, progress=say)
+                                             options=options, formats=chosen, extra_outputs=pictures,
+                                             progress=say)
     if not quiet:
         typer.echo(summary_text(summary) + f"wrote {out}/ ({', '.join(summary['outputs'])})")
