@@ -96,7 +96,7 @@ def correspond(character: Character, neutral: np.ndarray) -> Correspondence:
                           f"{fit.rms_mm:.1f} mm, over {MAX_FIT_SPACINGS} x the {spacing:.1f} mm "
                           "marker spacing): is it a face?")
     placed = fit.transform.apply(character.vertices)
-    bent, triangle, bary, rms = _bend(placed, character.faces, points)
+    triangle, bary, rms = _bend(placed, character.faces, points)
     coverage = _motion_coverage(character, placed, points, spacing)
     if coverage < MIN_MOTION_COVERAGE:
         raise OptionError(f"the markers cover {100 * coverage:.0f} % of the character's moving "
@@ -109,7 +109,7 @@ def correspond(character: Character, neutral: np.ndarray) -> Correspondence:
 
 
 def _bend(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+          ) -> tuple[np.ndarray, np.ndarray, float]:
     """Bend the placed mesh onto ``points``; their triangles, barycentrics and the RMS residual."""
     from scipy.interpolate import RBFInterpolator
 
@@ -121,7 +121,7 @@ def _bend(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
         bent = bent + field(bent)
     closest, dist, triangle = SurfaceProximity(bent, faces).query(points)
     corners = bent[faces[triangle]]
-    return bent, triangle, _barycentric(closest, corners), float(np.sqrt(np.mean(dist ** 2)))
+    return triangle, _barycentric(closest, corners), float(np.sqrt(np.mean(dist ** 2)))
 
 
 def _barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:

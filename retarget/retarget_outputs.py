@@ -157,7 +157,7 @@ def write_retarget_outputs(retargeter: Retargeter, result: RetargetResult, captu
                            progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Write the outputs into ``staging``; returns the summary written to ``retarget.json``."""
     say = progress or (lambda _: None)
-    character, cal = retargeter.character, retargeter.calibration
+    character = retargeter.character
     weights = result.weights.astype(np.float32)
     say("writing weights.npz, blendshapes.csv")
     write_bytes(staging / "weights.npz", npz_bytes({

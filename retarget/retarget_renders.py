@@ -46,8 +46,6 @@ def render_frames(path: str | os.PathLike[str], *, actor_faces: np.ndarray, acto
                   titles: list[str], size: tuple[int, int] = (1600, 900)) -> Path:
     """Actor (``actor`` (K, M, 3) mm dense frames on ``actor_faces``, ``layout`` (K, L, 3) mm)
     above the character driven by ``weights`` (K, S), one column per title."""
-    import pyvista as pv
-
     plotter = _plotter((2, len(titles)), size)
     for k, title in enumerate(titles):
         plotter.subplot(0, k)
