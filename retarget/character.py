@@ -9,6 +9,7 @@
   ``tongueOut``: a zero shape.
 - a glTF / GLB: the first mesh with morph targets (first such primitive), names from the
   mesh's ``extras.targetNames``; metres → mm;
+- a binary FBX: the mesh a ``BlendShape`` deformer is attached to, its channels' shapes;
 - a USD: the first ``UsdSkelBindingAPI`` mesh with ``skel:blendShapes`` (offsets and optional
   point indices); ``metersPerUnit`` → mm.
 
@@ -113,17 +114,20 @@ def load_character(spec: str | os.PathLike[str]) -> Character:
         return generic_arkit()
     path = Path(spec)
     if not path.is_file():
-        raise InputFileError(path, "character file not found (give arkit, a .glb/.gltf or a .usd)")
+        raise InputFileError(path, "character file not found (give arkit, a .glb/.gltf, .fbx or .usd)")
     suffix = path.suffix.lower()
     if suffix in (".glb", ".gltf"):
         from .character_gltf import read_gltf_character
         character = read_gltf_character(path)
+    elif suffix == ".fbx":
+        from .character_fbx import read_fbx_character
+        character = read_fbx_character(path)
     elif suffix in (".usd", ".usda", ".usdc"):
         from .character_usd import read_usd_character
         character = read_usd_character(path)
     else:
         raise InputFileError(path, f"unsupported character format {path.suffix!r} "
-                             "(use arkit, .glb, .gltf, .usd, .usda, .usdc)")
+                             "(use arkit, .glb, .gltf, .fbx, .usd, .usda, .usdc)")
     if not character.names:
         raise InputFileError(path, "the character has no blend shapes (morph targets)")
     if not (np.isfinite(character.vertices).all() and np.isfinite(character.deltas).all()):

@@ -267,3 +267,24 @@ def test_another_character_with_its_own_names_follows_the_same_performance(works
                         ("blink", "eyeBlinkLeft")):  # the generic rig's moments are the other's too
         column = ours["weights"][:, ARKIT_NAMES.index(name)]
         assert column[generic_picks[title]] >= 0.7 * column.max(), title
+
+
+@pytest.mark.slow
+def test_fbx_characters_read_back_ours_and_blenders(workspace, tmp_path):
+    import subprocess
+
+    root, _ = workspace
+    rig = load_character("arkit")
+    ours = load_character(root / "out" / "character.fbx")
+    assert ours.names == rig.names and np.abs(ours.vertices - rig.vertices).max() < 1e-9
+    assert np.abs(ours.deltas - rig.deltas).max() < 1e-5
+    python = installed.blender_python()  # Blender's own FBX writer: object scale 100, -90 deg X
+    script = ("import bpy, sys; bpy.ops.wm.read_factory_settings(use_empty=True); "
+              "bpy.ops.import_scene.gltf(filepath=sys.argv[-2]); "
+              "bpy.ops.export_scene.fbx(filepath=sys.argv[-1], bake_anim=False)")
+    subprocess.run([str(python), "-c", script, str(root / "out" / "character.glb"), str(tmp_path / "b.fbx")],
+                   capture_output=True, timeout=600, check=True)
+    theirs = load_character(tmp_path / "b.fbx")
+    assert theirs.names == rig.names
+    assert np.abs(theirs.vertices - rig.vertices).max() < 1e-3  # mm
+    assert np.abs(theirs.deltas - rig.deltas).max() < 1e-3

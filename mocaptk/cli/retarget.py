@@ -31,8 +31,8 @@ def retarget(
     capture: Path = typer.Argument(..., help="Production capture holding the layout's markers "
                                    "(C3D, CSV, TRC); other markers are ignored."),
     character: str = typer.Option(..., "--character", help="arkit (the bundled generic ARKit-52 "
-                                  "face), or a .glb/.gltf with morph targets, or a .usd with "
-                                  "UsdSkel blend shapes."),
+                                  "face), or a .glb/.gltf with morph targets, a binary .fbx "
+                                  "with blend shapes, or a .usd with UsdSkel blend shapes."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     session: Path = typer.Option(None, "--session", help="Dense range-of-motion session (default: "
                                  "the one recorded in layout.json, looked up beside it)."),
