@@ -166,6 +166,11 @@ def _definitions(rig: Rig, anim: _Animation | None) -> Node:
               ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1), ("Material", 1)]
     if anim is not None:
         counts += list(anim.counts.items())
+    return definitions(counts)
+
+
+def definitions(counts: list[tuple[str, int]]) -> Node:
+    """The ``Definitions`` node: object counts per type, with the property templates the SDK needs."""
     node = Node("Definitions", [], [Node("Version", [100]),
                                     Node("Count", [sum(c for _, c in counts)])])
     for kind, count in counts:

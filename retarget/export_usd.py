@@ -18,7 +18,7 @@ import numpy as np
 
 from mocaptk.atomic import atomic_path
 
-__all__ = ["write_mesh_usd"]
+__all__ = ["new_stage", "write_mesh_usd"]
 
 MESH_PATH = "/Face/face_mesh"
 
@@ -35,19 +35,12 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     frames : chunks (f, V, 3) mm, in order, ``n_frames`` frames in all (NaN rows: rest pose)
     rate : capture rate, Hz
     """
-    from pxr import Gf, Sdf, Usd, UsdGeom, Vt  # ~0.3 s to import: only when writing USD
+    from pxr import Gf, UsdGeom, Vt  # ~0.3 s to import: only when writing USD
 
     rest = np.asarray(rest, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     with atomic_path(path, force=force) as tmp:
-        layer = Sdf.Layer.CreateNew(str(tmp), args={"format": _format(Path(path))})
-        stage = Usd.Stage.Open(layer)
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-        UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-        stage.SetTimeCodesPerSecond(float(rate))
-        stage.SetFramesPerSecond(float(rate))
-        stage.SetStartTimeCode(0)
-        stage.SetEndTimeCode(max(n_frames - 1, 0))
+        layer, stage = new_stage(tmp, Path(path), rate=rate, n_frames=n_frames)
         root = UsdGeom.Xform.Define(stage, "/Face")
         stage.SetDefaultPrim(root.GetPrim())
         mesh = UsdGeom.Mesh.Define(stage, MESH_PATH)
@@ -71,6 +64,22 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
         mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([low, high]).astype(np.float32)))
         layer.Save()
     return Path(path)
+
+
+def new_stage(tmp: Path, path: Path, *, rate: float, n_frames: int):
+    """A new layer at ``tmp`` (format from ``path``'s suffix) and its stage: Y up, mm, time codes
+    = frames 0 .. ``n_frames`` - 1 at ``rate``. Returns ``(layer, stage)``."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    layer = Sdf.Layer.CreateNew(str(tmp), args={"format": _format(path)})
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
+    stage.SetTimeCodesPerSecond(float(rate))
+    stage.SetFramesPerSecond(float(rate))
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(max(n_frames - 1, 0))
+    return layer, stage
 
 
 def _format(path: Path) -> str:

@@ -55,6 +55,11 @@ class HeadPoses:
     source: str
     motion_rms_mm: float = float("nan")
 
+    def select(self, frames: np.ndarray | slice) -> HeadPoses:
+        """The poses of ``frames`` only."""
+        return replace(self, rotations=self.rotations[frames], translations=self.translations[frames],
+                       residual_mm=self.residual_mm[frames], dropped=self.dropped[frames])
+
 
 def robust_head_poses(reference: np.ndarray, capture: Trajectories, labels: Sequence[str], *,
                       source: str, max_gap: int = MAX_POSE_GAP) -> HeadPoses:

@@ -1,0 +1,276 @@
+"""``mocaptk retarget``: weight recovery against ground truth, lost markers, speed and memory.
+
+    python benchmarks/bench_retarget.py accuracy     # 2 actors x default layout at 3 sizes, baselines
+    python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
+    python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
+    python benchmarks/bench_retarget.py memory       # peak memory of a 72,000-frame retarget (subprocess)
+
+Data: the bundled sample (half face, its held-out 20 s performance and truth) and a full face made
+by ``mocaptk synth --full --identity 1.5,-1.0,0.8`` (ICT-FaceKit identity ≠ the generic rig's
+face), both onto ``--character arkit``. Truth: the ICT weights per frame as ARKit's 52 (split
+``_L``/``_R`` shapes averaged). Figures over the shapes that move (truth > 0.1 somewhere): per-shape
+MAE and Pearson r, their means; mesh RMSE = the generic rig driven by solved vs true weights (mm,
+every face vertex). Baselines: unconstrained least squares (calibrated shapes, no bounds),
+NNLS on raw displacements with the character's shapes and no ROM calibration (Zell's protocol),
+and ``solve`` → dense markers → NNLS (every dense marker, the character's shapes).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLES = REPO / "sample_c3d"
+ICT = REPO.parent / "shared" / "data" / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
+IDENTITY = "1.5,-1.0,0.8"
+
+
+def mocaptk(*args) -> None:
+    env = {**os.environ, "MOCAPTK_ICT_FACEKIT": str(ICT)}
+    done = subprocess.run([sys.executable, "-m", "mocaptk", *map(str, args)], capture_output=True,
+                          text=True, env=env)
+    if done.returncode:
+        raise SystemExit(done.stderr)
+
+
+def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
+    """(name, session, performance, performance truth) for the sample and the synthetic full face."""
+    full = work / "full"
+    if not (full / "actor.c3d").is_file():
+        full.mkdir(parents=True, exist_ok=True)
+        mocaptk("synth", full / "actor.c3d", "--full", "--identity", IDENTITY, "--spacing", "10",
+                "--rig", "none", "--seed", "11", "--noise", "0.2", "--expressions", "5", "--rest", "1.5",
+                "--hold", "2.0", "--performance", "20", "--quiet", "--force")
+    return [("sample (half face)", SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d",
+             SAMPLES / "dense_halfface_performance_truth.npz"),
+            (f"synth --full --identity {IDENTITY}", full / "actor.c3d", full / "actor_performance.c3d",
+             full / "actor_performance_truth.npz")]
+
+
+def arkit_truth(truth) -> np.ndarray:
+    from mocaptk.retarget.character import ARKIT_NAMES, arkit_name
+
+    out = np.zeros((len(truth.weights), 52))
+    for j, name in enumerate(truth.blendshape_names):
+        split = arkit_name(name) is None
+        out[:, ARKIT_NAMES.index(arkit_name(name) or arkit_name(name[:-2]))] += \
+            truth.weights[:, j] * (0.5 if split else 1.0)
+    return out
+
+
+def scores(weights: np.ndarray, truth: np.ndarray, rig) -> dict:
+    moving = (truth > 0.1).any(axis=0)
+    mae = np.abs(weights - truth).mean(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.array([np.corrcoef(weights[:, k], truth[:, k])[0, 1] if weights[:, k].std() > 0 else 0.0
+                      for k in range(truth.shape[1])])
+    step = max(1, len(truth) // 200)  # mesh RMSE on 200 frames (9,409 vertices each)
+    diff = np.tensordot((weights - truth)[::step].astype(np.float32), rig.deltas, axes=(1, 0))
+    return {"mae": float(mae[moving].mean()), "r": float(r[moving].mean()),
+            "mesh_rmse_mm": float(np.sqrt(np.mean(np.sum(diff ** 2, axis=2)))),
+            "per_shape": {rig.names[k]: (round(float(mae[k]), 4), round(float(r[k]), 3))
+                          for k in np.flatnonzero(moving)}}
+
+
+class Actor:
+    """A session fitted once (correspondence + calibration) and its layouts' solvers."""
+
+    def __init__(self, session_path: Path) -> None:
+        from mocaptk.acquisition.c3d_read import read_c3d
+        from mocaptk.retarget.character import load_character
+        from mocaptk.retarget.retarget_outputs import fit_retargeter
+
+        self.session = read_c3d(session_path)
+        self.rig = load_character("arkit")
+        start = time.perf_counter(), time.process_time()
+        self.retargeter = fit_retargeter(self.rig, self.session)
+        self.fit_seconds = (time.perf_counter() - start[0], time.process_time() - start[1])
+
+    def methods(self, layout_path: Path, capture) -> dict[str, np.ndarray]:
+        from scipy.optimize import nnls
+
+        from mocaptk.clustering.layout import read_layout
+        from mocaptk.retarget.retarget_outputs import Retargeter, retarget_capture
+        from mocaptk.retarget.rom_calibration import Calibration
+        from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
+
+        layout = read_layout(layout_path)
+        solver = train_solver(layout, self.session, {"path": None, "sha256": None})
+        ours = retarget_capture(self.retargeter, solver, capture, "capture")
+        uncalibrated = Retargeter(self.rig, None, Calibration(
+            self.retargeter.correspondence.shape_basis(self.rig), self.retargeter.calibration.neutral,
+            self.retargeter.calibration.ties, np.ones(52), np.ones(52)), self.retargeter.labels)
+        same_solve = retarget_capture(uncalibrated, solver, capture, "capture")
+        corr, labels = self.retargeter.correspondence, list(self.retargeter.labels)
+        prior = corr.shape_basis(self.rig)
+        cal = self.retargeter.calibration
+        rows = np.array([labels.index(label) for label in solver.layout_labels])
+        d = layout_frames(solver, capture, "capture") - cal.neutral[rows]
+        ties = cal.ties
+
+        def tied(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            variables, inverse = np.unique(ties, return_inverse=True)
+            out = np.zeros((len(variables), *basis.shape[1:]))
+            np.add.at(out, inverse, basis)
+            return out, inverse
+
+        def per_frame(basis: np.ndarray, disp: np.ndarray, bounded: bool) -> np.ndarray:
+            b, inverse = tied(basis)
+            a = b.reshape(len(b), -1).T
+            out = np.zeros((len(disp), len(b)))
+            for f, frame in enumerate(disp.reshape(len(disp), -1)):
+                ok = np.isfinite(frame)
+                out[f] = nnls(a[ok], frame[ok])[0] if bounded else np.linalg.lstsq(a[ok], frame[ok], rcond=None)[0]
+            return out[:, inverse]
+
+        dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, capture, "capture"))])
+        return {"ours (ROM-calibrated, bounded, L1, smooth)": ours.weights,
+                "same solve without ROM calibration": same_solve.weights,
+                "unconstrained least squares": per_frame(cal.basis[:, rows], d, False),
+                "NNLS, raw displacements, no ROM (Zell)": per_frame(prior[:, rows], d, True),
+                "solve -> dense -> NNLS": per_frame(prior, dense - cal.neutral, True)}
+
+
+def accuracy() -> None:
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.acquisition.synth_session import load_ground_truth
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        for name, session, performance, truth_path in datasets(work):
+            actor = Actor(session)
+            truth = arkit_truth(load_ground_truth(truth_path))
+            capture = read_c3d(performance)
+            print(f"\n## {name}: fit + calibration {actor.fit_seconds[0]:.1f} s wall, "
+                  f"{actor.fit_seconds[1]:.1f} s CPU")
+            print("| layout markers | method | mean MAE | mean r | mesh RMSE mm |\n|---|---|---|---|---|")
+            for size in (None, 20, 40):
+                folder = work / f"layout_{session.stem}_{size or 'default'}"
+                if not (folder / "layout.json").is_file():
+                    mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force",
+                            *(("--markers", size) if size else ()))
+                results = actor.methods(folder / "layout.json", capture)
+                count = len(json.loads((folder / "layout.json").read_text())["layout"])
+                for method, weights in results.items():
+                    s = scores(weights, truth, actor.rig)
+                    print(f"| {count}{'' if size else ' (default)'} | {method} | {s['mae']:.3f} | "
+                          f"{s['r']:.3f} | {s['mesh_rmse_mm']:.2f} |")
+                    if method.startswith("ours") and size is None:
+                        worst = sorted(s["per_shape"].items(), key=lambda kv: kv[1][1])[:5]
+                        print(f"|  | worst r: {', '.join(f'{k} {v[1]:.2f}' for k, v in worst)} | | | |")
+
+
+def lost() -> None:
+    """Weights error as layout markers are lost: 0/5/20 % per frame at random, lower lip 10 s."""
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.retarget_outputs import retarget_capture
+    from mocaptk.retarget.solve import train_solver
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        print("| actor | lost | mean MAE | mean r | mesh RMSE mm | NaN weights |\n|---|---|---|---|---|---|")
+        for name, session, performance, truth_path in datasets(work):
+            actor = Actor(session)
+            truth = arkit_truth(load_ground_truth(truth_path))
+            capture = read_c3d(performance)
+            folder = work / f"layout_{session.stem}_default"
+            if not (folder / "layout.json").is_file():
+                mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force")
+            solver = train_solver(read_layout(folder / "layout.json"), actor.session, {})
+            labels = list(solver.layout_labels)
+            columns = capture.index(labels)
+            mouth = [i for i, label in enumerate(labels) if label.startswith("MOUTH")]
+            heights = capture.positions[:, columns[mouth], 1]
+            lower = [mouth[k] for k in np.flatnonzero(np.nanmedian(heights, axis=0) < np.nanmedian(heights))]
+            rng = np.random.default_rng(0)
+            cases = [(f"{p} % per frame", p) for p in (0, 5, 20)] + [(f"lower lip ({len(lower)}) 10 s", None)]
+            for label, percent in cases:
+                pos = capture.positions.copy()
+                if percent is None:
+                    pos[300:300 + int(10 * capture.rate), columns[lower]] = np.nan
+                else:
+                    gone = rng.random((capture.n_frames, len(labels))) < percent / 100
+                    view = pos[:, columns]
+                    view[gone] = np.nan
+                    pos[:, columns] = view
+                result = retarget_capture(actor.retargeter, solver, capture.replace(positions=pos), "capture")
+                s = scores(result.weights, truth, actor.rig)
+                print(f"| {name} | {label} | {s['mae']:.3f} | {s['r']:.3f} | {s['mesh_rmse_mm']:.2f} | "
+                      f"{int(np.isnan(result.weights).sum())} |")
+
+
+def speed() -> None:
+    """Frames/s of the weight solve (the generic rig's 52 shapes at 50 of its moving vertices,
+    the sample performance's true weights, 0.2 mm noise, 5 % lost) against scipy's lsq_linear."""
+    from scipy.optimize import lsq_linear
+
+    from mocaptk.retarget.weight_solve import solve_weights
+
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.character import load_character
+
+    rng = np.random.default_rng(1)
+    rig = load_character("arkit")
+    motion = np.linalg.norm(rig.deltas, axis=2).max(axis=0)
+    moving = np.flatnonzero(motion > 1.0)  # mm: the face that moves
+    basis = rig.deltas[:, rng.choice(moving, 50, replace=False)].astype(np.float64)  # 50 markers
+    truth = np.tile(arkit_truth(load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")), (17, 1))[:20_000]
+    d = np.einsum("fs,smc->fmc", truth, basis) + rng.normal(scale=0.2, size=(len(truth), 50, 3))
+    d[rng.random(d.shape[:2]) < 0.05] = np.nan
+    solve_weights(basis, d[:10])  # compile
+    load = os.getloadavg()[0]
+    wall, cpu = time.perf_counter(), time.process_time()
+    solve_weights(basis, d)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    a = basis.reshape(52, -1).T
+    n = 300
+    w2, c2 = time.perf_counter(), time.process_time()
+    for frame in d[:n].reshape(n, -1):
+        ok = np.isfinite(frame)
+        lsq_linear(a[ok], frame[ok], bounds=(0, 1))
+    w2, c2 = time.perf_counter() - w2, time.process_time() - c2
+    print(f"load {load:.1f}; ours: {len(d) / wall:,.0f} frames/s wall ({len(d) / cpu:,.0f} per CPU-s); "
+          f"scipy lsq_linear (bounded, no L1/smoothness): {n / w2:,.0f} frames/s wall ({n / c2:,.0f} per CPU-s); "
+          f"ratio {(len(d) / wall) / (n / w2):.0f}x")
+
+
+def memory() -> None:
+    """Peak RSS of a 72,000-frame retarget (the sample's performance tiled 60x, 48 layout markers)."""
+    code = """
+import resource, numpy as np, sys
+from mocaptk.acquisition.c3d_read import read_c3d
+from mocaptk.clustering.layout import read_layout
+from mocaptk.retarget.character import load_character
+from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+from mocaptk.retarget.solve import train_solver
+session = read_c3d(sys.argv[1]); capture = read_c3d(sys.argv[2])
+solver = train_solver(read_layout(sys.argv[3]), session, {})
+r = fit_retargeter(load_character('arkit'), session)
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+long = capture.select(list(solver.layout_labels))
+long = long.replace(positions=np.tile(long.positions, (60, 1, 1)), residuals=None)
+result = retarget_capture(r, solver, long, 'long')
+print(long.n_frames, 'frames; peak RSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 'MiB (after fit', base / 1024, 'MiB)')
+"""
+    with tempfile.TemporaryDirectory() as tmp:
+        mocaptk("cluster", SAMPLES / "dense_halfface.c3d", "--out", Path(tmp) / "layout", "--formats", "none",
+                "--quiet")
+        done = subprocess.run([sys.executable, "-c", code, str(SAMPLES / "dense_halfface.c3d"),
+                               str(SAMPLES / "dense_halfface_performance.c3d"), str(Path(tmp) / "layout" / "layout.json")],
+                              capture_output=True, text=True)
+        print(done.stdout or done.stderr[-2000:])
+
+
+if __name__ == "__main__":
+    {"accuracy": accuracy, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()

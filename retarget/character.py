@@ -1,0 +1,147 @@
+"""A blendshape character to retarget onto: neutral mesh + named shape deltas, in mm.
+
+``load_character(spec)`` reads
+
+- ``arkit``: the generic ARKit-52 rig bundled with the package: ICT-FaceKit's face region (MIT,
+  ``data/ict_face_neutral.npz``) and its expressions as ARKit's 52 shapes
+  (``data/ict_face_shapes.npz``, written by ``scripts/bundle_ict_face.py``). ICT splits
+  ``browInnerUp`` and ``cheekPuff`` into ``_L``/``_R``: their deltas are summed; ICT has no
+  ``tongueOut``: a zero shape.
+- a glTF / GLB: the first mesh with morph targets (first such primitive), names from the
+  mesh's ``extras.targetNames``; metres → mm;
+- a binary FBX: the mesh a ``BlendShape`` deformer is attached to, its channels' shapes;
+- a USD: the first ``UsdSkelBindingAPI`` mesh with ``skel:blendShapes`` (offsets and optional
+  point indices); ``metersPerUnit`` → mm.
+
+Names match ARKit's where they are the same up to case, ``_``/``-`` and a ``_L``/``Left`` /
+``_R``/``Right`` side tag (:func:`arkit_name`); other names are kept as they are. Coordinates as
+the rig's: Y up, the face looking down +Z, +X the character's left.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from mocaptk.errors import InputFileError
+
+__all__ = ["ARKIT_NAMES", "Character", "arkit_name", "ict_to_arkit", "load_character"]
+
+#: ARKit's 52 blendshapes in Apple's ``ARFaceAnchor.BlendShapeLocation`` / Live Link Face order.
+ARKIT_NAMES = (
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
+    "eyeSquintLeft", "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight",
+    "eyeLookOutRight", "eyeLookUpRight", "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft",
+    "jawRight", "jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight",
+    "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight", "mouthDimpleLeft",
+    "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight", "mouthRollLower", "mouthRollUpper",
+    "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft",
+    "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "browDownLeft", "browDownRight",
+    "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff", "cheekSquintLeft",
+    "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
+)
+#: The bundled generic rig's shapes (deltas on ``face_template.TEMPLATE_FILE``'s vertices).
+SHAPES_FILE = "data/ict_face_shapes.npz"
+_SIDE = re.compile(r"(?:[_\-. ]?(left|right|l|r))$", re.IGNORECASE)
+_ARKIT_KEYS = {}
+
+
+def _key(name: str) -> str:
+    """``mouthSmile_L``, ``MouthSmileLeft``, ``mouth_smile_left`` → ``mouthsmileleft``."""
+    side = _SIDE.search(name)
+    stem, tag = (name[:side.start()], side.group(1).lower()) if side else (name, "")
+    tag = {"l": "left", "r": "right"}.get(tag, tag)
+    return re.sub(r"[^a-z0-9]", "", stem.lower()) + tag
+
+
+def arkit_name(name: str) -> str | None:
+    """The ARKit name ``name`` stands for, or None."""
+    if not _ARKIT_KEYS:
+        _ARKIT_KEYS.update({_key(n): n for n in ARKIT_NAMES})
+    return _ARKIT_KEYS.get(_key(name))
+
+
+def ict_to_arkit(ict_names: Sequence[str], ict_deltas: np.ndarray) -> np.ndarray:
+    """ICT-FaceKit's expression deltas (53, V, 3) as ARKit's 52 (52, V, 3), in
+    :data:`ARKIT_NAMES` order: ``browInnerUp``/``cheekPuff`` the sum of their ``_L`` and ``_R``,
+    ``tongueOut`` zero."""
+    deltas = np.zeros((len(ARKIT_NAMES), *ict_deltas.shape[1:]), dtype=np.float64)
+    for i, name in enumerate(ict_names):
+        target = arkit_name(name) or arkit_name(name[:-2])  # browInnerUp_L → browInnerUp
+        if target is None:
+            raise ValueError(f"ICT shape {name!r} has no ARKit name")
+        deltas[ARKIT_NAMES.index(target)] += ict_deltas[i]
+    return deltas
+
+
+@dataclass(frozen=True, eq=False)
+class Character:
+    """``vertices`` (V, 3) mm neutral, ``faces`` (T, 3) int64, ``deltas`` (S, V, 3) float32 mm
+    the shapes ``names`` (S); ``source`` where it was read from."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    names: tuple[str, ...]
+    deltas: np.ndarray
+    source: str
+
+    @property
+    def arkit(self) -> tuple[str | None, ...]:
+        """Each shape's ARKit name (None where it has none)."""
+        return tuple(arkit_name(n) for n in self.names)
+
+    def deform(self, weights: np.ndarray) -> np.ndarray:
+        """Meshes (..., V, 3) mm for weights (..., S)."""
+        w = np.asarray(weights, dtype=np.float32)
+        return self.vertices + np.tensordot(w, self.deltas, axes=(w.ndim - 1, 0))
+
+    def replace(self, **changes) -> Character:
+        return Character(**{**self.__dict__, **changes})
+
+
+def load_character(spec: str | os.PathLike[str]) -> Character:
+    """``arkit`` (the bundled generic rig) or a glTF/GLB/USD file with blend shapes.
+
+    Raises :class:`InputFileError` for a missing/unreadable file or one without shapes.
+    """
+    if os.fspath(spec) == "arkit":
+        return generic_arkit()
+    path = Path(spec)
+    if not path.is_file():
+        raise InputFileError(path, "character file not found (give arkit, a .glb/.gltf, .fbx or .usd)")
+    suffix = path.suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        from .character_gltf import read_gltf_character
+        character = read_gltf_character(path)
+    elif suffix == ".fbx":
+        from .character_fbx import read_fbx_character
+        character = read_fbx_character(path)
+    elif suffix in (".usd", ".usda", ".usdc"):
+        from .character_usd import read_usd_character
+        character = read_usd_character(path)
+    else:
+        raise InputFileError(path, f"unsupported character format {path.suffix!r} "
+                             "(use arkit, .glb, .gltf, .fbx, .usd, .usda, .usdc)")
+    if not character.names:
+        raise InputFileError(path, "the character has no blend shapes (morph targets)")
+    if not (np.isfinite(character.vertices).all() and np.isfinite(character.deltas).all()):
+        raise InputFileError(path, "the character's vertices or shapes contain NaN or inf")
+    return character
+
+
+def generic_arkit() -> Character:
+    """The bundled ICT-FaceKit (MIT) ARKit-52 face."""
+    from .face_template import template_face
+
+    vertices, faces = template_face()
+    with resources.files(__package__).joinpath(SHAPES_FILE).open("rb") as handle:
+        with np.load(handle, allow_pickle=False) as data:
+            names, deltas = tuple(str(n) for n in data["names"]), data["deltas"]
+    return Character(np.asarray(vertices, dtype=np.float64), faces, names, deltas,
+                     "arkit (ICT-FaceKit, MIT)")

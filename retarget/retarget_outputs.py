@@ -1,0 +1,245 @@
+"""``mocaptk retarget``'s pipeline and files (format ``mocaptk.retarget``, version 1; docs/retarget.md).
+
+Fit (:func:`fit_retargeter`): the character placed on the actor's dense neutral
+(:mod:`.correspondence`), the actor calibrated on the dense session (:mod:`.rom_calibration`).
+Solve (:func:`retarget_capture`): the capture's layout markers, head pose removed with
+``solve``'s machinery (:func:`mocaptk.retarget.solve.head_poses`), displacements from the
+actor's neutral, weights chunk by chunk (:mod:`.weight_solve`). Files
+(:func:`write_retarget_outputs`): ``weights.npz``, ``retarget.json``, ``blendshapes.csv``,
+``calibration.npz`` and the character files.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocaptk import __version__
+from mocaptk.atomic import write_bytes, write_text
+from mocaptk.clustering.neutral import neutral_pose
+from mocaptk.errors import InputFileError
+from mocaptk.jsonio import dumps, write_json
+from mocaptk.npz import npz_bytes
+from mocaptk.trajectories import Trajectories
+
+from .character import ARKIT_NAMES, Character
+from .correspondence import Correspondence, correspond
+from .livelink_csv import livelink_csv, yaw_pitch_roll
+from .rom_calibration import DEFAULT_PRIOR, Calibration, calibrate, side_ties
+from .solve import CHUNK_FRAMES, FaceSolver, head_poses, layout_frames, to_head_frame
+from .weight_solve import DEFAULT_L1, DEFAULT_SMOOTH, solve_weights
+
+__all__ = ["RETARGET_FORMAT", "Retargeter", "RetargetResult", "fit_retargeter", "load_calibration",
+           "retarget_capture", "write_retarget_outputs"]
+
+RETARGET_FORMAT, RETARGET_VERSION = "mocaptk.retarget", 1
+CALIBRATION_FORMAT = "mocaptk.retarget-calibration"
+#: Character files ``--formats`` chooses from.
+CHARACTER_FORMATS = ("glb", "usd", "fbx")
+
+
+@dataclass(frozen=True, eq=False)
+class Retargeter:
+    """The character, where the actor's dense markers ``labels`` sit on it, and the actor's
+    calibration (rows = ``labels``)."""
+
+    character: Character
+    correspondence: Correspondence | None
+    calibration: Calibration
+    labels: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class RetargetResult:
+    """``weights`` (F, S); ``head`` (F, 3) yaw/pitch/roll radians (0 without a rigid set);
+    ``residual_mm`` (F,); ``lost`` (F,) lost layout markers; ``layout_labels`` the markers used."""
+
+    weights: np.ndarray
+    head: np.ndarray
+    residual_mm: np.ndarray
+    lost: np.ndarray
+    layout_labels: tuple[str, ...]
+
+
+def fit_retargeter(character: Character, session: Trajectories, *, prior: float = DEFAULT_PRIOR,
+                   l1: float = DEFAULT_L1) -> Retargeter:
+    """Place ``character`` on the head-relative dense ``session`` and calibrate the actor on it."""
+    neutral = neutral_pose(session.positions)
+    corr = correspond(character, neutral)
+    basis = corr.shape_basis(character)
+    calibration = calibrate(session.positions, neutral, basis, side_ties(character.names, basis),
+                            strength=prior, l1=l1)
+    return Retargeter(character, corr, calibration, tuple(session.labels))
+
+
+def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajectories, path: str, *,
+                     l1: float = DEFAULT_L1, smooth: float = DEFAULT_SMOOTH, stabilize: bool = True,
+                     chunk: int = CHUNK_FRAMES) -> RetargetResult:
+    """Weights of every frame of ``capture`` (its file ``path``, for messages)."""
+    x = layout_frames(solver, capture, path)  # raises when layout markers are missing
+    poses = head_poses(solver, capture) if stabilize else None
+    rows = np.array([retargeter.labels.index(label) for label in solver.layout_labels])
+    basis, inverse = retargeter.calibration.tied_basis(rows)
+    neutral = retargeter.calibration.neutral[rows]
+    n_frames = capture.n_frames
+    weights = np.zeros((n_frames, len(basis)))
+    residual, lost = np.full(n_frames, np.nan), np.zeros(n_frames, dtype=np.int64)
+    previous = None
+    for start in range(0, n_frames, chunk):
+        part = slice(start, start + chunk)
+        frames = np.array(x[part], dtype=np.float64)
+        if poses is not None:  # into the head frame: R^T (x - t); no pose: markers lost
+            frames = to_head_frame(frames, poses, part)
+        solved = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous)
+        weights[part], residual[part], lost[part] = solved.weights, solved.residual_mm, solved.lost
+        previous = solved.weights[-1] if len(solved.weights) else previous
+    head = np.zeros((n_frames, 3)) if poses is None else yaw_pitch_roll(poses.rotations)
+    return RetargetResult(weights[:, inverse], head, residual, lost, solver.layout_labels)
+
+
+def save_calibration(path: str | os.PathLike[str], retargeter: Retargeter,
+                     session: Mapping[str, Any]) -> Path:
+    """``calibration.npz``: the actor's shapes, neutral and ranges, for ``--calibration``."""
+    cal = retargeter.calibration
+    header = {"format": CALIBRATION_FORMAT, "version": RETARGET_VERSION, "session": dict(session),
+              "shapes": list(retargeter.character.names), "labels": list(retargeter.labels)}
+    return write_bytes(path, npz_bytes({
+        "header": np.frombuffer(dumps(header).encode(), dtype=np.uint8),
+        "basis": cal.basis.astype(np.float64), "neutral": cal.neutral, "ties": cal.ties.astype(np.int64),
+        "rom_extreme": cal.rom_extreme, "stretch": cal.stretch}))
+
+
+def load_calibration(path: str | os.PathLike[str], character: Character,
+                     session_labels: Sequence[str]) -> Retargeter:
+    """A saved calibration for ``character``; refused (InputFileError) when its shapes or
+    markers differ."""
+    import json
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            header = json.loads(bytes(data["header"]).decode())
+            arrays = {k: data[k] for k in ("basis", "neutral", "ties", "rom_extreme", "stretch")}
+    except (OSError, KeyError, ValueError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"not a mocaptk retarget calibration ({type(exc).__name__})") from None
+    if header.get("format") != CALIBRATION_FORMAT:
+        raise InputFileError(path, "not a mocaptk retarget calibration")
+    shapes = header.get("shapes", [])
+    if len(shapes) != len(character.names) or arrays["basis"].shape[0] != len(character.names):
+        raise InputFileError(path, f"calibrated for {len(shapes)} shapes, the character has "
+                             f"{len(character.names)}")
+    if list(shapes) != list(character.names):
+        raise InputFileError(path, "calibrated for other shape names than the character's")
+    labels = tuple(header.get("labels", []))
+    if arrays["basis"].shape[1] != len(labels) or not set(session_labels) <= set(labels):
+        raise InputFileError(path, "calibrated on other markers than the session's")
+    return Retargeter(character, None, Calibration(**arrays), labels)
+
+
+def arkit_columns(character: Character, weights: np.ndarray) -> np.ndarray:
+    """(F, 52) weights in ARKit order (0 for ARKit shapes the character lacks)."""
+    out = np.zeros((len(weights), len(ARKIT_NAMES)))
+    for i, name in enumerate(character.arkit):
+        if name is not None:
+            out[:, ARKIT_NAMES.index(name)] = weights[:, i]
+    return out
+
+
+def write_retarget_outputs(retargeter: Retargeter, result: RetargetResult, capture: Trajectories,
+                           capture_source: Mapping[str, Any], session: Mapping[str, Any],
+                           staging: Path, *, options: Mapping[str, Any],
+                           formats: Sequence[str] = CHARACTER_FORMATS, extra_outputs: Sequence[str] = (),
+                           notes: Sequence[str] = (),
+                           progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Write the outputs into ``staging``; returns the summary written to ``retarget.json``."""
+    say = progress or (lambda _: None)
+    character = retargeter.character
+    weights = result.weights.astype(np.float32)
+    say("writing weights.npz, blendshapes.csv")
+    write_bytes(staging / "weights.npz", npz_bytes({
+        "format": np.array(RETARGET_FORMAT), "version": np.array(RETARGET_VERSION),
+        "names": np.array(character.names), "weights": weights, "rate": np.array(capture.rate),
+        "head_yaw_pitch_roll": result.head.astype(np.float32),
+        "residual_mm": result.residual_mm.astype(np.float32), "lost": result.lost}))
+    write_text(staging / "blendshapes.csv", livelink_csv(arkit_columns(character, weights), capture.rate,
+                                                          head=result.head))
+    save_calibration(staging / "calibration.npz", retargeter, session)
+    written = ["weights.npz", "blendshapes.csv", "calibration.npz", "retarget.json", *extra_outputs]
+    if formats:
+        from .export_character import write_character_files
+        written += write_character_files(staging, character, weights, capture.rate, formats=formats,
+                                         progress=say)
+    summary = _summary(retargeter, result, capture, capture_source, session, options=options,
+                       outputs=sorted(written), notes=notes)
+    write_json(staging / "retarget.json", summary)
+    return summary
+
+
+def write_renders(staging: Path, retargeter: Retargeter, solver: FaceSolver, capture: Trajectories,
+                  result: RetargetResult, *, stabilize: bool = True) -> list[str]:
+    """``retarget_frames.png`` (actor = solved dense markers, beside the character at rest, widest
+    jaw, strongest smile, blink) and ``correspondence.png``; returns the names written."""
+    from mocaptk.surface_mesh import marker_surface_mesh
+
+    from .retarget_renders import pick_frames, render_correspondence, render_frames
+    from .solve import solve_chunks
+
+    character = retargeter.character
+    picks = pick_frames(character.names, result.weights)
+    frames = np.array(list(picks.values()))
+    x = layout_frames(solver, capture, "capture")[frames]
+    poses = head_poses(solver, capture) if stabilize else None
+    sub = None if poses is None else poses.select(frames)
+    dense = next(solve_chunks(solver, x, sub)).positions
+    if sub is not None:  # show the actor head-relative, as the character is
+        dense, x = to_head_frame(dense, sub), to_head_frame(x, sub)
+    neutral = retargeter.calibration.neutral
+    seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+    _, faces = marker_surface_mesh(neutral[seen])
+    render_frames(staging / "retarget_frames.png", actor_faces=np.asarray(faces), actor=dense[:, seen],
+                  layout=x, character=character, weights=result.weights[frames],
+                  titles=[f"{title} (frame {frame})" for title, frame in picks.items()])
+    written = ["retarget_frames.png"]
+    if retargeter.correspondence is not None:
+        points = retargeter.correspondence.points(character.vertices, character.faces)
+        rows = [retargeter.labels.index(label) for label in result.layout_labels]
+        render_correspondence(staging / "correspondence.png", character=character, points=points,
+                              layout=points[rows])
+        written.append("correspondence.png")
+    return written
+
+
+def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectories,
+             capture_source: Mapping[str, Any], session: Mapping[str, Any], *,
+             options: Mapping[str, Any], outputs: list[str], notes: Sequence[str]) -> dict[str, Any]:
+    character, cal, corr = retargeter.character, retargeter.calibration, retargeter.correspondence
+    shapes = [{"name": name, "arkit": arkit, "rom_extreme": float(cal.rom_extreme[i]),
+               "stretch": float(cal.stretch[i]),
+               "follows": None if cal.ties[i] == i else character.names[int(cal.ties[i])],
+               "max_weight": float(result.weights[:, i].max()) if len(result.weights) else 0.0}
+              for i, (name, arkit) in enumerate(zip(character.names, character.arkit))]
+    return {
+        "format": RETARGET_FORMAT, "version": RETARGET_VERSION, "generator": f"mocaptk {__version__}",
+        "capture": {"path": capture_source.get("path"), "sha256": capture_source.get("sha256"),
+                    "frames": capture.n_frames, "rate": capture.rate},
+        "session": dict(session),
+        "character": {"source": character.source, "vertices": int(len(character.vertices)),
+                      "triangles": int(len(character.faces)), "shapes": len(character.names)},
+        "correspondence": None if corr is None else {
+            "scale": corr.scale, "fit_rms_mm": corr.fit_rms_mm, "bent_rms_mm": corr.bent_rms_mm,
+            "motion_coverage": corr.coverage},
+        "options": dict(options),
+        "layout_markers": list(result.layout_labels),
+        "shapes": shapes,
+        "frames": {"lost_markers": result.lost.tolist(),
+                   "residual_mm": [None if not np.isfinite(r) else round(float(r), 4)
+                                   for r in result.residual_mm],
+                   "with_lost_markers": int((result.lost > 0).sum()),
+                   "without_markers": int((~np.isfinite(result.residual_mm)).sum())},
+        "outputs": outputs,
+        "notes": list(notes),
+    }
