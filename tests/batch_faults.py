@@ -36,7 +36,8 @@ def free_port() -> int:
 def dask_farm(folder: Path, *, workers: int = 2, preload: Path | None = None,
               env: dict[str, str] | None = None) -> Iterator[str]:
     """``dask scheduler`` + ``workers`` ``dask worker`` processes on 127.0.0.1 (free ports),
-    configured as docs/batch.md says; yields the scheduler's address. Logs go to folder/farm.log."""
+    configured as docs/batch.md says; yields the scheduler's address. The scheduler writes its
+    file to folder/scheduler.json (for --scheduler-file); logs go to folder/farm.log."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "PYTHONWARNINGS": "ignore", "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "1",
@@ -44,8 +45,8 @@ def dask_farm(folder: Path, *, workers: int = 2, preload: Path | None = None,
     dask = str(Path(sys.executable).with_name("dask"))
     log = open(folder / "farm.log", "w")
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", "127.0.0.1:0"], env=env, stdout=log, stderr=log,
-                              start_new_session=True)]
+                               "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(folder / "scheduler.json")],
+                              env=env, stdout=log, stderr=log, start_new_session=True)]
     try:
         for _ in range(workers):
             procs.append(subprocess.Popen(

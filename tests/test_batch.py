@@ -125,10 +125,15 @@ def test_second_run_skips_unchanged_sessions(local_run, sessions):
 
 
 @pytest.fixture(scope="module")
-def farm(tmp_path_factory):
+def farm_folder(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("farm")
+
+
+@pytest.fixture(scope="module")
+def farm(farm_folder):
     """``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1 (free ports), configured as
     docs/batch.md says; the workers kill themselves on a ``kill-me`` session (test preload)."""
-    with dask_farm(tmp_path_factory.mktemp("farm"), preload=REPO / "tests" / "batch_worker_killer.py") as address:
+    with dask_farm(farm_folder, preload=REPO / "tests" / "batch_worker_killer.py") as address:
         yield address
 
 
@@ -197,12 +202,13 @@ def test_worker_killed_and_batch_interrupted_at_random_moments(farm, local_run, 
           f"interrupt after {interrupt.delay:.1f} s: returned {interrupt.stop_seconds:.1f} s later")
 
 
-def test_two_batches_into_one_out_keep_every_record(farm, sessions, tmp_path):
-    """Two batches started together into one DIR: batch.json keeps both's records; a re-run of
-    both sets skips them all."""
+def test_two_batches_into_one_out_keep_every_record(farm, farm_folder, sessions, tmp_path):
+    """Two batches started together into one DIR (one through the scheduler's file): batch.json
+    keeps both's records; a re-run of both sets skips them all."""
     out = tmp_path / "shared"
     line = ("--do", "info", "--out", out, "--scheduler", farm, "--quiet")
-    first = subprocess.Popen([*MOCAPTK, "batch", str(sessions / "actor0_*.c3d"), *map(str, line)],
+    first = subprocess.Popen([*MOCAPTK, "batch", str(sessions / "actor0_*.c3d"), "--do", "info", "--out", str(out),
+                              "--scheduler-file", str(farm_folder / "scheduler.json"), "--quiet"],
                              stderr=subprocess.PIPE, text=True, env=ENV)
     second = _batch(sessions / "actor1_*.c3d", *line)
     assert first.wait(timeout=600) == 0 and second.returncode == 0, (first.stderr.read(), second.stderr)
