@@ -57,16 +57,21 @@ def dask_farm(folder: Path, *, workers: int = 2, preload: Path | None = None,
         wait_for_workers(address, workers)
         yield address
     finally:
-        for proc in reversed(procs):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        stop_processes(procs)
         log.close()
+
+
+def stop_processes(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM the process groups started (last first), SIGKILL any still there 30 s later."""
+    for proc in reversed(procs):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+    for proc in procs:
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def wait_for_workers(address: str, count: int) -> None:
@@ -103,7 +108,7 @@ def runners_alive() -> list[int]:
 class Trial:
     """One fault trial: what was done when, and what was found."""
 
-    kind: str  # "kill" (SIGKILL a worker) or "interrupt" (SIGINT the batch)
+    kind: str  # "kill" (SIGKILL a worker), "interrupt" (SIGINT the batch) or "terminate" (SIGTERM it)
     out: Path
     delay: float = 0.0  # seconds after the first session started
     exit_code: int | None = None
@@ -135,7 +140,8 @@ def _first_session_started(out: Path, process: subprocess.Popen, limit: float = 
 def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng: random.Random,
               max_delay: float, extra: tuple[str, ...] = ()) -> Trial:
     """Start a batch of ``sessions`` into ``out`` on ``scheduler``; once a session runs, wait a
-    random 0..``max_delay`` s, then SIGKILL one worker (``kill``) or SIGINT the batch (``interrupt``)."""
+    random 0..``max_delay`` s, then SIGKILL one worker (``kill``), SIGINT the batch (``interrupt``,
+    as Ctrl-C) or SIGTERM it (``terminate``)."""
     trial = Trial(kind, out, delay=rng.uniform(0.0, max_delay))
     workers = _worker_pids(scheduler) if kind == "kill" else {}
     process = subprocess.Popen([*MOCAPTK, "batch", *sessions, "--do", "cluster", "--formats", "none",
@@ -149,7 +155,7 @@ def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng:
         if kind == "kill":
             os.kill(rng.choice(sorted(workers.values())), signal.SIGKILL)
         else:
-            process.send_signal(signal.SIGINT)
+            process.send_signal(signal.SIGINT if kind == "interrupt" else signal.SIGTERM)
     trial.stderr = process.communicate(timeout=600)[1]
     trial.returned = time.monotonic()
     trial.stop_seconds = trial.returned - fault
@@ -177,8 +183,8 @@ def problems(trial: Trial, reference: dict[str, dict[str, str]]) -> list[str]:
     leftovers = [name for name in trial.hashes if "/." in f"/{name}"]  # parts, locks, journals
     if leftovers:
         found.append(f"{trial.kind}: temporary files left: {leftovers}")
-    expected = {"kill": (0,), "interrupt": (130,)}[trial.kind]
-    if trial.exit_code not in expected and not (trial.kind == "interrupt" and trial.exit_code == 0):
+    expected = {"kill": 0, "interrupt": 130, "terminate": 143}[trial.kind]
+    if trial.exit_code not in (expected, 0):  # 0: the batch had finished before the signal
         found.append(f"{trial.kind}: exit code {trial.exit_code}: {trial.stderr[-400:]}")
     for name, record in trial.records.items():
         attempts = record.get("attempts") or []
@@ -190,6 +196,6 @@ def problems(trial: Trial, reference: dict[str, dict[str, str]]) -> list[str]:
             on_disk = {k: v for k, v in tree_hashes(trial.out / name).items() if k != "log.txt"}
             if on_disk != reference.get(name) or on_disk != record["outputs"]:
                 found.append(f"{trial.kind}: {name}: outputs differ from a clean run's or from its record")
-        elif record["status"] != "interrupted" or trial.kind != "interrupt":
+        elif record["status"] != "interrupted" or trial.kind == "kill":
             found.append(f"{trial.kind}: {name}: {record['status']}: {record.get('error')}")
     return found

@@ -179,8 +179,8 @@ def test_separate_scheduler_and_workers(farm, local_run, sessions, tmp_path):
 
 
 def test_worker_killed_and_batch_interrupted_at_random_moments(farm, local_run, sessions, tmp_path):
-    """A worker SIGKILLed, then Ctrl-C, each at a random moment while sessions run (the campaign,
-    3 + 3: benchmarks/bench_batch.py --faults). After each batch returned: no file in its DIR
+    """A worker SIGKILLed, then Ctrl-C, then SIGTERM, each at a random moment while sessions run
+    (the campaign, 3 kills + 3 Ctrl-C: benchmarks/bench_batch.py --faults). After each batch returned: no file in its DIR
     changes for 10 s, every record tells its attempts, at most one attempt of a session ran to its
     end, its outputs are a clean run's (the LocalCluster batch's), no runner process is left."""
     names = sorted(f"actor{k % 3}_s{k:02d}" for k in range(8))
@@ -188,13 +188,14 @@ def test_worker_killed_and_batch_interrupted_at_random_moments(farm, local_run, 
                  for name in names}
     rng = random.Random(31)
     trials = []
-    for kind in ("kill", "interrupt"):
+    for kind in ("kill", "interrupt", "terminate"):
         wait_for_workers(farm, 2)  # the killed worker's nanny starts a new one
         trials.append(run_trial(kind, sessions=[str(sessions / f"{n}.c3d") for n in names],
                                 out=tmp_path / kind, scheduler=farm, rng=rng, max_delay=3.0))
-    kill, interrupt = trials
+    kill, interrupt, terminate = trials
     assert sorted(kill.records) == names and all(r["status"] == "done" for r in kill.records.values())
     assert interrupt.exit_code == 130 or len(interrupt.records) == len(names)  # or it had finished
+    assert terminate.exit_code == 143 or len(terminate.records) == len(names)
     problems_found = [p for trial in trials for p in problems(trial, reference)]
     assert problems_found == [], problems_found
     print(f"kill after {kill.delay:.1f} s: attempts "

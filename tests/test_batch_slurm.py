@@ -5,11 +5,9 @@ cluster gives the same records and byte-identical outputs. Skips where SLURM can
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -17,7 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-from batch_faults import free_port
+from batch_faults import free_port, stop_processes
 from conftest import REPO
 
 SAMPLE = REPO / "sample_c3d" / "dense_halfface.c3d"
@@ -88,15 +86,7 @@ def slurm(tmp_path_factory):
         yield env
     finally:
         subprocess.run(["scancel", "--user", "root"], env=env, capture_output=True)
-        for proc in reversed(procs):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        stop_processes(procs)
         log.close()
 
 

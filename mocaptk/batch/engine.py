@@ -34,6 +34,8 @@ SCHEDULER_CONFIG = {"distributed.scheduler.allowed-failures": WORKER_DEATH_RETRI
 JOBQUEUE = {"slurm": "SLURMCluster", "pbs": "PBSCluster", "sge": "SGECluster"}
 #: how long a stopped batch waits for its running sessions to be killed
 STOP_SECONDS = 60.0
+#: how often the progress line asks the workers which sessions they run
+RUNNING_SECONDS = 2.0
 
 
 def new_run_id() -> str:
@@ -161,6 +163,8 @@ def run_tasks(client, task_list: list[dict[str, Any]], *,
         pending[future] = rank
     run_id = task_list[0]["run"]
     records: list[dict[str, Any] | None] = [None] * count
+    running: list[str] = []
+    asked = 0.0
     try:
         while pending:
             try:
@@ -172,7 +176,9 @@ def run_tasks(client, task_list: list[dict[str, Any]], *,
                 records[rank] = _record(future, task_list[rank])
                 future.release()  # forgotten by the scheduler: a later worker death recomputes nothing
             del done
-            on_update([r for r in records if r is not None], _running(client, run_id))
+            if time.monotonic() - asked > RUNNING_SECONDS:  # one question to every worker: not too often
+                running, asked = _running(client, run_id), time.monotonic()
+            on_update([r for r in records if r is not None], running)
     except KeyboardInterrupt:
         stop(client, run_id, list(pending))
         for rank in pending.values():
