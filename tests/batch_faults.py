@@ -89,7 +89,8 @@ def tree_hashes(folder: Path) -> dict[str, str]:
 
 
 def runners_alive() -> list[int]:
-    """PIDs of session runners of this Python (this venv): none may outlive a batch."""
+    """PIDs of session runners of this venv (python or python3: ``dask worker``'s shebang): none
+    may outlive a batch."""
     pids = []
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -99,7 +100,8 @@ def runners_alive() -> list[int]:
             state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
         except OSError:
             continue
-        if state != "Z" and len(cmd) > 2 and cmd[0].decode() == sys.executable and cmd[2] == b"mocaptk.batch.runner":
+        venv = Path(cmd[0].decode()).parent == Path(sys.executable).parent
+        if state != "Z" and len(cmd) > 2 and venv and cmd[2] == b"mocaptk.batch.runner":
             pids.append(int(proc.name))
     return pids
 
@@ -138,11 +140,11 @@ def _first_session_started(out: Path, process: subprocess.Popen, limit: float = 
 
 
 def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng: random.Random,
-              max_delay: float, extra: tuple[str, ...] = ()) -> Trial:
+              window: tuple[float, float], extra: tuple[str, ...] = ()) -> Trial:
     """Start a batch of ``sessions`` into ``out`` on ``scheduler``; once a session runs, wait a
-    random 0..``max_delay`` s, then SIGKILL one worker (``kill``), SIGINT the batch (``interrupt``,
+    random time in ``window`` (seconds), then SIGKILL one worker (``kill``), SIGINT the batch (``interrupt``,
     as Ctrl-C) or SIGTERM it (``terminate``)."""
-    trial = Trial(kind, out, delay=rng.uniform(0.0, max_delay))
+    trial = Trial(kind, out, delay=rng.uniform(*window))
     workers = _worker_pids(scheduler) if kind == "kill" else {}
     process = subprocess.Popen([*MOCAPTK, "batch", *sessions, "--do", "cluster", "--formats", "none",
                                 "--out", str(out), "--scheduler", scheduler, *extra],

@@ -191,7 +191,7 @@ def test_worker_killed_and_batch_interrupted_at_random_moments(farm, local_run, 
     for kind in ("kill", "interrupt", "terminate"):
         wait_for_workers(farm, 2)  # the killed worker's nanny starts a new one
         trials.append(run_trial(kind, sessions=[str(sessions / f"{n}.c3d") for n in names],
-                                out=tmp_path / kind, scheduler=farm, rng=rng, max_delay=3.0))
+                                out=tmp_path / kind, scheduler=farm, rng=rng, window=(0.0, 3.0)))
     kill, interrupt, terminate = trials
     assert sorted(kill.records) == names and all(r["status"] == "done" for r in kill.records.values())
     assert interrupt.exit_code == 130 or len(interrupt.records) == len(names)  # or it had finished
