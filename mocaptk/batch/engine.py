@@ -85,12 +85,13 @@ def dask_client(*, scheduler: str | None, scheduler_file: Path | None, cluster: 
         return
     if scheduler is None and scheduler_file is None:
         count = workers or machine_workers()
-        with dask.config.set(SCHEDULER_CONFIG), \
-                LocalCluster(n_workers=count, threads_per_worker=1, processes=True, host="127.0.0.1",
-                             dashboard_address="127.0.0.1:0", worker_dashboard_address="127.0.0.1:0",
-                             memory_limit=0, silence_logs=logging.CRITICAL) as local, \
-                Client(local, timeout=connect_timeout) as client:
-            yield client, f"{count} local worker{'s' * (count != 1)}"
+        with dask.config.set(SCHEDULER_CONFIG):
+            with _sigint_ignored():  # while its worker processes start
+                local = LocalCluster(n_workers=count, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                     dashboard_address="127.0.0.1:0", worker_dashboard_address="127.0.0.1:0",
+                                     memory_limit=0, silence_logs=logging.CRITICAL)
+            with local, Client(local, timeout=connect_timeout) as client:
+                yield client, f"{count} local worker{'s' * (count != 1)}"
         return
     logging.getLogger("distributed").setLevel(logging.CRITICAL)  # a failed connect is our one line
     name = f"--scheduler {scheduler}" if scheduler else f"--scheduler-file {scheduler_file}"
@@ -106,6 +107,20 @@ def dask_client(*, scheduler: str | None, scheduler_file: Path | None, cluster: 
     with client:
         n = len(client.scheduler_info(n_workers=-1)["workers"])
         yield client, f"{scheduler or client.scheduler.address} ({n} worker{'s' * (n != 1)})"
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Start processes that ignore SIGINT (an ignored signal stays ignored in a child, and Python
+    keeps it so): a terminal's Ctrl-C, sent to the whole process group, then reaches only the
+    client, which stops the sessions itself instead of the local workers dying mid-session."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 @contextlib.contextmanager
@@ -157,6 +172,7 @@ def run_tasks(client, task_list: list[dict[str, Any]], *,
     count = len(task_list)
     if not count:
         return [], False
+    Path(task_list[0]["journal"]).parent.mkdir(parents=True, exist_ok=True)  # the batch is on
     pending: dict[Any, int] = {}  # the only references to unfinished futures
     for rank, task in enumerate(task_list):  # higher priority runs first: largest first
         future = client.submit(run_session, task, key=_key(task), pure=False, retries=1, priority=count - rank)

@@ -9,7 +9,10 @@ and flushed to disk before anything else happens, so they outlive a worker kille
   fetched the result) finds the finished record and returns it without running the command again:
   a session's outputs are written by one attempt at most.
 
-The client removes the run's folder when nothing of the batch runs any more.
+The client creates the run's folder when the batch starts and removes it when nothing of the
+batch runs any more; entries are never written without it (:func:`append` creates no folder), so
+a worker thread that outlives its batch (its process dying) cannot start a session or leave a
+journal behind.
 """
 
 from __future__ import annotations
@@ -41,10 +44,17 @@ def now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t * 1000) % 1000:03d}Z"
 
 
+class BatchOver(Exception):
+    """The batch's journal folder is gone: the batch has returned."""
+
+
 def append(path: Path, entry: dict[str, Any]) -> None:
-    """Add one line and make it durable (fsync) before returning."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    """Add one line and make it durable (fsync) before returning; :class:`BatchOver` if the run's
+    folder is gone."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except FileNotFoundError:
+        raise BatchOver(str(path.parent)) from None
     try:
         os.write(fd, (json.dumps(entry, sort_keys=True) + "\n").encode())
         os.fsync(fd)

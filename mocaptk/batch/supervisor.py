@@ -230,17 +230,22 @@ def run_session(task: dict[str, Any]) -> dict[str, Any]:
         if stop():
             return _base_record(task, {}) | {"status": "interrupted", "error": "not started: the batch stopped"}
         attempt = uuid.uuid4().hex[:12]
-        journal.append(path, {"attempt": attempt, "start": journal.now(), "host": socket.gethostname(),
-                              "worker": _worker_address(), "pid": os.getpid()})
+        try:
+            journal.append(path, {"attempt": attempt, "start": journal.now(), "host": socket.gethostname(),
+                                  "worker": _worker_address(), "pid": os.getpid()})
+        except journal.BatchOver:  # a task of a batch that has returned: nothing may run for it
+            return _base_record(task, {}) | {"status": "interrupted", "error": "not started: the batch stopped"}
         tidy_output(Path(task["out"]))  # an attempt lost with its worker may have left parts
         timeout = session_timeout(Path(task["session"]), task.get("timeout"))
         try:
             record, ended = _attempt(task, timeout, stop)
         except RunnerDied as exc:  # Dask retries it once; the journal keeps how this one ended
-            journal.append(path, {"attempt": attempt, "end": journal.now(), "ended": f"runner died: {exc}"})
+            with contextlib.suppress(journal.BatchOver):
+                journal.append(path, {"attempt": attempt, "end": journal.now(), "ended": f"runner died: {exc}"})
             raise
         record["finished"] = journal.now()
-        journal.append(path, {"attempt": attempt, "end": record["finished"], "ended": ended, "record": record})
+        with contextlib.suppress(journal.BatchOver):
+            journal.append(path, {"attempt": attempt, "end": record["finished"], "ended": ended, "record": record})
     return record | {"attempts": journal.attempts(journal.read(path))}
 
 
