@@ -85,9 +85,34 @@ def batch(
     task_list = engine.tasks(files, command=do, out=out, options=options, force=force,
                              timeout=timeout or None, previous=previous, run_id=run_id)
     start = time.perf_counter()
-    with _stop_signals() as stopped_by, engine.dask_client(
-            scheduler=scheduler, scheduler_file=scheduler_file, cluster=cluster, workers=workers,
-            connect_timeout=connect_timeout) as (client, where):
+    with _stop_signals() as stopped_by:
+        records, interrupted, where = _run(task_list, out, run_id, console=console, scheduler=scheduler,
+                                           scheduler_file=scheduler_file, cluster=cluster, workers=workers,
+                                           connect_timeout=connect_timeout, signals=stopped_by)
+        run = {"command": do, "sessions": len(files), "cluster": where, "options": options,
+               "seconds": time.perf_counter() - start, "counts": summary.counts(records),
+               "interrupted": interrupted}
+        all_records = summary.update_summary(out, records, run)
+        ours = {(r["session"], r["command"]) for r in records}
+        if not quiet:  # still under the handlers: a late Ctrl-C cannot cut the summary short
+            this_run = [r for r in all_records if (r["session"], r["command"]) in ours]
+            typer.echo(summary.summary_markdown(this_run, run), nl=False)
+            typer.echo(f"wrote {out / 'batch.json'} and {out / 'batch.md'}")
+    if interrupted:
+        console.print(f"mocaptk: note: stopped by {stopped_by[0].name}; {run['counts']['interrupted']} running "
+                      "sessions were killed, nothing of the batch runs any more", highlight=False, soft_wrap=True)
+        raise typer.Exit(STOPPED_EXIT[stopped_by[0]])
+    if run["counts"]["failed"]:
+        raise typer.Exit(1)
+
+
+def _run(task_list: list[dict], out: Path, run_id: str, *, console, scheduler, scheduler_file, cluster, workers,
+         connect_timeout: float, signals: list) -> tuple[list[dict], bool, str]:
+    """Connect, run the tasks, release the cluster: (records, stopped by a signal, the cluster's name)."""
+    from mocaptk.batch import engine, journal
+
+    with engine.dask_client(scheduler=scheduler, scheduler_file=scheduler_file, cluster=cluster,
+                            workers=workers, connect_timeout=connect_timeout) as (client, where):
         link = engine.dashboard_link(client)
         if link:
             console.print(f"mocaptk: note: dashboard {link}", highlight=False, soft_wrap=True)
@@ -100,32 +125,19 @@ def batch(
             records, interrupted = _run_with_progress(client, task_list, console=console)
         finally:
             journal.remove_run(out, run_id)
-    run = {"command": do, "sessions": len(files), "cluster": where, "options": options,
-           "seconds": time.perf_counter() - start, "counts": summary.counts(records),
-           "interrupted": interrupted}
-    all_records = summary.update_summary(out, records, run)
-    ours = {(r["session"], r["command"]) for r in records}
-    if not quiet:
-        this_run = [r for r in all_records if (r["session"], r["command"]) in ours]
-        typer.echo(summary.summary_markdown(this_run, run), nl=False)
-        typer.echo(f"wrote {out / 'batch.json'} and {out / 'batch.md'}")
-    if interrupted:
-        console.print(f"mocaptk: note: stopped by {stopped_by[0].name if stopped_by else 'Ctrl-C'}; "
-                      f"{run['counts']['interrupted']} running sessions were killed, nothing of the batch "
-                      "runs any more", highlight=False, soft_wrap=True)
-        raise typer.Exit(STOPPED_EXIT[stopped_by[0] if stopped_by else signal.SIGINT])
-    if run["counts"]["failed"]:
-        raise typer.Exit(1)
+            signals.append(None)  # from here on a signal stops nothing: the sessions have ended
+    return records, interrupted, where
 
 
 @contextlib.contextmanager
-def _stop_signals() -> Iterator[list[signal.Signals]]:
-    """SIGTERM (a farm's job killer, ``kill``) stops the batch as Ctrl-C does; yields the signals seen."""
-    seen: list[signal.Signals] = []
+def _stop_signals() -> Iterator[list]:
+    """SIGTERM (a farm's job killer, ``kill``) stops the batch as Ctrl-C does; yields the signals
+    seen (the caller appends None once its sessions ended: later signals let the summary be written)."""
+    seen: list = []
 
     def handler(number, frame):
         seen.append(signal.Signals(number))
-        if len(seen) == 1:  # a second signal does not cut the stop short: it is bounded anyway
+        if seen[0] is not None and len(seen) == 1:  # a second one does not cut the stop short (bounded)
             raise KeyboardInterrupt
 
     previous = {sig: signal.signal(sig, handler) for sig in STOPPED_EXIT}
