@@ -94,6 +94,7 @@ def test_local_cluster_isolates_failures(local_run, sessions):
                for r in records.values() if r["status"] == "done")
     assert not list(out.glob(".*")), "a killed or failed session left temporary files"
     assert first.stdout.count("| cluster |") == 20 and "done 17" in first.stderr  # table + progress bar
+    assert "mocaptk: note: dashboard http://127.0.0.1:" in first.stderr and "ETA" in first.stderr
     print(f"first batch: {seconds:.1f} s")
 
 
