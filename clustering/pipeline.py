@@ -10,6 +10,7 @@ Nothing here prints or writes files; problems the user should know about are ret
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -376,10 +377,13 @@ def _clusters_of_count(regions: Sequence[tuple[np.ndarray, np.ndarray]], count: 
                 for (matrix, _), clusters, n in zip(regions, result_hi, kept)]
 
 
-def load_session(path: str, *, rate: float | None = None, units: str | None = None) -> tuple[Trajectories, dict[str, Any]]:
+def load_session(path: str, *, rate: float | None = None, units: str | None = None,
+                 layout_folder: Path | None = None) -> tuple[Trajectories, dict[str, Any]]:
     """Read a session file (any format ``read_trajectories`` knows) and describe it for ``source``.
 
-    Returns the trajectories (``Subject:`` prefixes stripped) and ``{"path", "sha256"}``.
+    Returns the trajectories (``Subject:`` prefixes stripped) and ``{"path", "sha256"}`` (the
+    file's name and hash); with ``layout_folder`` (where layout.json goes) also ``absolute`` and
+    ``relative`` (to that folder), so ``solve`` finds the session from the layout alone.
     """
     from mocaptk.acquisition.formats import read_trajectories
 
@@ -389,7 +393,9 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
     with open(file, "rb") as handle:  # streamed: no copy of the whole file in memory
         digest = hashlib.file_digest(handle, "sha256").hexdigest()
-    return traj, {"path": file.name, "sha256": digest}
+    where = {} if layout_folder is None else {
+        "absolute": str(file.resolve()), "relative": os.path.relpath(file.resolve(), Path(layout_folder).resolve())}
+    return traj, {"path": file.name, "sha256": digest, **where}
 
 
 def stabilization_note(stabilization: dict[str, Any]) -> str | None:

@@ -111,6 +111,21 @@ def _recover(target: Path) -> None:
             leftover.unlink()
 
 
+def recover_output(path: str | os.PathLike[str]) -> None:
+    """Tidy what a killed writer of ``path`` left (parts, a folder moved aside, its lock file);
+    a live writer's output (locked by another process) is left alone."""
+    target = Path(path)
+    try:
+        took = _lock(target)
+    except OutputError:
+        return
+    try:
+        _recover(target)
+    finally:
+        if took:
+            _unlock(target)
+
+
 def claim_output(path: str | os.PathLike[str], *, force: bool, folder: bool = False, hint: str = "") -> Path:
     """Check, lock and tidy an output before a command's slow part; returns it as a Path.
 

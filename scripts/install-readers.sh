@@ -2,7 +2,8 @@
 # Install the test-only readers that check our outputs (never shipped, never imported by mocaptk):
 #   ufbx (PyPI), the FBX2glTF binary from npm fbx2gltf@0.9.7 (Autodesk FBX SDK inside),
 #   the Khronos gltf-validator (npm), and Debian's chromium (apt-get, as root; opens report.html
-#   headless in tests/test_report_browser.py). npm tools go to <repo>/.tools/ (git-ignored).
+#   headless in tests/test_report_browser.py), Debian's slurm-wlm + munge (tests/test_batch_slurm.py
+#   starts them for batch --cluster slurm). npm tools go to <repo>/.tools/ (git-ignored).
 #   With --blender also Blender as a module: PyPI bpy 5.0.1 (GPL, ~1.2 GB, Python 3.11 only,
 #   pins numpy<2) in its own venv .tools/bpyvenv, used by scripts/check_fbx_blender.py.
 # Usage: scripts/install-readers.sh [--blender]  (idempotent; tests skip a missing reader)
@@ -35,11 +36,13 @@ python -c "import websocket" 2>/dev/null || python -m pip install --quiet "webso
 debs=()
 command -v chromium >/dev/null || command -v chromium-browser >/dev/null || debs+=(chromium)
 command -v pdftoppm >/dev/null || debs+=(poppler-utils)
+# slurm-wlm + munge: tests/test_batch_slurm.py starts a single-node SLURM for batch --cluster slurm
+command -v slurmctld >/dev/null || [ -x /usr/sbin/slurmctld ] || debs+=(slurm-wlm munge)
 if [ "${#debs[@]}" -eq 0 ]; then
     :
 elif command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${debs[@]}" >/dev/null \
-        || echo "install-readers: apt-get could not install ${debs[*]} (the browser / PDF-page tests skip)" >&2
+        || echo "install-readers: apt-get could not install ${debs[*]} (the browser / PDF-page / SLURM tests skip)" >&2
 else
     echo "install-readers: no root apt-get, skipping ${debs[*]} (the browser / PDF-page tests skip)" >&2
 fi

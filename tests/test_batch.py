@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import socket
+import random
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from batch_faults import (dask_farm, free_port, problems, run_trial, runners_alive, tree_hashes,
+                          wait_for_workers)
 from conftest import REPO
 
 SAMPLE = REPO / "sample_c3d" / "dense_halfface.c3d"
@@ -27,12 +28,6 @@ FRAMES = 150
 TIMEOUT = "30"  # a short session takes ~1-6 s here (loaded 2-core machine); the hang is killed
 MOCAPTK = [sys.executable, "-m", "mocaptk"]
 ENV = {**os.environ, "PYTHONWARNINGS": "ignore"}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -56,9 +51,9 @@ def sessions(tmp_path_factory) -> Path:
     return folder
 
 
-def _batch(*args, timeout=600) -> subprocess.CompletedProcess:
+def _batch(*args, timeout=600, cwd=REPO) -> subprocess.CompletedProcess:
     return subprocess.run([*MOCAPTK, "batch", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, env=ENV, cwd=REPO)
+                          timeout=timeout, env=ENV, cwd=cwd)
 
 
 def _records(out: Path) -> dict[str, dict]:
@@ -66,30 +61,8 @@ def _records(out: Path) -> dict[str, dict]:
 
 
 def _files(folder: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
-
-
-def _cmdline(pid: str) -> str:
-    try:
-        return (Path("/proc") / pid / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
-
-
-def _runners_left() -> list[str]:
-    """Session runners of this venv that lost their Dask worker (none may outlive it); runners of
-    batches running elsewhere (other tests, other worktrees) still have their worker as parent."""
-    orphans = []
-    for proc in Path("/proc").iterdir():
-        cmd = _cmdline(proc.name) if proc.name.isdigit() else ""
-        if "mocaptk.batch.runner" in cmd and cmd.startswith(sys.executable):
-            try:
-                parent = (proc / "stat").read_text().rsplit(")", 1)[1].split()[1]
-            except (OSError, IndexError):
-                continue
-            if not _cmdline(parent).startswith(sys.executable):
-                orphans.append(cmd)
-    return orphans
+    """The command's outputs in a session folder (batch's own log.txt beside them left out)."""
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != "log.txt"}
 
 
 @pytest.fixture(scope="module")
@@ -121,6 +94,7 @@ def test_local_cluster_isolates_failures(local_run, sessions):
                for r in records.values() if r["status"] == "done")
     assert not list(out.glob(".*")), "a killed or failed session left temporary files"
     assert first.stdout.count("| cluster |") == 20 and "done 17" in first.stderr  # table + progress bar
+    assert "mocaptk: note: dashboard http://127.0.0.1:" in first.stderr and "ETA" in first.stderr
     print(f"first batch: {seconds:.1f} s")
 
 
@@ -128,10 +102,15 @@ def test_outputs_identical_to_the_serial_command(local_run, sessions, tmp_path, 
     out = local_run[0]
     for k, own in ((0, []), (3, ["--factor", "1.4", "--step", "2"])):  # serial, as the CLI runs
         name = f"actor{k % 3}_s{k:02d}"
-        result = run_cli("cluster", sessions / f"{name}.c3d", "--formats", "none", *own, "--out", tmp_path / name)
+        serial = tmp_path / "out" / name  # as deep as the batch's: layout.json records its session relatively
+        result = run_cli("cluster", sessions / f"{name}.c3d", "--formats", "none", *own, "--out", serial)
         assert result.exit_code == 0, result.stderr
-        assert _files(out / name) == _files(tmp_path / name), name
-    assert sorted(_files(out / "actor0_s00")) == ["layout.json", "report.html", "summary.txt"]
+        assert _files(out / name) == _files(serial), name
+    assert sorted(p.name for p in (out / "actor0_s00").iterdir()) == ["layout.json", "log.txt", "report.html",
+                                                                      "summary.txt"]
+    log = (out / "corrupt_cut" / "log.txt").read_text()  # a failed session's own stderr, kept
+    assert log.startswith(f"$ mocaptk cluster {sessions / 'corrupt_cut.c3d'}") and "exit code 2" in log
+    assert "mocaptk: error: " in log and "truncated C3D file" in log
 
 
 def test_second_run_skips_unchanged_sessions(local_run, sessions):
@@ -147,40 +126,16 @@ def test_second_run_skips_unchanged_sessions(local_run, sessions):
 
 
 @pytest.fixture(scope="module")
-def farm(tmp_path_factory):
+def farm_folder(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("farm")
+
+
+@pytest.fixture(scope="module")
+def farm(farm_folder):
     """``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1 (free ports), configured as
     docs/batch.md says; the workers kill themselves on a ``kill-me`` session (test preload)."""
-    port, tmp_path = _free_port(), tmp_path_factory.mktemp("farm")
-    address = f"tcp://127.0.0.1:{port}"
-    env = {**ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "1",
-           "DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION": "1.0"}
-    dask = str(Path(sys.executable).with_name("dask"))
-    log = open(tmp_path / "farm.log", "w")
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", "127.0.0.1:0"], env=env, stdout=log, stderr=log, start_new_session=True)]
-    try:
-        for _ in range(2):
-            procs.append(subprocess.Popen(
-                [dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--host", "127.0.0.1",
-                 "--dashboard-address", "127.0.0.1:0", "--memory-limit", "0",
-                 "--preload", str(REPO / "tests" / "batch_worker_killer.py")],
-                env=env, stdout=log, stderr=log, start_new_session=True, cwd=tmp_path))
-        from distributed import Client
-
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=120)
+    with dask_farm(farm_folder, preload=REPO / "tests" / "batch_worker_killer.py") as address:
         yield address
-    finally:
-        for proc in reversed(procs):
-            with __import__("contextlib").suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-        log.close()
 
 
 def test_separate_scheduler_and_workers(farm, local_run, sessions, tmp_path):
@@ -192,16 +147,27 @@ def test_separate_scheduler_and_workers(farm, local_run, sessions, tmp_path):
     extra = tmp_path / "extra"
     extra.mkdir()
     (extra / "kill-me.c3d").write_bytes((sessions / "actor0_s00.c3d").read_bytes())
-    run = _batch(sessions / "*.c3d", extra / "kill-me.c3d", "--do", "cluster", "--formats", "none",
-                 "--out", out, "--scheduler", farm, "--timeout", 5)
+    os.mkfifo(extra / "b_hangs.c3d")  # its sidecar's own timeout wins over the batch line's
+    (extra / "b_hangs.mocaptk.json").write_text(json.dumps({"timeout": 2}))
+    run = _batch(sessions / "*.c3d", extra / "kill-me.c3d", extra / "b_hangs.c3d", "--do", "cluster",
+                 "--formats", "none", "--out", out, "--scheduler", farm, "--timeout", 5)
     assert run.returncode == 1, run.stderr[-2000:]
     records = _records(out)
     assert sorted(s for s, r in records.items() if r["status"] == "skipped") == sorted(
         f"actor{k % 3}_s{k:02d}" for k in range(GOOD))
     failed = {s: r["error"] for s, r in records.items() if r["status"] == "failed"}
-    assert set(failed) == {"corrupt_cut", "corrupt_text", "a_hangs", "kill-me"}
+    assert set(failed) == {"corrupt_cut", "corrupt_text", "a_hangs", "b_hangs", "kill-me"}
     assert failed["kill-me"] == "the worker processing it died 2 times (retried 1x on another worker)"
+    assert [a["ended"] for a in records["kill-me"]["attempts"]] == ["worker lost", "worker lost"]
+    assert len({a["worker"] for a in records["kill-me"]["attempts"]}) == 2  # the retry went elsewhere
     assert failed["a_hangs"] == "timed out after 5 s (--timeout): killed"
+    assert failed["b_hangs"] == "timed out after 2 s (--timeout): killed"
+    hung = records["a_hangs"]  # a killed session's record still tells where and what ran
+    assert hung["host"] and hung["cpu_seconds"] is not None and hung["argv"][:2] == ["cluster", str(sessions / "a_hangs.c3d")]
+    assert "key" not in hung  # it hung reading its input: no hash to key it by
+    assert [a["ended"] for a in hung["attempts"]] == ["timed out"]
+    assert all([a["ended"] for a in records[f"actor{k % 3}_s{k:02d}"]["attempts"]] == ["skipped"]
+               for k in range(GOOD))
     assert "(2 workers)" in (out / "batch.md").read_text()
     names = ["actor0_s00", "actor2_s05"]
     before = {name: _files(out / name) for name in names}
@@ -211,6 +177,49 @@ def test_separate_scheduler_and_workers(farm, local_run, sessions, tmp_path):
     records = _records(out)
     for name in names:
         assert records[name]["status"] == "done" and _files(out / name) == before[name], name
+
+
+def test_worker_killed_and_batch_interrupted_at_random_moments(farm, local_run, sessions, tmp_path):
+    """A worker SIGKILLed, then Ctrl-C, then SIGTERM, each at a random moment while sessions run
+    (the campaign, 3 kills + 3 Ctrl-C: benchmarks/bench_batch.py --faults). After each batch returned: no file in its DIR
+    changes for 10 s, every record tells its attempts, at most one attempt of a session ran to its
+    end, its outputs are a clean run's (the LocalCluster batch's), no runner process is left."""
+    names = sorted(f"actor{k % 3}_s{k:02d}" for k in range(8))
+    reference = {name: {k: v for k, v in tree_hashes(local_run[0] / name).items() if k != "log.txt"}
+                 for name in names}
+    rng = random.Random(31)
+    trials = []
+    for kind in ("kill", "interrupt", "terminate"):
+        wait_for_workers(farm, 2)  # the killed worker's nanny starts a new one
+        trials.append(run_trial(kind, sessions=[str(sessions / f"{n}.c3d") for n in names],
+                                out=tmp_path / kind, scheduler=farm, rng=rng, window=(0.0, 3.0)))
+    kill, interrupt, terminate = trials
+    assert sorted(kill.records) == names and all(r["status"] == "done" for r in kill.records.values())
+    assert interrupt.exit_code == 130 or len(interrupt.records) == len(names)  # or it had finished
+    assert terminate.exit_code == 143 or len(terminate.records) == len(names)
+    problems_found = [p for trial in trials for p in problems(trial, reference)]
+    assert problems_found == [], problems_found
+    print(f"kill after {kill.delay:.1f} s: attempts "
+          f"{ {n: [a['ended'] for a in r['attempts']] for n, r in kill.records.items()} }; "
+          f"interrupt after {interrupt.delay:.1f} s: returned {interrupt.stop_seconds:.1f} s later")
+
+
+def test_two_batches_into_one_out_keep_every_record(farm, farm_folder, sessions, tmp_path):
+    """Two batches started together into one DIR (one through the scheduler's file): batch.json
+    keeps both's records; a re-run of both sets skips them all."""
+    out = tmp_path / "shared"
+    line = ("--do", "info", "--out", out, "--scheduler", farm, "--quiet")
+    first = subprocess.Popen([*MOCAPTK, "batch", str(sessions / "actor0_*.c3d"), "--do", "info", "--out", str(out),
+                              "--scheduler-file", str(farm_folder / "scheduler.json"), "--quiet"],
+                             stderr=subprocess.PIPE, text=True, env=ENV)
+    second = _batch(sessions / "actor1_*.c3d", *line)
+    assert first.wait(timeout=600) == 0 and second.returncode == 0, (first.stderr.read(), second.stderr)
+    names = sorted(p.stem for p in sessions.glob("actor[01]_*.c3d"))
+    assert sorted(_records(out)) == names and len(names) == 12
+    again = _batch(sessions / "actor[01]_*.c3d", *line)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert {r["status"] for r in _records(out).values()} == {"skipped"}
+    assert not list(out.glob(".*")), "a lock or a journal was left in DIR"
 
 
 def test_changed_input_is_redone_and_only_it(farm, local_run, sessions):
@@ -228,13 +237,6 @@ def test_changed_input_is_redone_and_only_it(farm, local_run, sessions):
     assert source[0]["sha256"] == source[1]["sha256"] and source[0]["path"] == "actor1_s01.c3d"  # redone on the new bytes
 
 
-def test_no_runner_process_outlives_a_batch(local_run):
-    deadline = time.monotonic() + 10
-    while _runners_left() and time.monotonic() < deadline:
-        time.sleep(0.5)
-    assert _runners_left() == []
-
-
 def test_scheduler_that_does_not_answer(tmp_path):
     start = time.perf_counter()  # baseline, same run: an address Dask refuses at once (same imports)
     refused = _batch(SAMPLE, "--do", "info", "--out", tmp_path / "o", "--scheduler", "nonsense://x")
@@ -242,7 +244,7 @@ def test_scheduler_that_does_not_answer(tmp_path):
     assert refused.returncode == 2 and refused.stderr.startswith("mocaptk: error: --scheduler nonsense://x")
     start = time.perf_counter()
     run = _batch(SAMPLE, "--do", "info", "--out", tmp_path / "o", "--scheduler",
-                 f"tcp://127.0.0.1:{_free_port()}", "--connect-timeout", 2)
+                 f"tcp://127.0.0.1:{free_port()}", "--connect-timeout", 2)
     seconds = time.perf_counter() - start
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
@@ -318,8 +320,23 @@ def test_solve_batch_with_a_layout_for_all_and_one_from_a_sidecar(farm, local_ru
         assert _files(solved / name) == _files(tmp_path / name), name
     assert "report.html" in _files(solved / "take_a")
     assert records["take_a"]["metrics"]["markers"] == 15
+    cluster_record = _records(out)["actor0_s00"]  # one layout, one count, whichever command ran
+    assert records["take_a"]["metrics"]["layout_markers"] == cluster_record["metrics"]["layout_markers"]
+    assert 0 < records["take_a"]["metrics"]["solve_markers"] <= records["take_a"]["metrics"]["layout_markers"]
+    # as docs/batch.md shows it: the layout alone (no --session); layout.json records where its
+    # session is (relative to itself, and absolute), checked by sha256
+    chained = _batch("captures/take_*[ab].c3d", "--do", "solve", "--layout", layouts["actor0_s00"],
+                     "--formats", "none", "--out", "chained", "--scheduler", farm, cwd=tmp_path)
+    assert chained.returncode == 0, chained.stderr[-2000:]
+    assert {s: r["status"] for s, r in _records(tmp_path / "chained").items()} == {"take_a": "done", "take_b": "done"}
+    assert _files(tmp_path / "chained" / "take_a") == _files(solved / "take_a")
     # no layout anywhere: that capture's one line, not a batch error
     (captures / "take_c.mocaptk.json").unlink()
     bare = _batch(captures / "take_c.c3d", "--do", "solve", "--out", tmp_path / "bare", "--scheduler", farm)
     assert bare.returncode == 1, bare.stderr[-2000:]
     assert "no layout for it: give batch --layout L.json" in _records(tmp_path / "bare")["take_c"]["error"]
+
+
+def test_no_runner_process_outlives_a_batch(local_run, farm):
+    """After the batches above (the farm's workers still running), no session runner is left."""
+    assert runners_alive() == []

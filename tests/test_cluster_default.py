@@ -90,7 +90,12 @@ def test_method_paper_writes_the_layout_of_before_the_default_changed(sample, tm
     out = tmp_path / "paper"
     summary = mocaptk("cluster", sample / "dense_halfface.c3d", "--factor", "1.1", "--method", "paper",
                       "--formats", "none", "--out", out)
-    assert (out / "layout.json").read_bytes() == PAPER_LAYOUT.read_bytes()
+    where = json.loads((out / "layout.json").read_text())["source"]  # where this run's session is
+    assert Path(where["absolute"]) == (sample / "dense_halfface.c3d").resolve()
+    assert (out / where["relative"]).resolve() == Path(where["absolute"])
+    lines = (out / "layout.json").read_text().splitlines(keepends=True)  # all else byte for byte as stored
+    assert "".join(line for line in lines if not line.startswith(('    "absolute": ', '    "relative": '))) \
+        == PAPER_LAYOUT.read_text()
     assert "mean C" in summary and "threshold" in summary
 
 

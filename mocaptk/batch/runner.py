@@ -21,7 +21,10 @@ import sys
 import time
 import traceback
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
+
+from mocaptk.errors import MocaptkError
 
 ERROR_PREFIX = "mocaptk: error: "
 #: the runner's first line on its reply pipe: imports done, ready for sessions
@@ -75,10 +78,18 @@ def outputs_intact(outputs: dict[str, str], folder: Path) -> bool:
         return False
 
 
-def process_session(task: dict[str, Any]) -> dict[str, Any]:
-    """Run (or skip) one session; returns its record (see :mod:`mocaptk.batch.summary`)."""
+#: the session's own stdout and stderr, beside its outputs (not one of them: not hashed, not compared)
+LOG_FILE = "log.txt"
+
+
+def process_session(task: dict[str, Any], *,
+                    announce: Callable[[dict[str, Any]], None] = lambda started: None) -> dict[str, Any]:
+    """Run (or skip) one session; returns its record (see :mod:`mocaptk.batch.summary`).
+
+    ``announce`` gets argv, then inputs and key, before the command starts (a record of a kill keeps them).
+    """
     from mocaptk import __version__
-    from mocaptk.errors import InputFileError, MocaptkError, unreadable
+    from mocaptk.errors import InputFileError, unreadable
     from .sessions import COMMANDS, input_files, file_digest, session_argv
     from .summary import session_metrics
 
@@ -88,10 +99,12 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
                               "host": socket.gethostname(), "warnings": [], "outputs": {}}
     try:
         argv = session_argv(command, session, out_dir, task["options"])
-        layout = Path(argv[argv.index("--layout") + 1]) if "--layout" in argv else None
-        if layout is not None and not layout.exists():
+        layout = (Path(argv[1]) if COMMANDS[command].layout_argument  # solve LAYOUT CAPTURE
+                  else Path(argv[argv.index("--layout") + 1]) if "--layout" in argv else None)
+        if layout is not None and not layout.exists() and not COMMANDS[command].layout_argument:
             raise InputFileError(layout, "no layout for this session: run the batch with --do cluster "
                                          "into the same --out first, or name one as \"layout\" in a sidecar")
+        announce({"argv": argv})  # before hashing: reading the inputs may hang too (a dead mount)
         files = input_files(command, argv, session)
         inputs = {}
         for path in files:
@@ -104,6 +117,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
     key = hashlib.sha256(json.dumps({"argv": argv, "inputs": inputs, "mocaptk": __version__},
                                     sort_keys=True).encode()).hexdigest()
     record |= {"argv": argv, "inputs": inputs, "key": key}
+    announce({"inputs": inputs, "key": key})
     previous = task.get("previous") or {}
     if (not task["force"] and previous.get("status") in ("done", "skipped") and previous.get("key") == key
             and outputs_intact(previous.get("outputs", {}), out_dir)):
@@ -113,6 +127,7 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
     if before and any(p.name == "force" for p in _params(command)):
         run.append("--force")  # inputs changed or --force: replace this session's earlier outputs
     code, stdout, stderr, crash = run_cli(run)
+    _write_log(out_dir, run, code, stdout, stderr, crash)
     record["warnings"] = [line for line in stderr.splitlines()
                           if line.startswith(("mocaptk: warning:", "mocaptk: note:"))]
     record["exit_code"] = code
@@ -128,11 +143,21 @@ def process_session(task: dict[str, Any]) -> dict[str, Any]:
         after = _snapshot(out_dir)
         record |= {"status": "done", "error": None,
                    "outputs": {name: file_digest(out_dir / name) for name, stat in after.items()
-                               if before.get(name) != stat},
-                   "metrics": session_metrics(out_dir)}
+                               if before.get(name) != stat and name != LOG_FILE},
+                   "metrics": session_metrics(out_dir, layout_file=layout)}
     record["seconds"] = time.perf_counter() - start
     record["cpu_seconds"] = time.process_time() - cpu  # this runner's CPU (the session's own work)
     return record
+
+
+def _write_log(out_dir: Path, argv: list[str], code: int, stdout: str, stderr: str, crash: str | None) -> None:
+    """DIR/<stem>/log.txt: the command line, its exit code, its stdout and stderr (and a crash's traceback)."""
+    from mocaptk.atomic import write_text
+
+    text = (f"$ mocaptk {' '.join(argv)}\nexit code {code}\n--- stdout\n{stdout}--- stderr\n{stderr}"
+            + (f"--- traceback\n{crash}" if crash else ""))
+    with contextlib.suppress(OSError, MocaptkError):
+        write_text(out_dir / LOG_FILE, text)
 
 
 def _params(command: str):
@@ -161,11 +186,13 @@ def _serve(reply_fd: int) -> None:
     import mocaptk.clustering.pipeline  # noqa: F401
 
     os.write(reply_fd, READY)
-    for line in sys.stdin:
-        record = process_session(json.loads(line))
-        data = (json.dumps(record) + "\n").encode()
+    def reply(message: dict[str, Any]) -> None:
+        data = (json.dumps(message) + "\n").encode()
         while data:
             data = data[os.write(reply_fd, data):]
+
+    for line in sys.stdin:
+        reply(process_session(json.loads(line), announce=lambda started: reply({"started": started})))
 
 
 if __name__ == "__main__":

@@ -53,6 +53,8 @@ LAYOUT_OPTION = "--layout"
 
 #: options batch itself sets for every session: a sidecar or the batch line may not
 CONTROLLED = ("--out", "--force", "--quiet", "--json", "--help")
+#: a sidecar key for batch itself, not for the command: the session's own --timeout (seconds, 0: none)
+TIMEOUT_KEY = "timeout"
 
 
 def _controlled(param) -> bool:
@@ -181,6 +183,9 @@ def _sidecar_tokens(command: str, path: Path) -> list[str]:
     for key, value in sorted(doc.items()):
         if key in ("format", "version"):
             continue
+        if key == TIMEOUT_KEY:
+            _timeout_value(path, value)
+            continue
         name = "--" + key.replace("_", "-")
         if name not in known:
             raise InputFileError(path, f"unknown option {key!r} (no batch command has {name})")
@@ -210,6 +215,29 @@ def _option_tokens(path: Path, name: str, param, value: Any) -> list[str]:
         raise InputFileError(path, f"{name[2:]!r} must be a text, a number or a list, got {value!r}")
     text = str(value)
     return [name, _absolute(text, path.parent) if _is_path(param) else text]
+
+
+def _timeout_value(path: Path, value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise InputFileError(path, f"'timeout' must be a number of seconds >= 0 (0: no limit), got {value!r}")
+    return float(value) or None
+
+
+def session_timeout(session: Path, default: float | None) -> float | None:
+    """The session's timeout in seconds (None: no limit): its sidecars' ``timeout`` (the session's
+    own wins over its folder's), else ``default`` (the batch's --timeout). A bad sidecar is left to
+    the runner to report: here it only falls back to the default."""
+    from mocaptk.jsonio import read_json
+
+    timeout = default
+    for path in sidecars(session):
+        try:
+            doc = read_json(path)
+            if isinstance(doc, dict) and TIMEOUT_KEY in doc:
+                timeout = _timeout_value(path, doc[TIMEOUT_KEY])
+        except (InputFileError, OSError):
+            continue
+    return timeout
 
 
 def sidecars(session: Path) -> list[Path]:

@@ -1,11 +1,15 @@
 """The batch summary: ``DIR/batch.json`` (every session's record) and ``DIR/batch.md`` (a table).
 
 A *record* is one session under one command: ``session`` (stem), ``path``, ``command``,
-``status`` (done / skipped / failed), ``error`` (the command's one-line message), ``warnings``,
-``seconds`` (wall), ``cpu_seconds`` (the runner's CPU for it), ``metrics`` (markers, layout markers, held-out RMSE mm, read from the session's
-outputs), and for re-runs ``key`` (hash of argv + input hashes), ``inputs`` and ``outputs``
-(file → SHA-256). ``batch.json`` keeps the latest record of every (session, command), so a
-cluster batch and a later evaluate batch into the same DIR share one summary.
+``status`` (done / skipped / failed / interrupted), ``error`` (the command's one-line message),
+``warnings``, ``seconds`` (wall), ``cpu_seconds`` (the runner's CPU for it), ``host``,
+``finished`` (UTC), ``attempts`` (this batch's attempts at it: host, worker, pid, start, end,
+ended), ``metrics`` (markers, layout markers, held-out RMSE mm, read from the session's outputs),
+and for re-runs ``key`` (hash of argv + input hashes), ``inputs`` and ``outputs`` (file → SHA-256).
+
+``batch.json`` keeps the latest record of every (session, command), so a cluster batch and a later
+evaluate batch into the same DIR share one summary; batches running at the same time into one DIR
+merge their records under a lock (:func:`update_summary`), the newest ``finished`` winning.
 """
 
 from __future__ import annotations
@@ -25,20 +29,29 @@ def _read(path: Path) -> Any:
         return None
 
 
-def session_metrics(folder: Path) -> dict[str, Any]:
-    """Marker counts and held-out RMSE (mm) from the result files in a session's output folder."""
+STATUSES = ("done", "skipped", "failed", "interrupted")
+LOCK_NAME = ".batch.json.lock"
+
+
+def session_metrics(folder: Path, *, layout_file: Path | None = None) -> dict[str, Any]:
+    """Marker counts and held-out RMSE (mm) from the result files in a session's output folder.
+
+    ``layout_markers`` is always the layout file's own count (``layout_file``: the layout a solve
+    used); ``solve_markers`` the ones a solve could use (those the session captured).
+    """
     metrics: dict[str, Any] = {}
     info = _read(folder / "info.json")
     if isinstance(info, dict) and info.get("files") and "markers" in info["files"][0]:
         metrics["markers"] = info["files"][0]["markers"]
-    layout = _read(folder / "layout.json")
+    layout = _read(layout_file or folder / "layout.json")
     if isinstance(layout, dict) and isinstance(layout.get("clusters"), list):
         metrics["layout_markers"] = len(layout["clusters"])
-        metrics["markers"] = layout.get("source", {}).get("markers", metrics.get("markers"))
+        if layout_file is None:
+            metrics["markers"] = layout.get("source", {}).get("markers", metrics.get("markers"))
     solved = _read(folder / "solve.json")
     if isinstance(solved, dict) and isinstance(solved.get("model"), dict):
         metrics |= {"markers": solved["model"].get("dense_markers"),
-                    "layout_markers": len(solved["model"].get("layout_markers") or [])}
+                    "solve_markers": len(solved["model"].get("layout_markers") or [])}
     evaluation = _read(folder / "evaluation.json")
     if isinstance(evaluation, dict) and isinstance(evaluation.get("methods"), dict):
         name, scores = next(iter(evaluation["methods"].items()), (None, {}))
@@ -66,15 +79,18 @@ def previous_records(out: Path) -> tuple[dict[tuple[str, str], dict[str, Any]], 
 
 
 def merged(previous: dict[tuple[str, str], dict[str, Any]], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Earlier records updated with this run's, sorted by session then command."""
+    """Earlier records updated with these (a newer ``finished`` wins), sorted by session then command."""
     table = dict(previous)
-    table.update({(r["session"], r["command"]): r for r in records})
+    for r in records:
+        old = table.get((r["session"], r["command"]))
+        if old is None or str(r.get("finished") or "") >= str(old.get("finished") or ""):
+            table[(r["session"], r["command"])] = r
     return [table[k] for k in sorted(table)]
 
 
 def counts(records: list[dict[str, Any]]) -> dict[str, int]:
-    """How many records are done / skipped / failed."""
-    return {status: sum(r["status"] == status for r in records) for status in ("done", "skipped", "failed")}
+    """How many records are done / skipped / failed / interrupted."""
+    return {status: sum(r["status"] == status for r in records) for status in STATUSES}
 
 
 def summary_document(records: list[dict[str, Any]], run: dict[str, Any]) -> dict[str, Any]:
@@ -92,7 +108,8 @@ def summary_markdown(records: list[dict[str, Any]], run: dict[str, Any]) -> str:
     """batch.md: this run in one line, then one table row per session and command."""
     tally = run["counts"]
     lines = [f"# mocaptk batch: {run['sessions']} sessions, --do {run['command']}", "",
-             f"{tally['done']} done, {tally['skipped']} skipped (unchanged), {tally['failed']} failed; "
+             f"{tally['done']} done, {tally['skipped']} skipped (unchanged), {tally['failed']} failed"
+             + (f", {tally['interrupted']} interrupted" if tally.get("interrupted") else "") + "; "
              f"{run['seconds']:.1f} s on {run['cluster']}.", "",
              "| session | command | status | markers | layout markers | held-out RMSE mm | time s | message |",
              "|---|---|---|---:|---:|---:|---:|---|"]
@@ -105,10 +122,18 @@ def summary_markdown(records: list[dict[str, Any]], run: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_summary(out: Path, records: list[dict[str, Any]], run: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/batch.json and DIR/batch.md atomically."""
+def update_summary(out: Path, records: list[dict[str, Any]], run: dict[str, Any]) -> list[dict[str, Any]]:
+    """Merge ``records`` into DIR/batch.json (as it is now: another batch may have written since
+    this one started) and rewrite it and batch.md atomically, under DIR's lock; returns every record."""
     from mocaptk.atomic import write_text
     from mocaptk.jsonio import write_json
 
-    return (write_json(out / "batch.json", summary_document(records, run), digits=3),
-            write_text(out / "batch.md", summary_markdown(records, run)))
+    from .lock import locked
+
+    out.mkdir(parents=True, exist_ok=True)
+    with locked(out / LOCK_NAME):
+        current, _ = previous_records(out)
+        every = merged(current, records)
+        write_json(out / "batch.json", summary_document(every, run), digits=3)
+        write_text(out / "batch.md", summary_markdown(every, run))
+    return every

@@ -205,7 +205,7 @@ def cluster(
                                                   units=units, rigid=rigid_labels(rigid))
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
-        traj, source = load_session(session, rate=rate, units=units)
+        traj, source = load_session(session, rate=rate, units=units, layout_folder=out_dir)
     neutral = None
     if len(sessions) == 1:  # one median pass for the face check and the layout
         import numpy as np

@@ -12,19 +12,33 @@ from .app import app
 from .options import Quiet, Rate, Units
 
 
-def session_path(layout_path: Path, recorded: str | None, given: Path | None) -> Path:
-    """The training session: ``--session``, else the file named in layout.json, looked up beside
-    the layout, in the folder above it (``cluster``'s ``--out`` is usually a subfolder) and in the
-    working folder."""
+def session_path(layout_path: Path, source: dict, given: Path | None) -> Path:
+    """The training session: ``--session``, else where layout.json's ``source`` records it:
+    relative to the layout, at its absolute path, then by file name beside the layout, in the
+    folder above it and in the working folder. Of several files found, the first with the
+    layout's sha256 (the caller refuses one whose hash differs)."""
     if given is not None:
         return given
+    recorded = source.get("path")
     if not recorded:
         raise InputFileError(layout_path, "records no session file; give --session")
-    for candidate in (layout_path.parent / recorded, layout_path.parent.parent / recorded, Path(recorded)):
-        if candidate.is_file():
-            return candidate
-    raise InputFileError(layout_path, f"its session {recorded} is not beside it, in the folder above "
-                         "nor in the working folder; give --session")
+    folder = layout_path.parent
+    candidates = [folder / source["relative"]] if source.get("relative") else []
+    candidates += [Path(source["absolute"])] if source.get("absolute") else []
+    candidates += [folder / recorded, folder.parent / recorded, Path(recorded)]
+    found = [path for path in dict.fromkeys(candidates) if path.is_file()]
+    if len(found) > 1 and source.get("sha256"):
+        import hashlib
+
+        def digest(path: Path) -> str:
+            with open(path, "rb") as handle:
+                return hashlib.file_digest(handle, "sha256").hexdigest()
+        found = [path for path in found if digest(path) == source["sha256"]] or found
+    if found:
+        return found[0]
+    where = ", ".join(str(p) for p in candidates[:2]) if source.get("relative") else "beside it"
+    raise InputFileError(layout_path, f"its session {recorded} is not where it records it ({where}), "
+                         "beside it, in the folder above nor in the working folder; give --session")
 
 
 def bake_solved_rig(layout, session, staging: Path, name: str, *, rigid, progress) -> None:
@@ -145,7 +159,7 @@ def solve(
             if unknown:
                 raise InputFileError(model, f"its layout markers are not the layout's: {', '.join(unknown[:5])}")
         else:
-            path = session_path(layout, lay.source.get("path"), session)
+            path = session_path(layout, lay.source, session)
             say(f"reading the session {path.name}")
             dense, source = load_session(str(path))
             if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
