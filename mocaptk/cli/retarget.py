@@ -91,7 +91,7 @@ def retarget(
         say = lambda text: status.update(text)  # noqa: E731
         char = load_character(character)
         traj, capture_source = load_session(str(capture), rate=rate, units=units)
-        path = session_path(layout, lay.source.get("path"), session)
+        path = session_path(layout, lay.source, session)
         say(f"reading the session {path.name}")
         dense, source = load_session(str(path))
         if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
