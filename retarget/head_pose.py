@@ -66,8 +66,8 @@ def robust_head_poses(reference: np.ndarray, capture: Trajectories, labels: Sequ
     """Head poses of ``capture`` from its markers ``labels`` whose head-frame positions are
     ``reference`` (K, 3) mm; frames without 3 consistent markers take poses interpolated from
     their neighbours over gaps of at most ``max_gap`` frames (else NaN)."""
-    reference = np.asarray(reference, dtype=np.float64)
     points = capture.positions[:, capture.index(list(labels))]
+    reference = _own_shape(np.asarray(reference, dtype=np.float64), points)
     dropped = np.isfinite(points).all(axis=2) & ~_consensus(reference, points)
     kept = np.where(dropped[..., None], np.nan, points)
     steady = Trajectories(kept, tuple(labels), capture.rate, capture.first_frame, metadata=capture.metadata)
@@ -85,6 +85,24 @@ def robust_head_poses(reference: np.ndarray, capture: Trajectories, labels: Sequ
     offsets = offsets[np.isfinite(offsets)]
     motion = float(np.sqrt(offsets.mean())) if offsets.size else float("nan")
     return HeadPoses(rot, trans, residual, dropped, tuple(labels), source, motion)
+
+
+def _own_shape(reference: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The capture's own shape of its pose markers (K, 3) mm, laid onto ``reference`` (the
+    session's): per frame a plain rigid fit, then each marker's median in that frame. Another
+    actor's forehead is not the session actor's: against the session's shape no 3 of its markers
+    would agree within :data:`OUTLIER_MM`. Ghosts are too rare to move a median."""
+    from mocaptk.clustering.neutral import neutral_pose
+
+    seen = np.isfinite(points).all(axis=2)
+    rot, trans = kabsch(reference, points, seen.astype(float))
+    head = np.einsum("fji,fkj->fki", rot, points - trans[:, None])
+    own = neutral_pose(head)
+    if not np.isfinite(own).all():
+        return reference
+    # the median shape's own placement drifts with the frames' fits: lay it back onto the reference
+    r, t = kabsch(reference[None], own[None], np.ones((1, len(own))))
+    return np.einsum("ji,kj->ki", r[0], own - t[0]) if np.isfinite(r).all() else reference
 
 
 def _consensus(reference: np.ndarray, points: np.ndarray) -> np.ndarray:
