@@ -17,7 +17,7 @@ from .app import app
 
 # The order of `mocaptk --help` (pipeline order: files -> capture -> cleaning -> layout ->
 # evaluation -> rig; then batch); each command is defined in the module of its name.
-COMMANDS = ("info", "convert", "synth", "triangulate", "clean", "cluster", "sweep", "evaluate",
+COMMANDS = ("info", "convert", "synth", "triangulate", "label", "clean", "cluster", "sweep", "evaluate",
             "compare", "rig", "plan", "solve", "batch")
 
 
