@@ -31,7 +31,7 @@ def scores(result, raw, template) -> tuple[float, float, float]:
     visible, ghost, found = truth >= 0, truth == -1, result.labels >= 0
     correct = visible & (result.labels == truth)
     wrong = visible & found & ~correct
-    return correct.sum() / visible.sum(), wrong.sum() / visible.sum(), (ghost & found).sum() / ghost.sum()
+    return correct.sum() / visible.sum(), wrong.sum() / visible.sum(), (ghost & found).sum() / max(ghost.sum(), 1)
 
 
 def test_synth_unlabelled_matches_the_issue_settings(sample):
@@ -97,3 +97,100 @@ def test_cli_synth_then_label_writes_capture_report_and_summary(run_cli, tmp_pat
                     "--report", tmp_path / "again.json", "--drop-unlabelled")
     assert again.exit_code == 0 and read_trajectories(tmp_path / "again.c3d").n_markers == 139
     assert (tmp_path / "again.json").read_bytes() == (tmp_path / "label_report.json").read_bytes()
+
+
+def _inject_swaps(traj, count: int, seed: int):
+    """``count`` swaps of 2-60 frames between nearest-neighbour markers (each marker in one swap)."""
+    rng = np.random.default_rng(seed)
+    pos = traj.positions.copy()
+    mean = np.nanmean(pos, axis=0)
+    dist = np.linalg.norm(mean[:, None] - mean[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    used, swaps = set(), []
+    while len(swaps) < count:
+        a = int(rng.integers(traj.n_markers))
+        b = int(np.argmin(dist[a]))
+        if a in used or b in used:
+            continue
+        length = int(rng.integers(2, 61))
+        start = int(rng.integers(0, traj.n_frames - length))
+        pos[start:start + length, [a, b]] = pos[start:start + length, [b, a]]
+        used |= {a, b}
+        swaps.append((traj.labels[a], traj.labels[b], start, start + length))
+    return traj.replace(positions=pos), swaps
+
+
+def test_check_finds_injected_swaps_fix_repairs_them_and_clean_capture_has_none(sample):
+    _, performance, template = sample
+    assert lc.check_labels(template, performance)[0] == []
+    swapped, swaps = _inject_swaps(performance, 20, seed=0)
+    runs, _ = lc.check_labels(template, swapped)
+    found = sum(any({r.label, r.found} == {a, b} and r.start < end and r.end > start for r in runs)
+                for a, b, start, end in swaps)
+    assert found >= 19
+    fixed = lc.fix_labels(template, swapped, runs)
+    same = np.isclose(fixed.positions, performance.positions, equal_nan=True).all(axis=2)
+    assert same.all()
+
+
+def test_cli_check_and_fix(run_cli, tmp_path, sample):
+    _, performance, _ = sample
+    swapped, _ = _inject_swaps(performance, 3, seed=1)
+    write_trajectories(swapped, tmp_path / "swapped.c3d")
+    listed = run_cli("label", tmp_path / "swapped.c3d", "--template", SESSION, "--check")
+    assert listed.exit_code == 0 and "6 mislabelled runs (6 in swaps)" in listed.stdout, listed.stdout
+    fixed = run_cli("label", tmp_path / "swapped.c3d", "--template", SESSION, "--check", "--fix",
+                    "--out", tmp_path / "fixed.c3d")
+    assert fixed.exit_code == 0
+    assert run_cli("label", tmp_path / "fixed.c3d", "--template", SESSION, "--check").stdout.startswith("0 mislabelled")
+
+
+@pytest.mark.parametrize("subject, other", [(1, 2), (2, 1)])
+def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
+    """Real capture (blenderFace, 16 markers, 25 Hz): another subject's session as the template, and
+    each take labelled with the subject's other takes as the template; the issue's 99 % target over
+    all of a subject's points (measured per case: 98.4 % to 100 %)."""
+    from mocaptk.trajectories import concatenate_takes
+
+    def read(k):
+        return read_trajectories(shared_path("facial_mocap", "blenderface", f"Subject_0{k}.csv"),
+                                 rate=25, units="187.6")
+    own, template_session = read(subject), read(other)
+    cases = [(own.select(list(template_session.labels)), template_session)]
+    for take in own.takes:
+        rest = [own.frames(t.start, t.end) for t in own.takes if t.name != take.name]
+        cases.append((own.take(take.name), concatenate_takes(rest)))
+    totals = np.zeros(3)
+    for k, (capture, session) in enumerate(cases):
+        template = build_template(session)
+        raw = unlabelled_capture(capture, seed=k, rotation_deg=0, translation_mm=0, ghosts=0, occluded=0)
+        correct, wrong, _ = scores(lc.label_capture(template, raw.trajectories), raw, template)
+        visible = (raw.truth >= 0).sum()
+        totals += (correct * visible, wrong * visible, visible)
+        assert correct >= 0.98, (k, correct, wrong)
+    assert totals[0] / totals[2] >= 0.99 and totals[1] / totals[2] <= 0.01, totals
+
+
+def test_bad_inputs_are_one_line_and_exit_2(run_cli, tmp_path, sample):
+    session, performance, _ = sample
+    raw = unlabelled_capture(performance.frames(0, 120), seed=0).trajectories
+    write_trajectories(raw, tmp_path / "raw.c3d")
+    out = tmp_path / "out.c3d"
+    cases = {
+        "no labels": ("label", tmp_path / "raw.c3d", "--template", tmp_path / "raw.c3d", "--out", out),
+    }
+    metres = raw.replace(positions=raw.positions / 1000.0)  # written in mm: a face 1000 x too small
+    write_trajectories(metres, tmp_path / "metres.c3d")
+    cases["units"] = ("label", tmp_path / "metres.c3d", "--template", SESSION, "--out", out)
+    body = raw.replace(positions=raw.positions * 12.0)  # points spaced like a body's markers
+    write_trajectories(body, tmp_path / "body.c3d")
+    cases["body"] = ("label", tmp_path / "body.c3d", "--template", SESSION, "--out", out)
+    sparse = raw.replace(positions=np.where(np.arange(raw.n_markers)[None, :, None] < 2, raw.positions, np.nan))
+    write_trajectories(sparse, tmp_path / "two.c3d")
+    cases["two points"] = ("label", tmp_path / "two.c3d", "--template", SESSION, "--out", out)
+    for name, args in cases.items():
+        result = run_cli(*args)
+        assert result.exit_code == 2, (name, result.stdout)
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("mocaptk: error: "), (name, result.stderr)
+        assert not out.exists()

@@ -24,6 +24,8 @@ from .vote import vote
 
 #: The capture's typical marker spacing may differ from the template's by at most this factor.
 SCALE_FACTOR = 1.8
+#: The template is scaled to the capture when their spacings differ by more than this fraction.
+RESCALE = 0.05
 #: Fewer labelled points than this fraction: not a capture of the template's face.
 MIN_LABELLED = 0.5
 #: A check reports a column's points found under another label for at least this many frames.
@@ -54,6 +56,9 @@ def label_capture(template: LabelTemplate, capture: Trajectories, *, clouds: boo
     if seen.sum(axis=1).max(initial=0) < 3:
         raise source_error(capture.metadata.get("source"), "fewer than 3 points in every frame: "
                                                            "nothing to find a head pose from")
+    ratio = check_scale(template, capture)
+    if abs(ratio - 1) > RESCALE:  # a smaller or larger face than the template's
+        template = template.scaled(ratio)
     if clouds is None:
         clouds = looks_untracked(pos, template.spacing)
     fragments = link_clouds(pos, template.spacing) if clouds else column_fragments(pos)
@@ -65,13 +70,14 @@ def label_capture(template: LabelTemplate, capture: Trajectories, *, clouds: boo
     return Labelled(labels, confidence, fragments, split, "clouds" if clouds else "fragments")
 
 
-def check_scale(template: LabelTemplate, capture: Trajectories) -> None:
-    """Refuse a capture whose points are spaced unlike the template's markers (other units, a body)."""
+def check_scale(template: LabelTemplate, capture: Trajectories) -> float:
+    """The capture's marker spacing over the template's (a face's size ratio); refuses a capture
+    spaced unlike the template by more than :data:`SCALE_FACTOR` (other units, a body)."""
     pos = capture.positions
     counts = (~np.isnan(pos).any(axis=2)).sum(axis=1)
     frames = np.flatnonzero(counts >= 3)
     if not len(frames):
-        return
+        return 1.0
     frames = frames[np.linspace(0, len(frames) - 1, min(len(frames), 50)).astype(np.intp)]
     spacing = []
     for f in frames:
@@ -85,6 +91,7 @@ def check_scale(template: LabelTemplate, capture: Trajectories) -> None:
                            f"its points are {ratio:.3g} times as far apart as the template's markers "
                            f"({np.median(spacing):.3g} vs {template.spacing:.3g} mm): other units (see "
                            "--units), or not a capture of this face")
+    return ratio
 
 
 def check_match(capture: Trajectories, result: Labelled) -> None:

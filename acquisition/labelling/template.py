@@ -57,6 +57,11 @@ class LabelTemplate:
         """Median nearest-neighbour distance (mm)."""
         return float(np.median(self.nearest))
 
+    def scaled(self, factor: float) -> LabelTemplate:
+        """The template of a face ``factor`` times as large (mean and motion scaled)."""
+        return _finish(self.labels, self.mean * factor, self.basis, self.mode_std * factor,
+                       self.sigma * factor, self.motion * factor)
+
     def subset(self, labels: list[str]) -> LabelTemplate:
         """The template of the markers ``labels`` only (the model refitted on them is not needed:
         the modes restricted to the subset still span its motion)."""

@@ -73,8 +73,6 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
     conf = np.zeros((n_frames, n_cols), dtype=np.float32)
     released = np.zeros((n_frames, n_cols), dtype=bool)
     gate, new_gate = gates(template), gates(template, new=True)
-    if not tracked:  # the baseline: any point nearer its marker's place than any other's
-        new_gate = GATE_NEAREST * template.nearest
     n_frag = int(fragments.max()) + 1 if fragments.size else 0
     frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
     offset = np.zeros_like(template.mean)
@@ -111,6 +109,7 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
             if not have_pose:
                 continue
             pred = template.mean
+            wide = GATE_NEAREST * template.nearest  # a start-over: the face may differ from the template's
             for r in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
                 if r:
                     keep = lab >= 0
@@ -120,7 +119,7 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
                         pred = model_shape(template, coeffs) + offset
                     lab[:] = -1
                 head = (pts - trans) @ rot
-                _assign(template, pred, new_gate, head, lab, np.ones(len(cols), dtype=bool))
+                _assign(template, pred, wide, head, lab, np.ones(len(cols), dtype=bool))
             if tracked and (lab >= 0).sum() < INIT_MATCH * len(cols):
                 continue  # a wrong pose or a frame of ghosts: search again in the next frame
         keep = lab >= 0

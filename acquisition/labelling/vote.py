@@ -19,6 +19,8 @@ MIN_RUN = 4
 def vote(label: np.ndarray, confidence: np.ndarray, fragments: np.ndarray) -> tuple[np.ndarray, int]:
     """Voted labels ``(F, N)`` and the number of fragments split (label runs > 1 after voting)."""
     frame, col = np.nonzero(fragments >= 0)
+    if not len(frame):
+        return label.copy(), 0
     frag = fragments[frame, col]
     order = np.lexsort((frame, frag))
     frame, col, frag = frame[order], col[order], frag[order]
@@ -55,6 +57,8 @@ def vote(label: np.ndarray, confidence: np.ndarray, fragments: np.ndarray) -> tu
 def _unique_per_frame(label: np.ndarray, confidence: np.ndarray) -> None:
     """Where a label appears twice in a frame, keep the most confident point (in place)."""
     f, c = np.nonzero(label >= 0)
+    if not len(f):
+        return
     order = np.lexsort((-confidence[f, c], label[f, c], f))
     f, c = f[order], c[order]
     lab = label[f, c]
@@ -64,6 +68,8 @@ def _unique_per_frame(label: np.ndarray, confidence: np.ndarray) -> None:
 
 def _splits(seq: np.ndarray, frag: np.ndarray) -> int:
     """Fragments whose (sorted) label sequence has more than one labelled run."""
+    if not len(seq):
+        return 0
     labelled = seq >= 0
     change = np.r_[False, (frag[1:] == frag[:-1]) & (seq[1:] != seq[:-1]) & labelled[1:] & labelled[:-1]]
     return int(len(np.unique(frag[change])))
