@@ -76,6 +76,32 @@ def spread_subset(traj: Trajectories, count: int) -> list[str]:
     return [traj.labels[seen[k]] for k in sorted(picked)]
 
 
+def inject_swaps(traj: Trajectories, count: int, *, seed: int = 0,
+                 frames: tuple[int, int] = (2, 60)) -> tuple[Trajectories, list[tuple[str, str, int, int]]]:
+    """``traj`` with ``count`` label swaps between nearest-neighbour markers (each marker in one swap
+    at most), each ``frames`` long (inclusive bounds); returns ``(swapped, [(a, b, start, end)])``."""
+    rng = np.random.default_rng([seed, 31])
+    pos = traj.positions.copy()
+    mean = np.nanmean(pos, axis=0)
+    dist = np.linalg.norm(mean[:, None] - mean[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    if count > traj.n_markers // 2:
+        raise OptionError(f"cannot make {count} disjoint swaps among {traj.n_markers} markers")
+    used: set[int] = set()
+    swaps = []
+    while len(swaps) < count:
+        a = int(rng.integers(traj.n_markers))
+        b = int(np.argmin(dist[a]))
+        if a in used or b in used:
+            continue
+        length = int(rng.integers(frames[0], frames[1] + 1))
+        start = int(rng.integers(0, traj.n_frames - length))
+        pos[start:start + length, [a, b]] = pos[start:start + length, [b, a]]
+        used |= {a, b}
+        swaps.append((traj.labels[a], traj.labels[b], start, start + length))
+    return traj.replace(positions=pos), swaps
+
+
 def unlabelled_capture(traj: Trajectories, *, seed: int = 0, rotation_deg: float = ROTATION_DEG,
                        translation_mm: float = TRANSLATION_MM, ghosts: float = GHOST_FRACTION,
                        occluded: float = OCCLUDED_FRACTION, fragment_seconds: float = FRAGMENT_SECONDS,

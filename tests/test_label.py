@@ -12,7 +12,7 @@ from conftest import shared_path
 from mocaptk.acquisition.formats import read_trajectories, write_trajectories
 from mocaptk.acquisition.labelling import capture as lc
 from mocaptk.acquisition.labelling.template import build_template
-from mocaptk.acquisition.synth_unlabelled import load_truth, spread_subset, unlabelled_capture
+from mocaptk.acquisition.synth_unlabelled import inject_swaps, load_truth, spread_subset, unlabelled_capture
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_c3d"
 SESSION, PERFORMANCE = SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d"
@@ -99,31 +99,10 @@ def test_cli_synth_then_label_writes_capture_report_and_summary(run_cli, tmp_pat
     assert (tmp_path / "again.json").read_bytes() == (tmp_path / "label_report.json").read_bytes()
 
 
-def _inject_swaps(traj, count: int, seed: int):
-    """``count`` swaps of 2-60 frames between nearest-neighbour markers (each marker in one swap)."""
-    rng = np.random.default_rng(seed)
-    pos = traj.positions.copy()
-    mean = np.nanmean(pos, axis=0)
-    dist = np.linalg.norm(mean[:, None] - mean[None], axis=2)
-    np.fill_diagonal(dist, np.inf)
-    used, swaps = set(), []
-    while len(swaps) < count:
-        a = int(rng.integers(traj.n_markers))
-        b = int(np.argmin(dist[a]))
-        if a in used or b in used:
-            continue
-        length = int(rng.integers(2, 61))
-        start = int(rng.integers(0, traj.n_frames - length))
-        pos[start:start + length, [a, b]] = pos[start:start + length, [b, a]]
-        used |= {a, b}
-        swaps.append((traj.labels[a], traj.labels[b], start, start + length))
-    return traj.replace(positions=pos), swaps
-
-
 def test_check_finds_injected_swaps_fix_repairs_them_and_clean_capture_has_none(sample):
     _, performance, template = sample
     assert lc.check_labels(template, performance)[0] == []
-    swapped, swaps = _inject_swaps(performance, 20, seed=0)
+    swapped, swaps = inject_swaps(performance, 20, seed=0)
     runs, _ = lc.check_labels(template, swapped)
     found = sum(any({r.label, r.found} == {a, b} and r.start < end and r.end > start for r in runs)
                 for a, b, start, end in swaps)
@@ -135,7 +114,7 @@ def test_check_finds_injected_swaps_fix_repairs_them_and_clean_capture_has_none(
 
 def test_cli_check_and_fix(run_cli, tmp_path, sample):
     _, performance, _ = sample
-    swapped, _ = _inject_swaps(performance, 3, seed=1)
+    swapped, _ = inject_swaps(performance, 3, seed=1)
     write_trajectories(swapped, tmp_path / "swapped.c3d")
     listed = run_cli("label", tmp_path / "swapped.c3d", "--template", SESSION, "--check")
     assert listed.exit_code == 0 and "6 mislabelled runs (6 in swaps)" in listed.stdout, listed.stdout

@@ -6,6 +6,7 @@ Pose convention as in :mod:`..stabilize`: ``x_capture = R @ x_head + t``.
 
 from __future__ import annotations
 
+import math
 from itertools import combinations
 
 import numpy as np
@@ -22,11 +23,12 @@ MAX_CANDIDATES = 20000
 FINALISTS = 20
 #: Side lengths match when within this fraction (or 3 mm): the capture's face may differ a little.
 SIDE_TOLERANCE = 0.12
+_IDENTITY = np.eye(3)
 
 
 def model_shape(template: LabelTemplate, coeffs: np.ndarray) -> np.ndarray:
     """(M, 3) head-coordinate marker positions for expression coefficients ``coeffs (K,)``."""
-    return template.mean + np.tensordot(coeffs, template.basis, axes=1)
+    return template.mean + (coeffs @ template.basis.reshape(len(coeffs), -1)).reshape(-1, 3)
 
 
 def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot: np.ndarray,
@@ -48,9 +50,10 @@ def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot:
     reg = np.zeros(6 + k)
     reg[:6] = 1e-6  # keeps the pose defined with fewer than 3 points
     reg[6:] = 1.0 / np.maximum(template.mode_std[:k], 1e-6) ** 2
+    diagonal = np.arange(6 + k)
     coeffs = np.zeros(len(template.mode_std))
     a = np.zeros((n, 3, 6 + k))
-    a[:, :, 3:6] = np.eye(3)
+    a[:, [0, 1, 2], [3, 4, 5]] = 1.0
     if k:
         a[:, :, 6:] = np.moveaxis(template.basis[:k, idx], 0, -1)  # (a, 3, k)
     for _ in range(rounds):
@@ -60,7 +63,8 @@ def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot:
         a[:, 1, 0], a[:, 1, 2] = -head[:, 2], head[:, 0]
         a[:, 2, 0], a[:, 2, 1] = head[:, 1], -head[:, 0]
         flat = a.reshape(3 * n, 6 + k)
-        lhs = flat.T @ (flat * w[:, None]) + np.diag(reg)
+        lhs = flat.T @ (flat * w[:, None])
+        lhs[diagonal, diagonal] += reg
         rhs = flat.T @ (w * (head - base).ravel())
         x = np.linalg.solve(lhs, rhs)
         coeffs[:k] = x[6:]
@@ -71,12 +75,12 @@ def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot:
 
 def _rotation(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation matrix of a rotation vector (rad)."""
-    angle = float(np.linalg.norm(rotvec))
+    angle = math.sqrt(float(rotvec @ rotvec))
     if angle < 1e-12:
-        return np.eye(3)
-    kx, ky, kz = rotvec / angle
+        return _IDENTITY
+    kx, ky, kz = (float(v) / angle for v in rotvec)
     cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * cross @ cross
+    return _IDENTITY + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
 
 
 def find_pose(template: LabelTemplate, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

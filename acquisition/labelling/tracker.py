@@ -36,6 +36,8 @@ GATE_FLOOR_MM = 2.5
 NEW_GATE_SIGMA = 4.0
 #: Start-over rounds (assign, refit) after a pose search.
 INIT_ROUNDS = 3
+#: Gauss-Newton steps per tracked frame (the pose starts from the previous frame's).
+TRACK_ROUNDS = 1
 #: A start-over is kept when it labels at least this fraction of the frame's points.
 INIT_MATCH = 0.5
 #: The baseline: match, rigid fit, match again.
@@ -86,7 +88,8 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
         lab = frag_label[frag] if tracked else np.full(len(cols), -1)
         carried = lab >= 0
         if carried.sum() >= 3:
-            rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset)
+            rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
+                                           rounds=TRACK_ROUNDS)
             pred = model_shape(template, coeffs) + offset
             head = (pts - trans) @ rot
             drop = np.zeros(len(cols), dtype=bool)
@@ -96,7 +99,7 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
                 lab[drop] = -1
                 carried &= ~drop
                 rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
-                                               )
+                                               rounds=TRACK_ROUNDS)
                 pred = model_shape(template, coeffs) + offset
                 head = (pts - trans) @ rot
             _assign(template, pred, new_gate, head, lab, ~carried)
