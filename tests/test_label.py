@@ -167,6 +167,9 @@ def test_bad_inputs_are_one_line_and_exit_2(run_cli, tmp_path, sample):
     sparse = raw.replace(positions=np.where(np.arange(raw.n_markers)[None, :, None] < 2, raw.positions, np.nan))
     write_trajectories(sparse, tmp_path / "two.c3d")
     cases["two points"] = ("label", tmp_path / "two.c3d", "--template", SESSION, "--out", out)
+    cases["ignored --units"] = ("label", tmp_path / "raw.c3d", "--template", SESSION, "--out", out, "--units", "10")
+    face = shared_path("facial_mocap", "blenderface", "Subject_01.csv")  # another face and layout
+    cases["other face"] = ("label", face, "--template", SESSION, "--out", out, "--units", "187.6", "--rate", "25")
     for name, args in cases.items():
         result = run_cli(*args)
         assert result.exit_code == 2, (name, result.stdout)

@@ -26,6 +26,18 @@ def read_input(path: Path, *, units: str | None, rate: float | None):
                              rate=rate if fmt == "generic_csv" else None)
 
 
+def _check_text_options(units: str | None, rate: float | None, paths: list[Path]) -> None:
+    """``--units``/``--rate`` must apply to at least one input: never silently ignored."""
+    from mocaptk.acquisition.formats import detect_format
+    from mocaptk.errors import OptionError
+
+    formats = [detect_format(p) for p in paths if p.suffix.lower() != ".json"]
+    if units is not None and all(f in ("c3d", "npz") for f in formats):
+        raise OptionError("--units applies to text inputs only; CAPTURE and the template declare their units")
+    if rate is not None and "generic_csv" not in formats:
+        raise OptionError("--rate applies to column CSV inputs only; CAPTURE and the template store their rate")
+
+
 def load_template(path: Path, *, units: str | None, rate: float | None):
     """The labelling template of a labelled session, or of a ``layout.json`` (its markers, from its
     session found beside it)."""
@@ -101,6 +113,7 @@ def label(
         report = out.parent / "label_report.json"
     if report is not None:
         claim_output(report, force=force)
+    _check_text_options(units, rate, [capture, template])
     tpl = load_template(template, units=units, rate=rate)
     raw = read_input(capture, units=units, rate=rate)
     lc.check_scale(tpl, raw)
