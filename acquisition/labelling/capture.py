@@ -109,25 +109,28 @@ def labelled_trajectories(template: LabelTemplate, capture: Trajectories, result
     """The capture under the template's labels (NaN where a marker was not found), the points left
     over as ``*N`` columns (one per input column that has any, named after it when it is
     ``*``-named and free); rate, first frame and takes kept."""
-    n_frames = capture.n_frames
     m = template.n_markers
-    out = np.full((n_frames, m, 3), np.nan)
-    f, c = np.nonzero(result.labels >= 0)
-    out[f, result.labels[f, c]] = capture.positions[f, c]
     labels = list(template.labels)
-    extra = []
+    leftover = np.empty(0, dtype=np.intp)
     if keep_unlabelled:
-        left = (result.labels < 0) & ~np.isnan(capture.positions).any(axis=2)
+        left = (result.labels < 0) & (result.fragments >= 0)
+        leftover = np.flatnonzero(left.any(axis=0))
         taken = set(labels)
-        for col in np.flatnonzero(left.any(axis=0)):
+        for col in leftover:
             name = capture.labels[col]
             name = name if name.startswith("*") and name not in taken else f"*{col}"
             while name in taken:
                 name = f"*{name}"
             taken.add(name)
             labels.append(name)
-            extra.append(np.where(left[:, col, None], capture.positions[:, col], np.nan))
-    positions = np.concatenate([out, np.stack(extra, axis=1)], axis=1) if extra else out
+    # one output array, filled in place (a 72,000-frame capture is hundreds of MB)
+    positions = np.full((capture.n_frames, len(labels), 3), np.nan)
+    f, c = np.nonzero(result.labels >= 0)
+    positions[f, result.labels[f, c]] = capture.positions[f, c]
+    del f, c
+    for k, col in enumerate(leftover):
+        rows = np.flatnonzero(left[:, col])
+        positions[rows, m + k] = capture.positions[rows, col]
     meta = {"takes": capture.takes, "source": capture.metadata.get("source", ""), "format": "labelled"}
     return Trajectories(positions, labels, capture.rate, first_frame=capture.first_frame, metadata=meta)
 

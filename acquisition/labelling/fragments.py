@@ -26,7 +26,7 @@ def column_fragments(positions: np.ndarray) -> np.ndarray:
     starts = present & ~np.vstack([np.zeros((1, present.shape[1]), dtype=bool), present[:-1]])
     # number runs column by column: cumulative count of run starts in column-major order
     ids = np.cumsum(starts.T.ravel()).reshape(present.shape[1], -1).T - 1
-    return np.where(present, ids, -1).astype(np.int64)
+    return np.where(present, ids, -1).astype(np.int32)
 
 
 def looks_untracked(positions: np.ndarray, spacing_mm: float) -> bool:
@@ -39,7 +39,7 @@ def looks_untracked(positions: np.ndarray, spacing_mm: float) -> bool:
 def link_clouds(positions: np.ndarray, spacing_mm: float) -> np.ndarray:
     """(F, N) fragment ids linking untracked clouds frame to frame (see module doc)."""
     n_frames, n_cols = positions.shape[:2]
-    ids = np.full((n_frames, n_cols), -1, dtype=np.int64)
+    ids = np.full((n_frames, n_cols), -1, dtype=np.int32)
     radius = LINK_SPACING * spacing_mm
     next_id = 0
     prev_cols = np.empty(0, dtype=np.int64)

@@ -136,9 +136,10 @@ def label(
         return
     result = lc.label_capture(tpl, raw, clouds=None if mode == "auto" else mode == "clouds")
     lc.check_match(raw, result)
-    labelled = lc.labelled_trajectories(tpl, raw, result, keep_unlabelled=not drop_unlabelled)
-    write_trajectories(labelled, out, force=force)
     data = label_report(tpl, result, first_frame=raw.first_frame)
+    labelled = lc.labelled_trajectories(tpl, raw, result, keep_unlabelled=not drop_unlabelled)
+    del raw, result  # the output is as large as the capture: hold one of them, not both
+    write_trajectories(labelled, out, force=force)
     write_json(report, data, force=force)
     if not quiet:
         typer.echo(summary_line(data))
