@@ -78,6 +78,8 @@ def test_cli_synth_then_label_writes_capture_report_and_summary(run_cli, tmp_pat
     made = run_cli("synth", raw_path, "--unlabelled", PERFORMANCE, "--seed", "4")
     assert made.exit_code == 0, made.stderr
     truth, source = load_truth(tmp_path / "raw_truth.npz")
+    described = run_cli("info", raw_path)
+    assert f"0 labelled, {(truth >= 0).sum() + (truth == -1).sum():,} unlabelled" in described.stdout
     out = tmp_path / "labelled.c3d"
     result = run_cli("label", raw_path, "--template", SESSION, "--out", out)
     assert result.exit_code == 0, result.stderr

@@ -3,18 +3,12 @@ labels (or ``--check`` / ``--fix`` the labels of a labelled one); see docs/label
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import typer
 
 from .app import app
 from .options import Quiet, Rate, Units
-
-#: Names capture software gives points it could not label (Vicon ``*12``) or readers invent for a
-#: file without labels (``M001``).
-_UNNAMED = re.compile(r"^(\*\d+|M\d{3,})$")
-
 
 def read_input(path: Path, *, units: str | None, rate: float | None):
     """A marker file, ``--units``/``--rate`` applied only where the format takes them."""
@@ -41,6 +35,7 @@ def _check_text_options(units: str | None, rate: float | None, paths: list[Path]
 def load_template(path: Path, *, units: str | None, rate: float | None):
     """The labelling template of a labelled session, or of a ``layout.json`` (its markers, from its
     session found beside it)."""
+    from mocaptk.acquisition.labelling import is_unnamed
     from mocaptk.acquisition.labelling.template import build_template
     from mocaptk.errors import InputFileError
 
@@ -56,7 +51,7 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
                                        "as --template instead")
         path = session
     traj = read_input(path, units=units, rate=rate)
-    if all(_UNNAMED.match(label) for label in traj.labels):
+    if all(is_unnamed(label) for label in traj.labels):
         raise InputFileError(path, "the template has no marker labels (unlabelled points only): label it "
                                    "first, or give a labelled session")
     if markers is not None:  # mirrored twins of a half-face layout are not in its session
