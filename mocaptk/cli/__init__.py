@@ -17,8 +17,8 @@ from .app import app
 
 # The order of `mocaptk --help` (pipeline order: files -> capture -> cleaning -> layout ->
 # evaluation -> rig; then batch); each command is defined in the module of its name.
-COMMANDS = ("info", "convert", "synth", "calibrate", "detect", "reconstruct", "triangulate", "clean",
-            "cluster", "sweep", "evaluate", "compare", "rig", "plan", "solve", "retarget", "batch")
+COMMANDS = ("info", "convert", "synth", "calibrate", "detect", "reconstruct", "triangulate", "label",
+            "clean", "cluster", "sweep", "evaluate", "compare", "rig", "plan", "solve", "retarget", "batch")
 
 
 def _register(names: Sequence[str]) -> None:

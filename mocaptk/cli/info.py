@@ -37,8 +37,20 @@ def summary(traj, path: Path) -> dict[str, Any]:
         "longest_gap_frames": longest, "longest_gap_s": longest / traj.rate,
         "longest_gap_marker": traj.labels[worst] if longest else None,
         "takes": [t.as_dict() for t in traj.takes],
+        **_point_counts(traj),
         "notes": list(traj.metadata.get("notes", [])),
     }
+
+
+def _point_counts(traj) -> dict[str, int]:
+    """Points in labelled columns and in unlabelled ones (``*N``; see ``mocaptk label``)."""
+    import numpy as np
+
+    from mocaptk.acquisition.labelling import is_unnamed
+
+    seen = (~np.isnan(traj.positions).any(axis=2)).sum(axis=0)
+    unnamed = np.array([is_unnamed(label) for label in traj.labels], dtype=bool)
+    return {"labelled_points": int(seen[~unnamed].sum()), "unlabelled_points": int(seen[unnamed].sum())}
 
 
 def _human(info: dict[str, Any]) -> str:
@@ -55,6 +67,7 @@ def _human(info: dict[str, Any]) -> str:
         f"  duration     {info['duration_s']:.3f} s",
         f"  units        {info['units']} (read as mm)",
         f"  missing      {info['missing_percent']:.2f} %",
+        f"  points       {info['labelled_points']:,} labelled, {info['unlabelled_points']:,} unlabelled",
         f"  longest gap  {gap}",
         f"  takes        {takes}",
     ]

@@ -103,10 +103,17 @@ def synth(
                                      "(DIR/markers, true 2-D positions beside) and ChArUco views "
                                      "(DIR/charuco); see docs/optics.md."),
     image_frames: int = typer.Option(120, "--image-frames", help="Frames rendered with --images."),
+    unlabelled: Path = typer.Option(None, "--unlabelled", metavar="LABELLED",
+                                    help="Instead: make a raw unlabelled capture of this labelled one "
+                                         "(head motion, occlusions, ghosts, fragments; docs/label.md), "
+                                         "with its truth <stem>_truth.npz."),
+    clouds: bool = typer.Option(False, "--clouds", help="With --unlabelled: untracked per-frame clouds."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing outputs."),
     quiet: Quiet = False,
 ) -> None:
     """Simulate a dense facial marker capture (per-region takes) with ground truth."""
+    if unlabelled is not None:
+        return _unlabelled(unlabelled, target, seed=seed, clouds=clouds, force=force)
     from rich.console import Console
 
     from mocaptk.acquisition import synth_session as ss
@@ -194,3 +201,21 @@ def synth(
     ss.write_takes_file(truth.takes, paths["takes"], force=force)
     counts = ", ".join(f"{region} {len(labels)}" for region, labels in truth.regions_dict().items())
     typer.echo(f"wrote {paths['regions']} ({counts}), {paths['takes']}, {paths['session_truth']}")
+
+
+def _unlabelled(source: Path, target: Path, *, seed: int, clouds: bool, force: bool) -> None:
+    """``synth OUT --unlabelled LABELLED``: the raw capture and its truth mapping."""
+    from mocaptk.acquisition.formats import output_format, read_trajectories, write_trajectories
+    from mocaptk.acquisition.synth_unlabelled import save_truth, unlabelled_capture
+    from mocaptk.atomic import check_writable
+
+    output_format(target)
+    truth_path = target.parent / f"{target.stem}_truth.npz"
+    for path in (target, truth_path):
+        check_writable(path, force=force)
+    raw = unlabelled_capture(read_trajectories(source), seed=seed, clouds=clouds)
+    write_trajectories(raw.trajectories, target, force=force)
+    save_truth(raw, truth_path, force=force)
+    ghosts = int((raw.truth == -1).sum())
+    typer.echo(f"wrote {target} ({raw.trajectories.n_markers} unlabelled columns, "
+               f"{'clouds' if clouds else 'fragments'}, {ghosts} ghost points) and {truth_path}")

@@ -1,0 +1,171 @@
+"""Frame-by-frame labelling of fragments against the template model.
+
+In each frame the points of fragments that carried a label in the previous frame keep it; the pose
+and expression are fitted to them (:func:`.pose.fit_frame`), and a carried point now farther from
+its label's prediction than the gate is released (the fragment jumped to another marker). The
+released and new points are matched to the free labels by the Hungarian method
+(:func:`scipy.optimize.linear_sum_assignment`) on the squared distance to each label's prediction
+in units of its model spread, with a "no label" option at the gate, so ghosts stay unlabelled. A
+frame with fewer than 3 carried points starts over: the pose from :func:`.pose.find_pose`, then
+assignment and refit rounds.
+
+Each label's prediction is the model fitted to this frame's assigned markers plus the marker's own
+offset from the model when it was last seen, so a fragment broken at random is picked up where it
+stopped and a face that differs from the template's is followed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .pose import find_pose, fit_frame, model_shape
+from .template import LabelTemplate
+
+#: A point may be at most this fraction of its label's nearest-neighbour distance from the
+#: prediction (beyond half, it is nearer another marker's place) ...
+GATE_NEAREST = 0.45
+#: ... and at most this many model spreads (sigma) off, with a floor in mm, to keep a label
+#: (a carried point beyond is released) ...
+GATE_SIGMA = 5.0
+GATE_FLOOR_MM = 2.5
+#: ... and this many to take a free label: tighter, so that a ghost near an occluded marker's place
+#: rarely takes it (a fragment missed here is tried again in every frame).
+NEW_GATE_SIGMA = 4.0
+#: Start-over rounds (assign, refit) after a pose search.
+INIT_ROUNDS = 3
+#: Gauss-Newton steps per tracked frame (the pose starts from the previous frame's).
+TRACK_ROUNDS = 1
+#: A start-over is kept when it labels at least this fraction of the frame's points.
+INIT_MATCH = 0.5
+#: The baseline: match, rigid fit, match again.
+BASELINE_ROUNDS = 2
+#: The marker offset follows the capture at this rate per sighting (1: last sighting only).
+OFFSET_RATE = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class PointLabels:
+    """Per input point: ``label (F, N)`` template index or -1; ``confidence (F, N)`` in [0, 1]
+    (``exp(-z²/2)``, z the distance to the label's prediction in model spreads; 0 unlabelled);
+    ``released (F, N)`` True where a carried label was dropped (a fragment split)."""
+
+    label: np.ndarray
+    confidence: np.ndarray
+    released: np.ndarray
+
+
+def gates(template: LabelTemplate, *, new: bool = False) -> np.ndarray:
+    """(M,) mm: how far a point may be from a label's prediction to keep it (``new``: to take it)."""
+    return np.minimum(GATE_NEAREST * template.nearest,
+                      np.maximum((NEW_GATE_SIGMA if new else GATE_SIGMA) * template.sigma, GATE_FLOOR_MM))
+
+
+def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.ndarray, *,
+                 tracked: bool = True) -> PointLabels:
+    """Label every point of ``positions (F, N, 3)`` mm; ``fragments (F, N)`` fragment ids (-1 no point).
+
+    ``tracked`` False: the baseline — no fragments, no motion model, no offsets; each frame is
+    matched to the template's mean shape after a rigid fit (pose from the previous frame).
+    """
+    n_frames, n_cols = fragments.shape
+    label = np.full((n_frames, n_cols), -1, dtype=np.int32)
+    conf = np.zeros((n_frames, n_cols), dtype=np.float32)
+    released = np.zeros((n_frames, n_cols), dtype=bool)
+    gate, new_gate = gates(template), gates(template, new=True)
+    n_frag = int(fragments.max()) + 1 if fragments.size else 0
+    frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
+    offset = np.zeros_like(template.mean)
+    rot, trans, have_pose = np.eye(3), np.zeros(3), False
+    for f in range(n_frames):
+        cols = np.flatnonzero(fragments[f] >= 0)
+        if len(cols) == 0:
+            continue
+        pts = positions[f, cols]
+        frag = fragments[f, cols]
+        lab = frag_label[frag] if tracked else np.full(len(cols), -1)
+        carried = lab >= 0
+        if carried.sum() >= 3:
+            rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
+                                           rounds=TRACK_ROUNDS)
+            pred = model_shape(template, coeffs) + offset
+            head = (pts - trans) @ rot
+            drop = np.zeros(len(cols), dtype=bool)
+            drop[carried] = np.linalg.norm(head[carried] - pred[lab[carried]], axis=1) > gate[lab[carried]]
+            if drop.any():
+                released[f, cols[drop]] = True
+                lab[drop] = -1
+                carried &= ~drop
+                rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
+                                               rounds=TRACK_ROUNDS)
+                pred = model_shape(template, coeffs) + offset
+                head = (pts - trans) @ rot
+            _assign(template, pred, new_gate, head, lab, ~carried)
+        else:
+            lab[:] = -1
+            if tracked or not have_pose:  # the baseline keeps the previous frame's pose
+                rot, trans, inliers = find_pose(template, pts)
+                have_pose = inliers >= 3
+                offset[:] = 0.0
+            if not have_pose:
+                continue
+            pred = template.mean
+            wide = GATE_NEAREST * template.nearest  # a start-over: the face may differ from the template's
+            for r in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
+                if r:
+                    keep = lab >= 0
+                    if keep.sum() >= 3:
+                        rot, trans, coeffs = fit_frame(template, lab[keep], pts[keep], rot, trans, offset,
+                                                       expression=tracked)
+                        pred = model_shape(template, coeffs) + offset
+                    lab[:] = -1
+                head = (pts - trans) @ rot
+                _assign(template, pred, wide, head, lab, np.ones(len(cols), dtype=bool))
+            if tracked and (lab >= 0).sum() < INIT_MATCH * len(cols):
+                continue  # a wrong pose or a frame of ghosts: search again in the next frame
+        keep = lab >= 0
+        resid = head[keep] - pred[lab[keep]]
+        z2 = (resid ** 2).sum(axis=1) / template.sigma[lab[keep]] ** 2
+        label[f, cols[keep]] = lab[keep]
+        conf[f, cols[keep]] = np.exp(-0.5 * z2)
+        if tracked:
+            offset[lab[keep]] += OFFSET_RATE * resid
+            frag_label[frag] = lab
+    return PointLabels(label, conf, released)
+
+
+def _assign(template: LabelTemplate, pred: np.ndarray, gate: np.ndarray, head: np.ndarray,
+            lab: np.ndarray, todo: np.ndarray) -> None:
+    """Match the points ``head[todo]`` (head coordinates) to the labels not in ``lab`` (in place)."""
+    rows = np.flatnonzero(todo)
+    if not len(rows):
+        return
+    taken = np.zeros(template.n_markers, dtype=bool)
+    taken[lab[lab >= 0]] = True
+    free = np.flatnonzero(~taken)
+    if not len(free):
+        return
+    d = np.linalg.norm(head[rows, None] - pred[free][None], axis=2)
+    within = d <= gate[free]
+    useful_rows = within.any(axis=1)
+    useful_cols = within.any(axis=0)
+    if not useful_rows.any():
+        return
+    rows, free = rows[useful_rows], free[useful_cols]
+    d, within = d[np.ix_(useful_rows, useful_cols)], within[np.ix_(useful_rows, useful_cols)]
+    single = within.sum(axis=1) == 1
+    if single.all() and within.sum(axis=0).max() <= 1:  # no competition: no matching needed
+        r, c = np.nonzero(within)
+        lab[rows[r]] = free[c]
+        return
+    z2 = (d / template.sigma[free]) ** 2
+    limit = (gate[free] / template.sigma[free]) ** 2
+    big = float(limit.max()) * 4 + 1.0
+    cost = np.where(within, z2 - limit, big)  # < 0 within the gate: better than no label (0)
+    full = np.hstack([cost, np.zeros((len(rows), len(rows)))])
+    r, c = linear_sum_assignment(full)
+    hit = (c < len(free))
+    hit[hit] &= within[r[hit], c[hit]]
+    lab[rows[r[hit]]] = free[c[hit]]

@@ -1,0 +1,180 @@
+"""``mocaptk label`` and ``synth --unlabelled`` on the bundled sample (raw captures made from it) and
+on blenderFace (real capture, labels stripped)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import shared_path
+
+from mocaptk.acquisition.formats import read_trajectories, write_trajectories
+from mocaptk.acquisition.labelling import capture as lc
+from mocaptk.acquisition.labelling.template import build_template
+from mocaptk.acquisition.synth_unlabelled import inject_swaps, load_truth, spread_subset, unlabelled_capture
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_c3d"
+SESSION, PERFORMANCE = SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d"
+
+
+@pytest.fixture(scope="module")
+def sample():
+    session, performance = read_trajectories(SESSION), read_trajectories(PERFORMANCE)
+    return session, performance, build_template(session)
+
+
+def scores(result, raw, template) -> tuple[float, float, float]:
+    """(correct, wrong) per visible marker-frame and labelled ghosts per ghost point."""
+    idx = np.array([template.labels.index(label) for label in raw.labels])
+    truth = np.where(raw.truth >= 0, idx[np.maximum(raw.truth, 0)], raw.truth)
+    visible, ghost, found = truth >= 0, truth == -1, result.labels >= 0
+    correct = visible & (result.labels == truth)
+    wrong = visible & found & ~correct
+    return correct.sum() / visible.sum(), wrong.sum() / visible.sum(), (ghost & found).sum() / max(ghost.sum(), 1)
+
+
+def test_synth_unlabelled_matches_the_issue_settings(sample):
+    _, performance, _ = sample
+    raw = unlabelled_capture(performance, seed=5)
+    truth = raw.truth
+    visible = (truth >= 0).sum()
+    assert abs((truth == -1).sum() / visible - 0.02) < 0.002  # 2 % ghosts
+    occluded = 1 - visible / (~np.isnan(performance.positions).any(axis=2)).sum()
+    assert 0.035 < occluded < 0.065  # ~5 % occluded marker-frames
+    # every labelled point is its source marker moved rigidly: distances between two are kept
+    f = 600
+    cols = np.flatnonzero(truth[f] >= 0)[:2]
+    a, b = raw.trajectories.positions[f, cols]
+    sa, sb = performance.positions[f, truth[f, cols]]
+    assert abs(np.linalg.norm(a - b) - np.linalg.norm(sa - sb)) < 1e-9
+    # the head moved by up to ~15 degrees
+    angles = np.degrees(np.arccos(np.clip((np.trace(raw.head_rotations, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert 8 < angles.max() < 30
+    # fragments: ~2 s on average, so many more runs than markers
+    runs = (np.diff(np.vstack([np.zeros((1, truth.shape[1])), truth >= 0]).astype(int), axis=0) == 1).sum()
+    assert runs > 5 * performance.n_markers
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("clouds", [False, True], ids=["fragments", "clouds"])
+@pytest.mark.parametrize("count", [139, 40])
+def test_label_meets_the_targets_and_beats_the_baseline(sample, clouds, count):
+    session, performance, template = sample
+    if count != 139:
+        keep = spread_subset(session, count)
+        performance, template = performance.select(keep), build_template(session.select(keep))
+    raw = unlabelled_capture(performance, seed=2, clouds=clouds)
+    result = lc.label_capture(template, raw.trajectories)
+    assert result.mode == ("clouds" if clouds else "fragments")
+    correct, wrong, ghosts = scores(result, raw, template)
+    assert correct >= 0.995 and wrong <= 0.001 and ghosts <= 0.001, (correct, wrong, ghosts)
+    base = scores(lc.label_capture(template, raw.trajectories, tracked=False), raw, template)
+    assert base[0] < correct and base[2] > ghosts  # the rigid-fit Hungarian baseline does worse
+
+
+def test_cli_synth_then_label_writes_capture_report_and_summary(run_cli, tmp_path):
+    raw_path = tmp_path / "raw.c3d"
+    made = run_cli("synth", raw_path, "--unlabelled", PERFORMANCE, "--seed", "4")
+    assert made.exit_code == 0, made.stderr
+    truth, source = load_truth(tmp_path / "raw_truth.npz")
+    described = run_cli("info", raw_path)
+    assert f"0 labelled, {(truth >= 0).sum() + (truth == -1).sum():,} unlabelled" in described.stdout
+    out = tmp_path / "labelled.c3d"
+    result = run_cli("label", raw_path, "--template", SESSION, "--out", out)
+    assert result.exit_code == 0, result.stderr
+    assert "uncertain" in result.stdout and "labelled" in result.stdout
+    labelled, raw = read_trajectories(out), read_trajectories(raw_path)
+    assert labelled.labels[:139] == read_trajectories(SESSION).labels
+    assert labelled.rate == raw.rate and labelled.n_frames == raw.n_frames
+    # every labelled point is the raw point its truth says
+    f = 700
+    for col in np.flatnonzero(truth[f] >= 0)[:20]:
+        name = source[truth[f, col]]
+        assert np.allclose(labelled.positions[f, labelled.labels.index(name)], raw.positions[f, col], atol=1e-3)
+    import json
+    report = json.loads((tmp_path / "label_report.json").read_text())
+    assert report["format"] == "mocaptk.label-report" and report["labelled_points"] > 0.97 * report["points"]
+    again = run_cli("label", raw_path, "--template", SESSION, "--out", tmp_path / "again.c3d",
+                    "--report", tmp_path / "again.json", "--drop-unlabelled")
+    assert again.exit_code == 0 and read_trajectories(tmp_path / "again.c3d").n_markers == 139
+    assert (tmp_path / "again.json").read_bytes() == (tmp_path / "label_report.json").read_bytes()
+
+
+def test_check_finds_injected_swaps_fix_repairs_them_and_clean_capture_has_none(sample):
+    _, performance, template = sample
+    assert lc.check_labels(template, performance)[0] == []
+    swapped, swaps = inject_swaps(performance, 20, seed=0)
+    runs, _ = lc.check_labels(template, swapped)
+    found = sum(any({r.label, r.found} == {a, b} and r.start < end and r.end > start for r in runs)
+                for a, b, start, end in swaps)
+    assert found >= 19
+    fixed = lc.fix_labels(template, swapped, runs)
+    same = np.isclose(fixed.positions, performance.positions, equal_nan=True).all(axis=2)
+    assert same.all()
+
+
+def test_cli_check_and_fix(run_cli, tmp_path, sample):
+    _, performance, _ = sample
+    swapped, _ = inject_swaps(performance, 3, seed=1)
+    write_trajectories(swapped, tmp_path / "swapped.c3d")
+    listed = run_cli("label", tmp_path / "swapped.c3d", "--template", SESSION, "--check")
+    assert listed.exit_code == 0 and "6 mislabelled runs (6 in swaps)" in listed.stdout, listed.stdout
+    fixed = run_cli("label", tmp_path / "swapped.c3d", "--template", SESSION, "--check", "--fix",
+                    "--out", tmp_path / "fixed.c3d")
+    assert fixed.exit_code == 0
+    assert run_cli("label", tmp_path / "fixed.c3d", "--template", SESSION, "--check").stdout.startswith("0 mislabelled")
+
+
+@pytest.mark.parametrize("subject, other", [(1, 2), (2, 1)])
+def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
+    """Real capture (blenderFace, 16 markers, 25 Hz): another subject's session as the template, and
+    each take labelled with the subject's other takes as the template; the issue's 99 % target over
+    all of a subject's points (measured per case: 98.4 % to 100 %)."""
+    from mocaptk.trajectories import concatenate_takes
+
+    def read(k):
+        return read_trajectories(shared_path("facial_mocap", "blenderface", f"Subject_0{k}.csv"),
+                                 rate=25, units="187.6")
+    own, template_session = read(subject), read(other)
+    cases = [(own.select(list(template_session.labels)), template_session)]
+    for take in own.takes:
+        rest = [own.frames(t.start, t.end) for t in own.takes if t.name != take.name]
+        cases.append((own.take(take.name), concatenate_takes(rest)))
+    totals = np.zeros(3)
+    for k, (capture, session) in enumerate(cases):
+        template = build_template(session)
+        raw = unlabelled_capture(capture, seed=k, rotation_deg=0, translation_mm=0, ghosts=0, occluded=0)
+        correct, wrong, _ = scores(lc.label_capture(template, raw.trajectories), raw, template)
+        visible = (raw.truth >= 0).sum()
+        totals += (correct * visible, wrong * visible, visible)
+        assert correct >= 0.98, (k, correct, wrong)
+    assert totals[0] / totals[2] >= 0.99 and totals[1] / totals[2] <= 0.01, totals
+
+
+def test_bad_inputs_are_one_line_and_exit_2(run_cli, tmp_path, sample):
+    session, performance, _ = sample
+    raw = unlabelled_capture(performance.frames(0, 120), seed=0).trajectories
+    write_trajectories(raw, tmp_path / "raw.c3d")
+    out = tmp_path / "out.c3d"
+    cases = {
+        "no labels": ("label", tmp_path / "raw.c3d", "--template", tmp_path / "raw.c3d", "--out", out),
+    }
+    metres = raw.replace(positions=raw.positions / 1000.0)  # written in mm: a face 1000 x too small
+    write_trajectories(metres, tmp_path / "metres.c3d")
+    cases["units"] = ("label", tmp_path / "metres.c3d", "--template", SESSION, "--out", out)
+    body = raw.replace(positions=raw.positions * 12.0)  # points spaced like a body's markers
+    write_trajectories(body, tmp_path / "body.c3d")
+    cases["body"] = ("label", tmp_path / "body.c3d", "--template", SESSION, "--out", out)
+    sparse = raw.replace(positions=np.where(np.arange(raw.n_markers)[None, :, None] < 2, raw.positions, np.nan))
+    write_trajectories(sparse, tmp_path / "two.c3d")
+    cases["two points"] = ("label", tmp_path / "two.c3d", "--template", SESSION, "--out", out)
+    cases["ignored --units"] = ("label", tmp_path / "raw.c3d", "--template", SESSION, "--out", out, "--units", "10")
+    face = shared_path("facial_mocap", "blenderface", "Subject_01.csv")  # another face and layout
+    cases["other face"] = ("label", face, "--template", SESSION, "--out", out, "--units", "187.6", "--rate", "25")
+    for name, args in cases.items():
+        result = run_cli(*args)
+        assert result.exit_code == 2, (name, result.stdout)
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("mocaptk: error: "), (name, result.stderr)
+        assert not out.exists()
