@@ -45,7 +45,8 @@ class HeadPoses:
     residual ``residual_mm`` (F,) of the markers kept, ``dropped`` (F, K) the pose markers found
     contradicted, from the markers ``labels`` (``source``: ``"stabilization markers"`` or
     ``"least-moving layout markers"``); ``motion_rms_mm`` the RMS distance of the markers kept
-    from their head-frame reference, unposed (under ~1 mm: the capture is in the head frame)."""
+    from their head-frame reference, unposed; ``still``: under ~1 mm, the capture is taken as in
+    the head frame and the poses are the identity."""
 
     rotations: np.ndarray
     translations: np.ndarray
@@ -54,6 +55,7 @@ class HeadPoses:
     labels: tuple[str, ...]
     source: str
     motion_rms_mm: float = float("nan")
+    still: bool = False
 
     def select(self, frames: np.ndarray | slice) -> HeadPoses:
         """The poses of ``frames`` only."""

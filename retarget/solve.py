@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from mocaptk.clustering.layout import Layout
+from mocaptk.clustering.pipeline import HEAD_RELATIVE_RMS_MM
 from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.clustering.reconstruction_models import (DEFAULT_KIND, DEFAULT_RIDGE, FaceModel, load_model,
                                                       batched_ridge, fit_model)
@@ -178,16 +179,23 @@ def layout_frames(solver: FaceSolver, capture: Trajectories, path: str) -> np.nd
 def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
     """The capture's head poses in the session's head frame: from the layout's stabilization
     markers, or, when the capture has fewer than 3 of them, from the least-moving layout markers
-    (``HeadPoses.source`` says which); None when the solver has neither."""
+    (``HeadPoses.source`` says which); identity poses (``still``) when those markers already sit
+    within ``HEAD_RELATIVE_RMS_MM`` RMS of their session shape; None when the solver has neither."""
     known = set(capture.labels)
     present = [k for k, label in enumerate(solver.rigid_labels) if label in known]
     if solver.rigid_reference is not None and len(present) >= 3:
-        return robust_head_poses(solver.rigid_reference[present], capture,
-                                 [solver.rigid_labels[k] for k in present], source=POSE_FROM_RIGID)
-    if solver.fallback_reference is not None and all(label in known for label in solver.fallback_labels):
-        return robust_head_poses(solver.fallback_reference, capture, solver.fallback_labels,
-                                 source=POSE_FROM_LAYOUT)
-    return None
+        poses = robust_head_poses(solver.rigid_reference[present], capture,
+                                  [solver.rigid_labels[k] for k in present], source=POSE_FROM_RIGID)
+    elif solver.fallback_reference is not None and all(label in known for label in solver.fallback_labels):
+        poses = robust_head_poses(solver.fallback_reference, capture, solver.fallback_labels,
+                                  source=POSE_FROM_LAYOUT)
+    else:
+        return None
+    if poses.motion_rms_mm < HEAD_RELATIVE_RMS_MM:  # skin sliding on the pose markers is not head motion
+        n = len(poses.rotations)
+        return replace(poses, rotations=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
+                       translations=np.zeros((n, 3)), still=True)
+    return poses
 
 
 @dataclass(frozen=True)

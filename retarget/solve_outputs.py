@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from mocaptk.atomic import write_text
-from mocaptk.clustering.pipeline import HEAD_RELATIVE_RMS_MM
 from mocaptk.clustering.reconstruction_models import save_model
 from mocaptk.errors import OptionError
 from mocaptk.jsonio import write_json
@@ -59,7 +58,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     x = layout_frames(solver, capture, path)
     notes = list(notes)
     poses = head_poses(solver, capture) if stabilize else None
-    if poses is not None and poses.motion_rms_mm < HEAD_RELATIVE_RMS_MM:
+    if poses is not None and poses.still:
         notes.append(f"the capture is already in the session's head frame (its {poses.source} "
                      f"{', '.join(poses.labels)} sit {poses.motion_rms_mm:.2f} mm RMS from their "
                      "session positions): head motion not removed")
