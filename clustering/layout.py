@@ -177,6 +177,14 @@ def _check_extras(data: dict) -> None:
                 raise _Malformed(f"sagittal_plane.{key} must be 3 finite numbers")
         if not any(plane["normal"]):
             raise _Malformed("sagittal_plane.normal must not be zero")
+    if data.get("orientation") is not None:
+        orientation = _field(data, "orientation", dict, "an object")
+        rows = _list(orientation, "frame", "orientation")
+        if len(rows) != 3 or not all(isinstance(r, list) and len(r) == 3 for r in rows) or not np.all(
+                np.isfinite([_number(x, "orientation.frame") for r in rows for x in r])):
+            raise _Malformed("orientation.frame must be 3 rows of 3 finite numbers")
+        if orientation.get("labels") not in ("agree", "contradict", "decided", "none"):
+            raise _Malformed("orientation.labels must be agree, contradict, decided or none")
     if data.get("stabilization") is not None:
         stabilization = _field(data, "stabilization", dict, "an object")
         if stabilization.get("rigid_labels") is not None:
