@@ -100,6 +100,7 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
         clusters = tuple(_cluster(c, f"clusters[{i}]") for i, c in enumerate(_list(data, "clusters")))
         regions = tuple(_region(r, f"regions[{i}]") for i, r in enumerate(_list(data, "regions")))
         source, parameters = (_field(data, key, dict, "an object") for key in ("source", "parameters"))
+        _check_reading(source)
         _check_extras(data)
     except _Malformed as exc:
         raise InputFileError(path, f"malformed layout: {exc}") from None
@@ -165,6 +166,22 @@ def _cluster(c: Any, where: str) -> Cluster:
                    _field(c, "region", str, "a region name", where), _labels(c, "members", where),
                    {str(k): _number(v, f"{where}.member_correlation.{k}") for k, v in correlation.items()},
                    tuple(_number(x, f"{where}.position") for x in position), side, mirrored_from)
+
+
+def _check_reading(source: dict) -> None:
+    """``source.reading`` (how cluster read the session; evaluate, solve and rig read it alike):
+    rate null or > 0 Hz, units null or text, first_frame a whole number."""
+    if source.get("reading") is None:
+        return
+    reading = _field(source, "reading", dict, "an object", "source")
+    rate = reading.get("rate")
+    if rate is not None and not _number(rate, "source.reading.rate") > 0:
+        raise _Malformed("source.reading.rate must be null or a positive number of Hz")
+    if reading.get("units") is not None and not isinstance(reading["units"], str):
+        raise _Malformed("source.reading.units must be null or text (mm, cm, m, in or mm per file unit)")
+    first = reading.get("first_frame", 0)
+    if isinstance(first, bool) or not isinstance(first, int):
+        raise _Malformed("source.reading.first_frame must be a whole number")
 
 
 def _check_extras(data: dict) -> None:

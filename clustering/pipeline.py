@@ -398,10 +398,12 @@ def stabilization_note(stabilization: dict[str, Any]) -> str | None:
 def load_session_and_test(session: str | Path, test: str | Path | None, *, stabilized: bool,
                           rate: float | None = None, units: str | None = None,
                           rigid: Sequence[str] | None = None,
+                          test_reading: tuple[float | None, str | None] | None = None,
                           ) -> tuple[Trajectories, Trajectories | None, dict[str, Any]]:
     """A session and an optional held-out test file, prepared alike (same markers, same stabilization
     on the same rigid set: ``rigid``, or the one detected on the session).
 
+    ``test_reading``: ``(rate, units)`` for the test file (default: the session's ``rate``, ``units``).
     Returns ``(session, test or None, source)``; a test file lacking session markers raises
     :class:`InputFileError`.
     """
@@ -413,7 +415,8 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
         rigid = report["rigid_labels"]
     if test is None:
         return traj, None, source
-    perf, _ = load_session(str(test), rate=rate, units=units)
+    test_rate, test_units = (rate, units) if test_reading is None else test_reading
+    perf, _ = load_session(str(test), rate=test_rate, units=test_units)
     present = set(perf.labels)
     missing = [label for label in traj.labels if label not in present]
     if missing:

@@ -91,8 +91,10 @@ def test_method_paper_writes_the_layout_of_before_the_default_changed(sample, tm
     summary = mocaptk("cluster", sample / "dense_halfface.c3d", "--factor", "1.1", "--method", "paper",
                       "--formats", "none", "--out", out)
     written = json.loads((out / "layout.json").read_text())
-    # keys added since (the face's orientation) hold no layout number: everything else is as before
+    # keys added since (the face's orientation, how the session was read) hold no layout number:
+    # everything else is as before
     assert written.pop("orientation")["labels"] == "agree"
+    assert written["source"].pop("reading") == {"rate": None, "units": None, "first_frame": 0}
     assert written == json.loads(PAPER_LAYOUT.read_text())
     assert "mean C" in summary and "threshold" in summary
 

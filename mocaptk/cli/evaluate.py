@@ -11,7 +11,7 @@ import typer
 from mocaptk.errors import OptionError
 
 from .app import app
-from .options import Quiet, Rate, Units
+from .options import Quiet, Rate, Units, recorded_reading
 from .report import write_evaluation_report
 
 
@@ -42,12 +42,18 @@ def layout_rigid_set(layout) -> tuple[str, ...] | None:
 
 
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
-                   units: str | None, rigid: tuple[str, ...] | None = None):
-    """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
+                   units: str | None, rigid: tuple[str, ...] | None = None, layout=None):
+    """(session Trajectories, test positions or None, source dict) prepared like the layout's input
+    (read as the ``layout``'s session was, unless ``rate``/``units`` are given)."""
     from mocaptk.clustering.pipeline import load_session_and_test
 
+    test_reading = None
+    if layout is not None:
+        if test is not None:
+            test_reading = recorded_reading(layout, test, rate=rate, units=units)
+        rate, units = recorded_reading(layout, session, rate=rate, units=units)
     traj, perf, source = load_session_and_test(session, test, stabilized=stabilized, rate=rate,
-                                               units=units, rigid=rigid)
+                                               units=units, rigid=rigid, test_reading=test_reading)
     return traj, None if perf is None else perf.positions, source
 
 
@@ -112,7 +118,8 @@ def evaluate(
     stabilized = bool(lay.parameters.get("stabilized"))
     traj, test_positions, source = session_arrays(
         session, test=test, stabilized=stabilized, rate=rate, units=units,
-        rigid=layout_rigid_set(lay) if stabilized else None)  # an unapplied rigid set is only a record
+        rigid=layout_rigid_set(lay) if stabilized else None,  # an unapplied rigid set is only a record
+        layout=lay)
     index = {label: i for i, label in enumerate(traj.labels)}
     measured = [traj.labels[i] for i in measured_indices(lay, traj.labels, layout_path=layout,
                                                          session_name=session.name)]
