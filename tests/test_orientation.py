@@ -112,7 +112,7 @@ def test_blenderface_layout_and_rig_frame_upright():
     """cluster's layout of Subject_01: the plane's normal and the rig frame put the actor's left
     at +X and the chin below the brows; the layout records the orientation and the warning."""
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
-    from mocaptk.retarget.build import dense_cloud
+    from mocaptk.retarget.build import dense_cloud, guide_reference
 
     traj = _blenderface("Subject_01.csv")
     result = cluster_session(traj, options=ClusterOptions(stabilize=False, method="paper"))
@@ -125,6 +125,8 @@ def test_blenderface_layout_and_rig_frame_upright():
     x = dict(zip(cloud.labels, cloud.neutral[:, 0]))
     assert y["A8"] < y["A7"] < min(y["DL2"], y["DR2"])
     assert x["CR7"] > x["CL7"]  # the labels' R is the actor's left: +X in the rig
+    # no nose marker: the guide measures from the most forward marker (upper lip), not a "nose tip"
+    assert guide_reference(cloud.neutral)[1] == "front marker"
     assert result.frame[1][1] > 0.95  # pictures: up is up
     sides = {c.representative: c.side for c in layout.clusters}
     assert all(sides[label] == "R" for label in sides if re.fullmatch(r"[A-D]L\d", label))
