@@ -67,10 +67,10 @@ def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, 
     from mocaptk.clustering.evaluation import baseline_layouts, holdout_splits
     from mocaptk.clustering.lost_marker import heldout_folds, lost_marker_summaries
 
-    from threadpoolctl import threadpool_limits
+    from mocaptk.threads import one_thread
 
     splits = [] if test is not None else holdout_splits(traj.n_frames, takes, split=split, folds=folds)
-    with threadpool_limits(limits=1):  # many small solves: BLAS threads only contend
+    with one_thread():  # many small solves: BLAS threads only contend
         cv = heldout_folds(traj.positions, splits, test=test, ridge=ridge)
         layouts = {name: [np.asarray(layout)],
                    **baseline_layouts(traj.positions, len(layout), n_random=min(n_random, LOST_MARKER_SEEDS))}
