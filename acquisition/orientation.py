@@ -14,8 +14,8 @@ which way it is turned:
 - the actor's left: up × forward (a right-handed world), never the labels.
 
 The labels' sides are used only where they agree with the geometry, or to decide up when the
-two geometric votes cancel out; when the geometry is clear and they contradict it, the caller
-warns (:func:`labels_warning`).
+geometric votes are weak (none clear, or cancelling out); when the geometry is clear and they
+contradict it, the caller warns (:func:`labels_warning`).
 """
 
 from __future__ import annotations
@@ -31,10 +31,16 @@ from mocaptk.surface_mesh import front_direction
 
 _SIDE_TAG = re.compile(r"_([LRCM])$")
 
-#: Below this |up score| the geometric votes (each in -1..1) are too weak to overrule labels.
+#: The geometry overrules the labels' sides only with a clear vote (|vote| >= CLEAR_VOTE, each
+#: in -1..1) and a sum of at least UNDECIDED_SCORE; else the labels decide up.
 UNDECIDED_SCORE = 0.15
+CLEAR_VOTE = 0.3
 #: Fraction of the height taken as the top and the bottom band for the width vote.
 BAND = 1.0 / 3.0
+#: A face's taper (top band 10-13 % wider than the bottom one: blenderFace, synth) counts like a
+#: clear motion correlation (~0.5): the motion vote alone turned blenderFace Subject_02 upside
+#: down once stabilized (its detected rigid set holds mouth markers).
+SHAPE_WEIGHT = 4.0
 
 
 def side_tag(label: str) -> str | None:
@@ -103,8 +109,8 @@ def up_votes(height: np.ndarray, width: np.ndarray, motion: np.ndarray) -> dict[
     positions (M,) mm and their motion (M,) or (M, K) mm.
 
     motion: minus the correlation of height and motion (the lower face moves more), averaged
-    over the motion's columns; shape: the relative difference of the top and bottom bands'
-    lateral spread (the face narrows to the chin).
+    over the motion's columns; shape: :data:`SHAPE_WEIGHT` x the relative difference of the top
+    and bottom bands' lateral spread (the face narrows to the chin), clipped to -1..1.
     """
     columns = np.asarray(motion, dtype=float).reshape(len(height), -1).T
     moved = [-float(np.corrcoef(height, m)[0, 1]) for m in columns if np.ptp(m) > 0 and np.ptp(height) > 0]
@@ -115,7 +121,7 @@ def up_votes(height: np.ndarray, width: np.ndarray, motion: np.ndarray) -> dict[
     if top.size >= 2 and bottom.size >= 2:
         spread = float(np.ptp(top) + np.ptp(bottom))
         shape = float(np.ptp(top) - np.ptp(bottom)) / spread if spread > 0 else 0.0
-    return {"motion": motion, "shape": shape}
+    return {"motion": motion, "shape": float(np.clip(SHAPE_WEIGHT * shape, -1.0, 1.0))}
 
 
 def labelled_left(labels: Sequence[str], neutral: np.ndarray) -> np.ndarray | None:
@@ -168,7 +174,8 @@ def infer_orientation(labels: Sequence[str], neutral: np.ndarray, motion: np.nda
         return Orientation(frame, votes, "none")
     if said @ frame[0] > 0:
         return Orientation(frame, votes, "agree")
-    if abs(sum(votes.values())) < UNDECIDED_SCORE:  # up and down look alike: the labels turn it
+    clear = max(abs(v) for v in votes.values()) >= CLEAR_VOTE
+    if abs(sum(votes.values())) < UNDECIDED_SCORE or not clear:  # up and down look alike: the labels turn it
         return Orientation(np.array([-frame[0], -frame[1], frame[2]]),
                            {k: -v for k, v in votes.items()}, "decided")
     return Orientation(frame, votes, "contradict")
