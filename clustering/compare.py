@@ -27,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from mocaptk.errors import OptionError
+from mocaptk.threads import single_threaded
 from mocaptk.trajectories import Trajectories
 
 from .evaluation import GapFreeRidge, error_summary, heldout_errors, holdout_splits
@@ -106,7 +106,7 @@ def _scorer(train: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 # thousands of small solves (scores, lost markers): BLAS threads only contend (17x the CPU at 60 markers)
-@threadpool_limits.wrap(limits=1, user_api="blas")
+@single_threaded
 def compare_methods(session: Trajectories, *, test: Trajectories | None = None,
                     counts: Sequence[int] = DEFAULT_COUNTS, methods: Sequence[str] = DEFAULT_METHODS,
                     regions: Mapping[str, Sequence[int]] | None = None, seed: int = 0,

@@ -100,6 +100,7 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
         clusters = tuple(_cluster(c, f"clusters[{i}]") for i, c in enumerate(_list(data, "clusters")))
         regions = tuple(_region(r, f"regions[{i}]") for i, r in enumerate(_list(data, "regions")))
         source, parameters = (_field(data, key, dict, "an object") for key in ("source", "parameters"))
+        _check_reading(source)
         _check_extras(data)
     except _Malformed as exc:
         raise InputFileError(path, f"malformed layout: {exc}") from None
@@ -167,6 +168,22 @@ def _cluster(c: Any, where: str) -> Cluster:
                    tuple(_number(x, f"{where}.position") for x in position), side, mirrored_from)
 
 
+def _check_reading(source: dict) -> None:
+    """``source.reading`` (how cluster read the session; evaluate, solve and rig read it alike):
+    rate null or > 0 Hz, units null or text, first_frame a whole number."""
+    if source.get("reading") is None:
+        return
+    reading = _field(source, "reading", dict, "an object", "source")
+    rate = reading.get("rate")
+    if rate is not None and not _number(rate, "source.reading.rate") > 0:
+        raise _Malformed("source.reading.rate must be null or a positive number of Hz")
+    if reading.get("units") is not None and not isinstance(reading["units"], str):
+        raise _Malformed("source.reading.units must be null or text (mm, cm, m, in or mm per file unit)")
+    first = reading.get("first_frame", 0)
+    if isinstance(first, bool) or not isinstance(first, int):
+        raise _Malformed("source.reading.first_frame must be a whole number")
+
+
 def _check_extras(data: dict) -> None:
     """The optional top-level keys that rig, plan, evaluate and the report read back."""
     if data.get("sagittal_plane") is not None:
@@ -177,6 +194,14 @@ def _check_extras(data: dict) -> None:
                 raise _Malformed(f"sagittal_plane.{key} must be 3 finite numbers")
         if not any(plane["normal"]):
             raise _Malformed("sagittal_plane.normal must not be zero")
+    if data.get("orientation") is not None:
+        orientation = _field(data, "orientation", dict, "an object")
+        rows = _list(orientation, "frame", "orientation")
+        if len(rows) != 3 or not all(isinstance(r, list) and len(r) == 3 for r in rows) or not np.all(
+                np.isfinite([_number(x, "orientation.frame") for r in rows for x in r])):
+            raise _Malformed("orientation.frame must be 3 rows of 3 finite numbers")
+        if orientation.get("labels") not in ("agree", "contradict", "decided", "none"):
+            raise _Malformed("orientation.labels must be agree, contradict, decided or none")
     if data.get("stabilization") is not None:
         stabilization = _field(data, "stabilization", dict, "an object")
         if stabilization.get("rigid_labels") is not None:

@@ -18,13 +18,14 @@ from typing import Any
 
 import numpy as np
 
+from mocaptk.acquisition.orientation import infer_orientation, labels_warning, marker_motion
 from mocaptk.errors import InputFileError, MocaptkError, OptionError, source_error
 from mocaptk.trajectories import Take, Trajectories
 
 from .correlation import consolidated_correlation
 from .layout import Cluster, Layout, RegionResult
 from .neutral import max_displacement, neutral_pose, seen_markers
-from .regions import default_regions, face_frame, unassigned
+from .regions import default_regions, unassigned
 from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
 from .threshold import RegionClusters, cluster_region, keep_representatives, region_statistics
@@ -226,13 +227,18 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     if neutral is None or stabilization.get("applied"):
         neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
+    # up, forward and the actor's left from the face itself; the labels' sides only if they agree
+    orientation = infer_orientation(labels, neutral, marker_motion(traj.positions, neutral))
+    warning = labels_warning(orientation)
+    if warning:
+        notes.append(warning)
 
     if options.regions is not None:
         regions = {name: [m for m in members if m not in excluded]
                    for name, members in options.regions.items()}
         region_method = "regions file"
     else:
-        regions, region_method = default_regions(labels, neutral, displacement)
+        regions, region_method = default_regions(labels, neutral, displacement, frame=orientation.frame)
     loose = unassigned(regions, labels)
     if loose:
         notes.append(f"{len(loose)} markers are in no region and are not clustered: "
@@ -246,9 +252,10 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     segments = region_segments(takes, region_names, traj.n_frames)
 
     mirror = is_half_capture(labels) if options.mirror is None else options.mirror
-    plane = estimate_sagittal_plane(labels, neutral, displacement, half=mirror)
-    sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
-    frame = plane_frame(plane, face_frame(neutral, displacement))
+    plane = estimate_sagittal_plane(labels, neutral, displacement, half=mirror, left=orientation.frame[0])
+    sides = dict(zip(labels, marker_sides(labels, neutral, plane,
+                                          trust_labels=orientation.labels != "contradict")))
+    frame = plane_frame(plane, orientation.frame)
 
     index = {label: i for i, label in enumerate(labels)}
     region_data = []  # per region: (name, point indices, sampled frames, displacement, correlation, notes)
@@ -318,7 +325,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         parameters["markers"] = options.markers
     extra = {"stabilization": stabilization, "excluded_markers": excluded, "unassigned_markers": loose,
              "static_markers": static_markers, "notes": notes,
-             "sagittal_plane": {"point": plane.point, "normal": plane.normal}}
+             "sagittal_plane": {"point": plane.point, "normal": plane.normal},
+             "orientation": orientation.as_dict()}
     src = {"frames": traj.n_frames, "rate": traj.rate, "markers": traj.n_markers, **(source or {})}
     layout = Layout(src, parameters, tuple(region_results), tuple(clusters + mirrored), extra)
     result = ClusterResult(layout, traj, neutral, matrices, frame, notes)
@@ -411,11 +419,13 @@ def stabilization_note(stabilization: dict[str, Any]) -> str | None:
 def load_session_and_test(session: str | Path, test: str | Path | None, *, stabilized: bool,
                           rate: float | None = None, units: str | None = None,
                           rigid: Sequence[str] | None = None,
+                          test_reading: tuple[float | None, str | None] | None = None,
                           ) -> tuple[Trajectories, Trajectories | None, dict[str, Any]]:
     """A session and an optional held-out test file, prepared alike: the session stabilized when
     ``stabilized`` (on ``rigid``, or a detected set), the test taken into the session's head frame
     on that rigid set (``rigid`` alone when the session is not stabilized: it is head-relative).
 
+    ``test_reading``: ``(rate, units)`` for the test file (default: the session's ``rate``, ``units``).
     Returns ``(session, test or None, source)``; a test file lacking session markers raises
     :class:`InputFileError`.
     """
@@ -425,7 +435,8 @@ def load_session_and_test(session: str | Path, test: str | Path | None, *, stabi
         rigid = report["rigid_labels"]
     if test is None:
         return traj, None, source
-    perf, _ = load_session(str(test), rate=rate, units=units)
+    test_rate, test_units = (rate, units) if test_reading is None else test_reading
+    perf, _ = load_session(str(test), rate=test_rate, units=test_units)
     present = set(perf.labels)
     missing = [label for label in traj.labels if label not in present]
     if missing:

@@ -53,10 +53,10 @@ def layout_plan(session: Trajectories, layout: Layout, rig_spec: str, *, stabili
                           noise_mm=noise_mm)
     cloud_index = {label: i for i, label in enumerate(costs.labels)}
 
-    from threadpoolctl import threadpool_limits
+    from mocaptk.threads import one_thread
 
     layout_idx = np.unique(measured)
-    with threadpool_limits(limits=1):  # many small solves: BLAS threads only contend
+    with one_thread():  # many small solves: BLAS threads only contend
         folds = heldout_folds(stabilized, holdout_splits(session.n_frames, takes))
         intact = folds.rmse(layout_idx)
         lost = dict(zip((session.labels[i] for i in layout_idx), lost_marker_rmse(folds, layout_idx).tolist()))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocaptk.acquisition.orientation import face_axes
 from mocaptk.acquisition.text_io import UTF16_PROBLEM, looks_utf16
 from mocaptk.errors import InputFileError
 
@@ -89,30 +90,15 @@ def regions_from_prefixes(labels: Sequence[str]) -> dict[str, list[str]] | None:
 
 
 def face_frame(neutral: np.ndarray, displacement: np.ndarray) -> np.ndarray:
-    """Rows: lateral, up, forward unit axes of the face, from the neutral pose ``(M, 3)`` mm.
-
-    Principal axes of the neutral markers: largest extent = up (faces are taller than wide),
-    smallest = depth. Up points away from the markers that move most (jaw and mouth move more
-    than the forehead). Forward points out of the convex face: markers far from the centre of
-    the front view (forehead top, chin, sides) lie further back than central ones. Lateral
-    completes a right-handed frame (lateral × up = forward), i.e. points to the subject's left.
-    """
-    pts = neutral - neutral.mean(axis=0)
-    # full only for < 3 markers (3 axes even then): a full U is (M, M), 0.8 GB at 10,000 markers
-    _, _, vt = np.linalg.svd(pts, full_matrices=len(pts) < 3)
-    up, side, forward = vt[0], vt[1], vt[2]
-    heights = pts @ up
-    if np.ptp(displacement) > 0 and np.ptp(heights) > 0 and np.corrcoef(heights, displacement)[0, 1] > 0:
-        up = -up
-    depth = pts @ forward
-    radial = np.hypot(heights, pts @ side)
-    if np.ptp(depth) > 0 and np.ptp(radial) > 0 and np.corrcoef(radial, depth)[0, 1] > 0:
-        forward = -forward
-    lateral = np.cross(up, forward)
-    return np.array([lateral, up, forward])
+    """Rows: lateral (the subject's left), up, forward unit axes of the face, from the neutral
+    pose ``(M, 3)`` mm and each marker's displacement ``(M,)`` mm, by the geometry alone
+    (:func:`~mocaptk.acquisition.orientation.face_axes`: largest extent = up, signed by the
+    motion and the face's taper; forward = the way the face bulges; lateral = up × forward)."""
+    return face_axes(neutral, displacement)[0]
 
 
-def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray) -> dict[str, list[str]]:
+def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray, *,
+                      frame: np.ndarray | None = None) -> dict[str, list[str]]:
     """Segment the neutral pose into the six facial regions by height and distance from the midline.
 
     In the face frame (:func:`face_frame`), ``u`` = height normalised to 0 (lowest marker) .. 1
@@ -127,7 +113,7 @@ def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: 
     from .symmetry import label_pairs
 
     valid = np.isfinite(neutral).all(axis=1)
-    frame = face_frame(neutral[valid], displacement[valid])
+    frame = face_frame(neutral[valid], displacement[valid]) if frame is None else frame
     local = (neutral[valid] - neutral[valid].mean(axis=0)) @ frame.T
     height = np.ptp(local[:, 1]) or 1.0
     u = (local[:, 1] - local[:, 1].min()) / height
@@ -151,13 +137,14 @@ def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: 
             for region in FACIAL_REGIONS if (names == region).any()}
 
 
-def default_regions(labels: Sequence[str], neutral: np.ndarray,
-                    displacement: np.ndarray) -> tuple[dict[str, list[str]], str]:
-    """(regions, how) — from label prefixes when all labels follow them, else geometric."""
+def default_regions(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray, *,
+                    frame: np.ndarray | None = None) -> tuple[dict[str, list[str]], str]:
+    """(regions, how) — from label prefixes when all labels follow them, else geometric (in
+    ``frame``, rows lateral, up, forward; default :func:`face_frame`)."""
     by_prefix = regions_from_prefixes(labels)
     if by_prefix is not None:
         return by_prefix, "label prefixes"
-    return geometric_regions(labels, neutral, displacement), "geometric segmentation of the neutral pose"
+    return geometric_regions(labels, neutral, displacement, frame=frame), "geometric segmentation of the neutral pose"
 
 
 def unassigned(regions: dict[str, list[str]], labels: Sequence[str]) -> list[str]:

@@ -2,28 +2,19 @@
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from mocaptk.acquisition.orientation import infer_orientation, label_pairs, side_tag
 from mocaptk.errors import OptionError
 
 from .layout import Cluster
 from .regions import face_frame
 
-_SIDE_TAG = re.compile(r"_([LRCM])$")
 #: Markers closer than this to the sagittal plane count as midline when labels carry no side tag.
 MIDLINE_TOLERANCE_MM = 3.0
-
-
-def side_tag(label: str) -> str | None:
-    """``"L"``, ``"R"`` or ``"C"`` from a label's ``_L`` / ``_R`` / ``_C`` (or ``_M``) suffix, else None."""
-    match = _SIDE_TAG.search(label)
-    if match is None:
-        return None
-    return "C" if match.group(1) in "CM" else match.group(1)
 
 
 def mirror_label(label: str) -> str:
@@ -32,21 +23,6 @@ def mirror_label(label: str) -> str:
     if tag in ("L", "R"):
         return label[:-1] + ("R" if tag == "L" else "L")
     return f"{label}_mirror"
-
-
-def label_pairs(labels: Sequence[str]) -> list[tuple[int, int]]:
-    """Mirror pairs named by the labels: ``(left index, right index)`` for labels equal but for one
-    ``L`` ↔ ``R`` (``CL4``/``CR4``, ``MOUTH_03_L``/``MOUTH_03_R``, ``LEyeOuter``/``REyeOuter``)."""
-    index = {label: i for i, label in enumerate(labels)}
-    pairs = []
-    for i, label in enumerate(labels):
-        for k, char in enumerate(label):
-            if char in "Ll":
-                partner = index.get(label[:k] + ("R" if char == "L" else "r") + label[k + 1:])
-                if partner is not None:
-                    pairs.append((i, partner))
-                    break
-    return pairs
 
 
 def is_half_capture(labels: Sequence[str]) -> bool:
@@ -134,7 +110,7 @@ def mirror_clusters(clusters: Sequence[Cluster], plane: SagittalPlane, existing_
 
 
 def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray, *,
-                            half: bool) -> SagittalPlane:
+                            half: bool, left: np.ndarray | None = None) -> SagittalPlane:
     """Sagittal plane of a neutral pose ``(M, 3)`` mm.
 
     Through the ``_C``-tagged midline markers when there are at least 2 (normal toward the ``_L``
@@ -142,8 +118,21 @@ def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displace
     the labels (:func:`label_pairs`), the plane bisecting them; otherwise normal = the face
     frame's lateral axis (:func:`face_frame`) through the median lateral position (full face) or,
     for a half face (``half``), through the medial edge: the lateral extreme nearer to the most
-    forward marker (the nose tip lies on the midline).
+    forward marker (the nose tip lies on the midline). The normal points to the actor's left by
+    the geometry whatever the labels say: ``left`` (3,), default
+    :func:`~mocaptk.acquisition.orientation.infer_orientation`'s with ``displacement`` as motion.
     """
+    plane = _sagittal_plane(labels, neutral, displacement, half=half)
+    if left is None:
+        left = infer_orientation(labels, neutral, displacement).frame[0]
+    if plane.normal @ left < 0:
+        return SagittalPlane(plane.point, -plane.normal)
+    return plane
+
+
+def _sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displacement: np.ndarray, *,
+                    half: bool) -> SagittalPlane:
+    """:func:`estimate_sagittal_plane` with the normal towards the labels' left."""
     valid = np.isfinite(neutral).all(axis=1)
     frame = face_frame(neutral[valid], displacement[valid])
     tags = np.array([side_tag(label) or "" for label in labels])
@@ -172,9 +161,13 @@ def estimate_sagittal_plane(labels: Sequence[str], neutral: np.ndarray, displace
     return SagittalPlane(frame[0] * offset, frame[0])
 
 
-def marker_sides(labels: Sequence[str], positions: np.ndarray, plane: SagittalPlane) -> list[str]:
-    """Side of each marker: its label tag when present, else its side of ``plane``."""
+def marker_sides(labels: Sequence[str], positions: np.ndarray, plane: SagittalPlane, *,
+                 trust_labels: bool = True) -> list[str]:
+    """Side of each marker: its label tag when present (and ``trust_labels``: they agree with the
+    geometry), else its side of ``plane``."""
     geometric = plane.side(positions)
+    if not trust_labels:
+        return geometric
     return [side_tag(label) or geo for label, geo in zip(labels, geometric)]
 
 

@@ -49,7 +49,7 @@ from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, 
                       thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
-           "dense_cloud", "ground_truth_error",
+           "dense_cloud", "ground_truth_error", "guide_reference",
            "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "with_check", "write_rig_outputs"]
 
@@ -622,12 +622,26 @@ def influence_members(clusters: Sequence[Cluster]) -> list[tuple[str, ...]]:
             if c.mirrored_from in source else c.members for c in clusters]
 
 
+#: A nose tip lies between these fractions of the face's height (rig frame: lowest marker 0, highest 1).
+NOSE_HEIGHT = (0.35, 0.8)
+
+
+def guide_reference(neutral: np.ndarray) -> tuple[np.ndarray, str]:
+    """The guide's reference point (3,) mm and its name, from the dense neutral ``(M, 3)`` mm in
+    the rig frame: the most forward marker, the "nose tip" when it lies at a nose's height
+    (:data:`NOSE_HEIGHT`; the sample: 0.48), else the "front marker" (blenderFace has no nose
+    marker: its most forward one is on the upper lip, at 0.24)."""
+    tip = neutral[int(np.argmax(neutral[:, 2]))]
+    height = (tip[1] - neutral[:, 1].min()) / max(float(np.ptp(neutral[:, 1])), 1e-9)
+    return tip, ("nose tip" if NOSE_HEIGHT[0] <= height <= NOSE_HEIGHT[1] else "front marker")
+
+
 def guide_rows(build: RigBuild) -> list[GuideMarker]:
     """Guide table rows of a built rig (numbers = layout order); a mirrored marker replaces its
     :func:`influence_members`."""
     clusters = build.layout.clusters
     members = influence_members(clusters)
-    nose = build.cloud.neutral[int(np.argmax(build.cloud.neutral[:, 2]))]
+    nose, _ = guide_reference(build.cloud.neutral)
     stabilization = build.layout.extra.get("stabilization") or {}
     heads = [(label, side_tag(label) or "C", np.asarray(pos, float)) for label, pos in
              zip(stabilization.get("rigid_labels") or (), stabilization.get("reference") or ())]
@@ -739,6 +753,7 @@ def _write_guide(build: RigBuild, names: dict[str, Path], animation: RigAnimatio
                      f"{build.alignment.rms_mm:.2f} mm, max {build.alignment.max_mm:.2f} mm")
     write_guide_pdf(names["guide"], rows, front_png=names["front"],
                     profile_png=names["profile"], outline=build.cloud.neutral,
-                    title=title or "mocaptk marker placement guide", notes=notes, force=True)
+                    title=title or "mocaptk marker placement guide", notes=notes,
+                    landmark=guide_reference(build.cloud.neutral)[1], force=True)
     write_json(names["report"], {"format": "mocaptk.rig_report", "version": 1, **build.report},
                force=True)

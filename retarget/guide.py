@@ -18,7 +18,9 @@ Names: a marker and its mirror image share a number, told apart by side (``16L``
 technician places pairs together; other markers have a plain number. Numbers follow the layout
 order; the table gives each marker's rig joint (layout order, 1 = first cluster). Landmarks: the
 nose tip = the most forward dense marker; the midline = the sagittal plane through the nose tip
-(x = nose tip's x in the rig frame).
+(x = nose tip's x in the rig frame). When the most forward marker is not at a nose's height (a
+capture without nose markers, e.g. blenderFace: its most forward one is on the upper lip), the
+pages call it the "front marker" instead (``landmark``).
 """
 
 from __future__ import annotations
@@ -176,7 +178,7 @@ def _describe(offset: np.ndarray) -> tuple[str, str, str]:
 def write_guide_pdf(path: str | os.PathLike[str], markers: list[GuideMarker], *,
                     front_png: str | os.PathLike[str], profile_png: str | os.PathLike[str],
                     outline: np.ndarray, title: str, notes: Sequence[str] = (),
-                    force: bool = True) -> Path:
+                    landmark: str = "nose tip", force: bool = True) -> Path:
     """Write ``guide.pdf``.
 
     Parameters
@@ -189,6 +191,7 @@ def write_guide_pdf(path: str | os.PathLike[str], markers: list[GuideMarker], *,
     title : str
         First line of every page (session / layout name).
     notes : lines printed under the legend on page 1 (mesh, RMSE ...).
+    landmark : what the reference point the rows are measured from is called.
     """
     from fpdf import FPDF
 
@@ -200,8 +203,8 @@ def write_guide_pdf(path: str | os.PathLike[str], markers: list[GuideMarker], *,
 
     _view_page(pdf, title, "Front view", front_png, markers, notes)
     _view_page(pdf, title, "Profile view (character's left side)", profile_png, markers, ())
-    _scale_page(pdf, title, markers, outline)
-    _table_pages(pdf, title, markers)
+    _scale_page(pdf, title, markers, outline, landmark)
+    _table_pages(pdf, title, markers, landmark)
     with atomic_path(path, force=force) as tmp:
         pdf.output(str(tmp))
     return Path(path)
@@ -247,7 +250,7 @@ def _view_page(pdf, title: str, heading: str, png: str | os.PathLike[str],
         y += 4
 
 
-def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray) -> None:
+def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray, landmark: str) -> None:
     nose = markers[0].position - markers[0].from_nose
     pts = np.array([m.position[:2] for m in markers])
     ring = np.asarray(outline, float)[:, :2]
@@ -280,7 +283,7 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     pdf.line(nx, ny - 4, nx, ny + 4)
     pdf.set_font("helvetica", "", 6)
     pdf.set_xy(nx + 1, ny + 0.5)
-    pdf.cell(10, 3, "nose tip")
+    pdf.cell(10, 3, landmark)
     dots = np.array([page(m.position[:2]) for m in markers])
     pdf.set_font("helvetica", "B", LABEL_PT)
     text_h = LABEL_PT * 0.3528 * 0.9  # cap height + descent of the digits, mm
@@ -334,9 +337,9 @@ def _scale_bars(pdf, bx: float, by: float) -> None:
         pdf.text(cx - label_w / 2, cy + 1.2, "must measure 50 mm")
 
 
-def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
+def _table_pages(pdf, title: str, markers: list[GuideMarker], landmark: str) -> None:
     cols = [("#", 8), ("joint", 8), ("label", 31), ("region", 19), ("side", 6), ("from midline", 16),
-            ("vs nose tip", 16), ("depth", 16), ("replaces: count, dense markers of its cluster", 66)]
+            ("vs nose tip" if landmark == "nose tip" else "vs front pt", 16), ("depth", 16), ("replaces: count, dense markers of its cluster", 66)]
     line_h = 3.4
     width, height = A4
     # pairs together (16L, 16R), in number order
@@ -346,7 +349,7 @@ def _table_pages(pdf, title: str, markers: list[GuideMarker]) -> None:
     while rows or first:
         first = False
         pdf.add_page(format="A4")
-        _header(pdf, title, "Markers (mm from the nose tip)")
+        _header(pdf, title, f"Markers (mm from the {landmark})")
         y = MARGIN + 15
         pdf.set_font("helvetica", "B", 7)
         x = MARGIN

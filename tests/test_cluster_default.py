@@ -90,12 +90,17 @@ def test_method_paper_writes_the_layout_of_before_the_default_changed(sample, tm
     out = tmp_path / "paper"
     summary = mocaptk("cluster", sample / "dense_halfface.c3d", "--factor", "1.1", "--method", "paper",
                       "--formats", "none", "--out", out)
-    where = json.loads((out / "layout.json").read_text())["source"]  # where this run's session is
-    assert Path(where["absolute"]) == (sample / "dense_halfface.c3d").resolve()
-    assert (out / where["relative"]).resolve() == Path(where["absolute"])
-    lines = (out / "layout.json").read_text().splitlines(keepends=True)  # all else byte for byte as stored
-    assert "".join(line for line in lines if not line.startswith(('    "absolute": ', '    "relative": '))) \
-        == PAPER_LAYOUT.read_text()
+    written = json.loads((out / "layout.json").read_text())
+    where = written["source"]  # where this run's session is
+    assert Path(where.pop("absolute")) == (sample / "dense_halfface.c3d").resolve()
+    assert (out / where.pop("relative")).resolve() == (sample / "dense_halfface.c3d").resolve()
+    # keys added since (the face's orientation, how the session was read, the stabilization
+    # markers' head-frame positions) hold no layout number: everything else is as before
+    assert written.pop("orientation")["labels"] == "agree"
+    assert where.pop("reading") == {"rate": None, "units": None, "first_frame": 0}
+    reference = written["stabilization"].pop("reference")
+    assert len(reference) == len(written["stabilization"]["rigid_labels"])
+    assert written == json.loads(PAPER_LAYOUT.read_text())
     assert "mean C" in summary and "threshold" in summary
 
 

@@ -27,6 +27,6 @@ def test_blenderface_regions_and_sides_are_symmetric(run_cli, tmp_path):
         assert region[left] == region[right], (left, region[left], right, region[right])
     assert region["CL4"] == region["CR4"] == "cheek" and region["CL7"] == region["CR7"]
     sides = {c["representative"]: c["side"] for c in layout["clusters"]}
-    for label, side in sides.items():
-        expected = "C" if label.startswith("A") else label[1]
+    for label, side in sides.items():  # the file's L is the viewer's left: the actor's right (#27)
+        expected = "C" if label.startswith("A") else {"L": "R", "R": "L"}[label[1]]
         assert side == expected, (label, side)

@@ -136,11 +136,11 @@ def select_layout(problem: LayoutProblem, count: int, *, method: str = "hybrid",
     cand = problem.candidate_points()
     if not 1 <= count <= cand.size:
         raise OptionError(f"layout size must be between 1 and {cand.size} markers, got {count}")
-    from threadpoolctl import threadpool_limits
+    from mocaptk.threads import one_thread
 
     started = time.perf_counter()
     # many small dense products: BLAS threads only contend (measured 26x slower on 2 busy cores)
-    with threadpool_limits(limits=1):
+    with one_thread():
         layout, details = LAYOUT_METHODS[method](problem, count, seed=seed, **options)
     layout = np.sort(np.asarray(layout, dtype=np.intp))
     if layout.size != np.unique(layout).size:  # a method bug, not a user error

@@ -57,7 +57,8 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
                                triangulation_error_mm=costs.triangulation_error_mm)
     selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
     chosen = selected.layout
-    sides = dict(zip(labels, marker_sides(labels, neutral, plane)))
+    trusted = layout.extra.get("orientation", {}).get("labels") != "contradict"
+    sides = dict(zip(labels, marker_sides(labels, neutral, plane, trust_labels=trusted)))
     members: dict[int, list[tuple[int, float]]] = {int(c): [] for c in chosen}
     region_of = {int(c): next((n for n, idx in regions.items() if c in idx), "") for c in chosen}
     for name, matrix in result.matrices.items():

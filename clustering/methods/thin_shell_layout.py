@@ -28,10 +28,10 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
-from threadpoolctl import threadpool_limits
 
 from mocaptk.errors import MocaptkError, OptionError
 from mocaptk.thin_shell import thin_shell_operator
+from mocaptk.threads import single_threaded
 
 from .problem import LayoutProblem
 
@@ -546,7 +546,7 @@ def mesh_neighbours(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     return adj
 
 
-@threadpool_limits.wrap(limits=1, user_api="blas")
+@single_threaded
 def optimize_thin_shell(trajectories: np.ndarray, solver: ThinShellWeights, count: int, *,
                         candidates: np.ndarray | None = None, fixed: Sequence[int] = (),
                         mirror: np.ndarray | None = None, neighbours: sp.spmatrix | None = None,

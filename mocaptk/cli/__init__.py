@@ -70,8 +70,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not args:  # the overview, as for `mocaptk --help`, but a usage exit code
         command_line()(args=["--help"], prog_name="mocaptk", standalone_mode=False)
         sys.exit(2)
+    from mocaptk.threads import command_threads
+
     try:
-        code = command_line(args)(args=args, prog_name="mocaptk", standalone_mode=False)
+        with command_threads():  # one BLAS thread: the same results alone and in batch, no contention
+            code = command_line(args)(args=args, prog_name="mocaptk", standalone_mode=False)
     except MocaptkError as exc:
         print(f"mocaptk: error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)

@@ -17,7 +17,7 @@ import typer
 from mocaptk.atomic import claim_output, staged_folder
 
 from .app import app
-from .options import Quiet, Rate, Rigid, Units, rigid_labels
+from .options import Quiet, Rate, Rigid, Units, rigid_labels, session_reading
 from .report import write_cluster_report
 
 
@@ -206,6 +206,8 @@ def cluster(
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
         traj, source = load_session(session, rate=rate, units=units, layout_folder=out_dir)
+    # how the file was read, for evaluate, solve and rig to read it alike
+    source = {**source, "reading": session_reading(traj, rate=rate, units=units)}
     neutral = None
     if len(sessions) == 1:  # one median pass for the face check and the layout
         import numpy as np

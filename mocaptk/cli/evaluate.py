@@ -11,7 +11,7 @@ import typer
 from mocaptk.errors import OptionError
 
 from .app import app
-from .options import Quiet, Rate, Units
+from .options import Quiet, Rate, Units, recorded_reading
 from .report import write_evaluation_report
 
 
@@ -33,12 +33,18 @@ def evaluation_table(result: dict) -> str:
 
 
 def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: float | None,
-                   units: str | None, rigid: tuple[str, ...] | None = None):
-    """(session Trajectories, test positions or None, source dict) prepared like the layout's input."""
+                   units: str | None, rigid: tuple[str, ...] | None = None, layout=None):
+    """(session Trajectories, test positions or None, source dict) prepared like the layout's input
+    (read as the ``layout``'s session was, unless ``rate``/``units`` are given)."""
     from mocaptk.clustering.pipeline import load_session_and_test
 
+    test_reading = None
+    if layout is not None:
+        if test is not None:
+            test_reading = recorded_reading(layout, test, rate=rate, units=units)
+        rate, units = recorded_reading(layout, session, rate=rate, units=units)
     traj, perf, source = load_session_and_test(session, test, stabilized=stabilized, rate=rate,
-                                               units=units, rigid=rigid)
+                                               units=units, rigid=rigid, test_reading=test_reading)
     return traj, None if perf is None else perf.positions, source
 
 
@@ -52,10 +58,10 @@ def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, 
     from mocaptk.clustering.evaluation import baseline_layouts, holdout_splits
     from mocaptk.clustering.lost_marker import heldout_folds, lost_marker_summaries
 
-    from threadpoolctl import threadpool_limits
+    from mocaptk.threads import one_thread
 
     splits = [] if test is not None else holdout_splits(traj.n_frames, takes, split=split, folds=folds)
-    with threadpool_limits(limits=1):  # many small solves: BLAS threads only contend
+    with one_thread():  # many small solves: BLAS threads only contend
         cv = heldout_folds(traj.positions, splits, test=test, ridge=ridge)
         layouts = {name: [np.asarray(layout)],
                    **baseline_layouts(traj.positions, len(layout), n_random=min(n_random, LOST_MARKER_SEEDS))}
@@ -102,7 +108,8 @@ def evaluate(
     lay = read_layout(layout)
     stabilized = bool(lay.parameters.get("stabilized"))
     traj, test_positions, source = session_arrays(  # the test into the session's head frame, always
-        session, test=test, stabilized=stabilized, rate=rate, units=units, rigid=layout_rigid_set(lay))
+        session, test=test, stabilized=stabilized, rate=rate, units=units, rigid=layout_rigid_set(lay),
+        layout=lay)
     index = {label: i for i, label in enumerate(traj.labels)}
     measured = [traj.labels[i] for i in measured_indices(lay, traj.labels, layout_path=layout,
                                                          session_name=session.name)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -26,3 +27,21 @@ def rigid_labels(text: str | None) -> tuple[str, ...] | None:
     if text is None:
         return None
     return tuple(label.strip() for label in text.split(",") if label.strip())
+
+
+def session_reading(traj, *, rate: float | None, units: str | None) -> dict:
+    """What layout.json's ``source.reading`` records of how the session was read: the ``--rate``
+    and ``--units`` given (null: the file's own) and its first frame number."""
+    return {"rate": rate, "units": units, "first_frame": int(traj.first_frame)}
+
+
+def recorded_reading(layout, file, *, rate: float | None, units: str | None) -> tuple[float | None, str | None]:
+    """``(rate, units)`` to read ``file`` with: each option as given, else as the layout's session
+    was read (``source.reading``) when ``file`` is of the session's kind (same suffix), so
+    ``evaluate``, ``solve`` and ``rig`` need no repeated ``--rate``/``--units``."""
+    reading = layout.source.get("reading") or {}
+    recorded = str(layout.source.get("path") or "")
+    same_kind = Path(recorded).suffix.lower() == Path(file).suffix.lower() and bool(recorded)
+    if not same_kind:
+        return rate, units
+    return (reading.get("rate") if rate is None else rate), (reading.get("units") if units is None else units)

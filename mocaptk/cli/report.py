@@ -66,10 +66,10 @@ def write_compare_report(path: Path, session, rows, *, test, summary: str, proto
         splits = holdout_splits(session.n_frames, session.takes, split=scheme, folds=5)
         note = (f"Per-marker maps: the whole-session layout kept fixed across held-out {scheme} "
                 "(the table re-chooses it per fold, so its numbers are a little higher).")
-    from threadpoolctl import threadpool_limits
+    from mocaptk.threads import one_thread
 
     scored = [row for row in rows if row.error is None]
-    with threadpool_limits(limits=1):  # a small ridge fit per gap pattern: BLAS threads only contend
+    with one_thread():  # a small ridge fit per gap pattern: BLAS threads only contend
         # each training set summarised once for all rows: the same fits to ~1e-9 mm
         errors = heldout_errors_of_layouts(session.positions, [row.layout for row in scored], splits,
                                            test=None if test is None else test.positions)

@@ -10,7 +10,7 @@ import typer
 from mocaptk.errors import InputFileError, OptionError
 
 from .app import app
-from .options import Quiet
+from .options import Quiet, Rate, Units, recorded_reading
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -45,11 +45,13 @@ def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: boo
                       pure_thin_shell=pure_thin_shell, subdivisions=subdivisions)
 
 
-def animation_captures(layout, session, relative, performances, *, no_stabilize: bool = False):
+def animation_captures(layout, session, relative, performances, *, no_stabilize: bool = False,
+                       rate: float | None = None, units: str | None = None):
     """The captures ``rig``/``cluster`` bake: the session itself (``session`` as read,
-    ``relative`` as the layout was computed on it) and each ``--animate`` file, stabilized on
-    the layout's rigid set when the layout's session was (the bake ignores markers other than
-    the layout's; the dense ones give the held-out skinning check)."""
+    ``relative`` as the layout was computed on it) and each ``--animate`` file (read with ``rate``
+    / ``units``, else as the layout's session for a file of its kind), stabilized on the layout's
+    rigid set when the layout's session was (the bake ignores markers other than the layout's;
+    the dense ones give the held-out skinning check)."""
     from mocaptk.clustering.pipeline import load_session, rigid_reference, stabilize
     from mocaptk.retarget.build import Capture
     from mocaptk.clustering.layout import layout_rigid_set
@@ -61,7 +63,8 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
     captures = [Capture(Path(str(session.metadata.get("source") or "session")).stem, relative,
                         session if stabilized else None)]
     for path in performances:
-        perf, _ = load_session(path)
+        perf_rate, perf_units = recorded_reading(layout, path, rate=rate, units=units)
+        perf, _ = load_session(path, rate=perf_rate, units=perf_units)
         present = set(perf.labels)
         missing = [c.representative for c in layout.clusters
                    if c.representative not in present and c.mirrored_from not in present]
@@ -100,6 +103,8 @@ def rig(
     out: Path = typer.Option(None, "--out", help="Output folder (default: the layout's folder)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove rigid head "
                                       "motion even if the layout was made on stabilized data."),
+    rate: Rate = None,  # default: as the layout's session was read (layout.json's source.reading)
+    units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite existing rig/guide files."),
     quiet: Quiet = False,
 ) -> None:
@@ -114,7 +119,8 @@ def rig(
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
     chosen = parse_formats(formats)
     lay = read_layout(layout)
-    traj, source = load_session(session)
+    session_rate, session_units = recorded_reading(lay, session, rate=rate, units=units)
+    traj, source = load_session(session, rate=session_rate, units=session_units)
     raw = traj
     expected = lay.source.get("sha256")
     if expected and expected != source["sha256"]:
@@ -123,7 +129,8 @@ def rig(
     if lay.parameters.get("stabilized") and not no_stabilize:
         traj, _ = stabilize(traj, rigid=layout_rigid_set(lay))
     pairs = read_landmarks(landmarks) if landmarks else None
-    captures = animation_captures(lay, raw, traj, animate or [], no_stabilize=no_stabilize)
+    captures = animation_captures(lay, raw, traj, animate or [], no_stabilize=no_stabilize,
+                                  rate=rate, units=units)
     console = Console(stderr=True, quiet=quiet)
     with console.status("building the rig") as status:
         build, written = write_rig_outputs(

@@ -9,7 +9,7 @@ import typer
 from mocaptk.errors import InputFileError, OptionError
 
 from .app import app
-from .options import Quiet, Rate, Units
+from .options import Quiet, Rate, Units, recorded_reading
 
 
 def session_path(layout_path: Path, source: dict, given: Path | None) -> Path:
@@ -121,7 +121,7 @@ def solve(
     rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
                              "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
                              "'mocaptk rig --animate' writes them; needs the session)."),
-    rate: Rate = None,
+    rate: Rate = None,  # the capture's (default: the layout's session's, for a file of its kind)
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
     quiet: Quiet = False,
@@ -151,7 +151,8 @@ def solve(
     console = Console(stderr=True, quiet=quiet)
     with console.status("reading") as status:
         say = lambda text: status.update(text)  # noqa: E731
-        traj, capture_source = load_session(str(capture), rate=rate, units=units)
+        capture_rate, capture_units = recorded_reading(lay, capture, rate=rate, units=units)
+        traj, capture_source = load_session(str(capture), rate=capture_rate, units=capture_units)
         if model is not None:
             identity = {"sha256": lay.source.get("sha256")} if lay.source.get("sha256") else {}
             solver = load_solver(model, session=identity)
@@ -161,7 +162,9 @@ def solve(
         else:
             path = session_path(layout, lay.source, session)
             say(f"reading the session {path.name}")
-            dense, source = load_session(str(path))
+            # read as cluster read it (layout.json's source.reading): no --rate/--units again
+            session_rate, session_units = recorded_reading(lay, path, rate=None, units=None)
+            dense, source = load_session(str(path), rate=session_rate, units=session_units)
             if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
                 raise InputFileError(path, f"is not the session {layout.name} was made from (sha256 differs)")
             if rigid:
