@@ -85,7 +85,8 @@ def summary_text(summary: dict) -> str:
     if frames["unsolved"]:
         lines.append(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
                      "are not solved (see solve_frames.csv)")
-    return "\n".join(lines + [f"note: {note}" for note in summary["notes"]]) + "\n"
+    return "\n".join(lines + [note if note.startswith("warning:") else f"note: {note}"
+                             for note in summary["notes"]]) + "\n"
 
 
 @app.command()
