@@ -1,8 +1,16 @@
 """The animated mesh of ``mocaptk solve``: a sparse linear map from dense markers to mesh vertices.
 
-The marker surface through the dense neutral (vertices = dense markers), optionally
+The default face (:meth:`MeshMap.face`: the ICT-FaceKit face fitted to the dense neutral, lips
+closed with a seam, lids that close on a blink, the whole face for a half-face session); the
+marker surface through the dense neutral (vertices = dense markers), optionally
 midpoint-subdivided; a given mesh following the markers by thin-shell weights; or a map learned
 from training frames of the mesh itself.
+
+Half-face sessions: the map's extra columns are the seen dense markers reflected across the
+sagittal plane (:class:`Mirror`), so the uncaptured half moves as the mirror image. Blinks: the
+lid's full-blink shape is added in proportion to the blink its sensor markers show
+(:class:`Blink`), less what the linear map already makes of those markers' motion, so a pure
+blink gives exactly the lid's shape.
 """
 
 from __future__ import annotations
@@ -21,19 +29,55 @@ from mocaptk.surface_mesh import marker_surface_mesh
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .influence import anchor_vertices
 
-__all__ = ["MeshMap"]
+__all__ = ["Blink", "MeshMap", "Mirror"]
 
 #: Dense markers each vertex of a learned mesh map is regressed from (:meth:`MeshMap.learned`).
 MESH_NEIGHBOURS = 8
 #: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
 ANCHOR_REACH_MM = 5.0
+#: A dense marker senses a blink when a full blink moves its vertex more than this (mm).
+BLINK_SENSOR_MM = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class Mirror:
+    """Extra dense columns: the markers ``source`` (K,) reflected across the plane through
+    ``point`` (3,) mm with unit ``normal`` (3,) (head-relative session frame)."""
+
+    source: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+
+    def extend(self, dense: np.ndarray) -> np.ndarray:
+        """``dense`` (f, M, 3) mm with the reflected columns appended: (f, M + K, 3)."""
+        image = np.take(dense, self.source, axis=1)
+        image = image - 2.0 * ((image - self.point) @ self.normal)[..., None] * self.normal
+        return np.concatenate([dense, image], axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Blink:
+    """One eye: ``sensors`` (S,) dense columns, their ``rest`` (S, 3) mm and ``full`` (S, 3) mm
+    displacement at a full blink, and ``shape`` (V, 3) mm added to the mesh at a full blink."""
+
+    sensors: np.ndarray
+    rest: np.ndarray
+    full: np.ndarray
+    shape: np.ndarray
+
+    def amount(self, dense: np.ndarray) -> np.ndarray:
+        """The blink (f,) in [0, 1]: the least-squares fraction of ``full`` the sensors show."""
+        moved = np.nan_to_num(np.take(dense, self.sensors, axis=1) - self.rest)
+        return np.clip(np.einsum("fsk,sk->f", moved, self.full) / float(np.sum(self.full ** 2)),
+                       0.0, 1.0)
 
 
 @dataclass(frozen=True)
 class MeshMap:
     """The animated mesh: ``vertices`` (V, 3) mm neutral, ``faces`` (T, 3), ``matrix`` the linear
     map and ``offset`` (V, 3) mm: vertex positions = matrix @ dense markers + offset (unseen dense
-    markers have no column weight). ``matrix`` is (V, M) dense float32 when x, y and z share the
+    markers have no column weight); ``uv`` (V, 2) texture coordinates when the mesh has them,
+    ``mirror`` the reflected columns of a half-face session, ``blinks`` the lids' shapes. ``matrix`` is (V, M) dense float32 when x, y and z share the
     weights (one GEMM per chunk: ~15x a sparse product of the same map), else (3V, 3M) sparse on
     the flattened coordinates (x, y, z per point)."""
 
@@ -41,6 +85,58 @@ class MeshMap:
     faces: np.ndarray
     matrix: np.ndarray | sp.csr_matrix
     offset: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    mirror: Mirror | None = None
+    blinks: tuple[Blink, ...] = ()
+
+    @classmethod
+    def face(cls, neutral: np.ndarray, *, plane: tuple[np.ndarray, np.ndarray] | None = None,
+             mirrored: bool = False) -> MeshMap | None:
+        """The default face (:mod:`~mocaptk.retarget.default_face`) fitted to the dense neutral
+        ``neutral`` (M, 3) mm (NaN = unseen; head-relative session frame), following the dense
+        markers pinned to it (:meth:`anchored`), or None where the template does not fit.
+
+        ``plane`` ``(point, unit normal)``: the sagittal plane (the subject's left); with
+        ``mirrored`` (a half-face session) the face is completed by the markers' mirror images.
+        """
+        from mocaptk.surface_mesh import marker_spacing
+
+        from .build import rig_frame_rotation
+        from .default_face import default_face
+
+        neutral = np.asarray(neutral, dtype=np.float64)
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        mirror = None
+        if mirrored:
+            if plane is None:
+                raise OptionError("a mirrored layout needs its sagittal_plane; re-run mocaptk cluster")
+            normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
+            mirror = Mirror(seen, np.asarray(plane[0], float), normal)
+        columns = neutral if mirror is None else mirror.extend(neutral[None])[0]
+        used = seen if mirror is None else np.concatenate([seen, len(neutral) + np.arange(seen.size)])
+        rotation = rig_frame_rotation(neutral[seen], np.zeros(seen.size),
+                                      lateral=None if plane is None else plane[1])
+        points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
+        rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
+        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane)
+        if face is None:
+            return None
+        nearest, dist = anchor_vertices(face.fitted, face.faces, points)
+        anchors = np.full(len(columns), -1, dtype=np.intp)
+        close = dist <= ANCHOR_REACH_MM
+        anchors[used[close]] = nearest[close]
+        vertices = face.vertices @ rotation  # back to the session frame
+        mesh = cls.anchored(vertices, face.faces, anchors, columns)
+        blinks = []
+        for lid in face.lids:
+            shape = lid.blink @ rotation
+            full = np.where((anchors >= 0)[:, None], shape[np.maximum(anchors, 0)], 0.0)
+            sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > BLINK_SENSOR_MM)
+            if sensors.size:
+                made = mesh.matrix @ full  # what the map already makes of the sensors' blink
+                blinks.append(Blink(sensors, columns[sensors], full[sensors], shape - made))
+        return cls(mesh.vertices, mesh.faces, mesh.matrix, mesh.offset, face.uv, mirror,
+                   tuple(blinks))
 
     @classmethod
     def marker_surface(cls, neutral: np.ndarray, *, subdivisions: int = 0) -> MeshMap:
@@ -147,8 +243,29 @@ class MeshMap:
         return cls(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
                    matrix, offset)
 
-    def apply(self, dense: np.ndarray) -> np.ndarray:
-        """Vertex positions (f, V, 3) float32 mm from dense markers (f, M, 3) (unsolved frames NaN)."""
+    def apply(self, dense: np.ndarray,
+              poses: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Vertex positions (f, V, 3) float32 mm from dense markers (f, M, 3) (unsolved frames NaN).
+
+        ``poses`` ``(R (f, 3, 3), t (f, 3))``: the head pose of each frame (dense = R y + t for
+        head-relative y) when the map has head-relative parts (mirror images, blinks): those
+        are taken head-relative and the result put back."""
+        solved = np.isfinite(dense).all(axis=2).any(axis=1)
+        if poses is not None and (self.mirror is not None or self.blinks):
+            rot, trans = poses
+            relative = np.einsum("fji,fmj->fmi", rot, dense - trans[:, None])
+            verts = self.apply(relative)
+            verts = np.einsum("fij,fvj->fvi", rot, verts) + trans[:, None]
+            verts[~solved] = np.nan
+            return verts.astype(np.float32)
+        full_dense = dense if self.mirror is None else self.mirror.extend(dense)
+        verts = self._linear(full_dense)
+        for blink in self.blinks:
+            verts += (blink.amount(full_dense)[:, None, None] * blink.shape).astype(np.float32)
+        verts[~solved] = np.nan
+        return verts
+
+    def _linear(self, dense: np.ndarray) -> np.ndarray:
         f, m, _ = dense.shape
         x = np.nan_to_num(dense).astype(np.float32)  # unseen: weight 0
         if isinstance(self.matrix, np.ndarray):
@@ -156,9 +273,7 @@ class MeshMap:
             verts = verts.transpose(0, 2, 1)
         else:
             verts = np.asarray(self.matrix @ x.reshape(f, 3 * m).T).T.reshape(f, -1, 3)
-        verts = verts + (0.0 if self.offset is None else self.offset.astype(np.float32))
-        verts[~np.isfinite(dense).all(axis=2).any(axis=1)] = np.nan
-        return verts
+        return verts + (0.0 if self.offset is None else self.offset.astype(np.float32))
 
 
 def _per_axis(matrix: sp.spmatrix) -> np.ndarray:

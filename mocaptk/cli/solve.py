@@ -72,6 +72,9 @@ def solve(
                                    "pdm-biquadratic."),
     formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
                                 "usd, glb (clips up to 600 frames); dense.c3d is always written."),
+    surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
+                                "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
+                                "the whole face) or markers (the marker surface)."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
                                      "this many times (0-4; 3 gives ~7,700 vertices)."),
     mesh: Path = typer.Option(None, "--mesh", help="Animate this face mesh (OBJ, PLY, glTF/GLB, STL, "
@@ -141,6 +144,7 @@ def solve(
         with staged_folder(out, force=force) as staging:
             summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
                                           subdivisions=subdivisions, mesh_path=mesh,
+                                          layout=lay, surface=surface,
                                           stabilize=not no_stabilize,
                                           save_trained=model is None, notes=notes, progress=say)
             if rig:
