@@ -75,8 +75,8 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
                                extras={"targetNames": [f"frame_{k:05d}" for k in range(n_frames)]},
                                primitives=[pygltflib.Primitive(
                                    attributes=attributes, indices=indices, mode=_TRIANGLES,
-                                   material=0, targets=targets)])],
-        materials=[skin_material()],
+                                   material=None if uv is None else 0, targets=targets)])],
+        **(skin_material(builder) if uv is not None else {}),
         animations=[pygltflib.Animation(
             name="solve",
             samplers=[pygltflib.AnimationSampler(input=times, output=weights, interpolation=_LINEAR)],
