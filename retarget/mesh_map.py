@@ -35,8 +35,6 @@ __all__ = ["Blink", "MeshMap", "Mirror"]
 MESH_NEIGHBOURS = 8
 #: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
 ANCHOR_REACH_MM = 5.0
-#: A dense marker senses a blink when a full blink moves its vertex more than this (mm).
-BLINK_SENSOR_MM = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,6 +101,7 @@ class MeshMap:
 
         from .build import rig_frame_rotation
         from .default_face import default_face
+        from .lid_joints import SENSOR_MIN_MM
 
         neutral = np.asarray(neutral, dtype=np.float64)
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
@@ -131,7 +130,7 @@ class MeshMap:
         for lid in face.lids:
             shape = lid.blink @ rotation
             full = np.where((anchors >= 0)[:, None], shape[np.maximum(anchors, 0)], 0.0)
-            sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > BLINK_SENSOR_MM)
+            sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > SENSOR_MIN_MM)  # as the rig
             if sensors.size:
                 made = mesh.matrix @ full  # what the map already makes of the sensors' blink
                 blinks.append(Blink(sensors, columns[sensors], full[sensors], shape - made))
