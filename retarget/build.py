@@ -51,6 +51,7 @@ from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, 
                       thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
+           "check_surface",
            "dense_cloud", "ground_truth_error",
            "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "with_check", "write_rig_outputs"]
@@ -94,8 +95,15 @@ class RigOptions:
     surface: str = "face"
 
 
-#: What ``RigOptions.surface`` chooses from.
+#: What ``RigOptions.surface`` (and ``solve --surface``) chooses from.
 SURFACES = ("face", "markers")
+
+
+def check_surface(surface: str) -> str:
+    """``surface`` if it is one of :data:`SURFACES`, else OptionError."""
+    if surface not in SURFACES:
+        raise OptionError(f"unknown --surface {surface!r} (choose from {', '.join(SURFACES)})")
+    return surface
 
 
 @dataclass(frozen=True, eq=False)
@@ -404,8 +412,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     eye_cut = None  # eye apertures cut from the fitted face template (default mesh)
     chart_kind = None  # what the default mesh was triangulated in
     texcoords = None
-    if options.surface not in SURFACES:
-        raise OptionError(f"unknown surface {options.surface!r} (choose from {', '.join(SURFACES)})")
+    check_surface(options.surface)
     face = None
     if mesh is None and options.surface == "face":
         say("fitting the face")

@@ -25,6 +25,7 @@ from mocaptk.errors import OptionError
 from mocaptk.jsonio import write_json
 from mocaptk.trajectories import Trajectories
 
+from .build import check_surface
 from .solve import CHUNK_FRAMES, FaceSolver, MeshMap, head_poses, layout_frames, solve_chunks
 
 __all__ = ["SOLVE_FORMATS", "user_mesh", "write_solve_outputs"]
@@ -54,8 +55,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     x = layout_frames(solver, capture, path)
     poses = head_poses(solver, capture) if stabilize else None
     n_frames, n_dense = capture.n_frames, len(solver.labels)
-    if surface not in ("face", "markers"):
-        raise OptionError(f"unknown --surface {surface!r} (choose from face, markers)")
+    check_surface(surface)
     mesh = None
     if mesh_path is not None:
         say(f"aligning {Path(mesh_path).name} to the dense neutral")

@@ -99,6 +99,7 @@ def solve(
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
     from mocaptk.jsonio import write_json
+    from mocaptk.retarget.build import check_surface
     from mocaptk.retarget.solve import FaceSolver, train_solver
     from mocaptk.retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
@@ -111,6 +112,7 @@ def solve(
     if model is not None and model_kind is not None:
         raise OptionError("--model-kind chooses a model to train; a --model file already has its kind")
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
+    check_surface(surface)
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
