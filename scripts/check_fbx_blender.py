@@ -55,6 +55,7 @@ def check(fbx_path: str, rig: dict) -> dict:
     else:  # Blender's importer shifts FBX keys by its "Animation Offset" (default 1 frame): 0
         # keeps the file's frames, clip frame 0 at Blender frame 0 as with the glTF
         bpy.ops.import_scene.fbx(filepath=fbx_path, anim_offset=0.0)
+    bpy.context.scene.frame_set(0)  # every clip's first key (the static checks below start there)
     # skinned meshes only (the glTF importer adds an unskinned bone-shape icosphere)
     meshes = [o for o in bpy.context.scene.objects if o.type == "MESH" and o.vertex_groups]
     armatures = [o for o in bpy.context.scene.objects if o.type == "ARMATURE"]
