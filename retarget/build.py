@@ -40,19 +40,24 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
+from .default_face import default_face
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
+from .lid_joints import LidJoints, lid_joints
 from .rig import Rig
 from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, symmetric_weights,
                       thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
+           "check_surface",
            "dense_cloud", "ground_truth_error", "guide_reference",
            "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "with_check", "write_rig_outputs"]
 
+#: Marker label (and name stem) of the default face's upper-lid joints: ``upperLid_L``/``_R``.
+LID_JOINT = "upperLid"
 #: Largest angle (degrees) between a face-frame axis and a coordinate axis for snapping.
 SNAP_DEGREES = 25.0
 FORMATS = ("json", "fbx", "glb")
@@ -73,8 +78,11 @@ class RigOptions:
     marker spacing; 0: hard borders; see :mod:`~mocaptk.retarget.weights`);
     ``pure_thin_shell``: skip the region shaping (on the sample: equal RMSE at the dense markers,
     lower over a whole face mesh — see docs/rig-weights.md);
-    ``subdivisions``: midpoint subdivisions of the default marker surface mesh;
-    ``ks``/``kb``: thin-shell stretching/bending stiffness.
+    ``subdivisions``: midpoint subdivisions of the marker surface mesh;
+    ``ks``/``kb``: thin-shell stretching/bending stiffness;
+    ``surface``: the mesh without ``--mesh``: ``"face"`` (the ICT-FaceKit face fitted to the
+    markers, :mod:`~mocaptk.retarget.default_face`; the marker surface where it does not fit)
+    or ``"markers"`` (the surface through the dense markers).
     """
 
     max_influences: int = 4
@@ -84,6 +92,18 @@ class RigOptions:
     subdivisions: int = 1
     ks: float = 1.0
     kb: float = 10.0
+    surface: str = "face"
+
+
+#: What ``RigOptions.surface`` (and ``solve --surface``) chooses from.
+SURFACES = ("face", "markers")
+
+
+def check_surface(surface: str) -> str:
+    """``surface`` if it is one of :data:`SURFACES`, else OptionError."""
+    if surface not in SURFACES:
+        raise OptionError(f"unknown --surface {surface!r} (choose from {', '.join(SURFACES)})")
+    return surface
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,7 +136,8 @@ class DenseCloud:
 @dataclass(frozen=True, eq=False)
 class RigBuild:
     """A rig and how it was made: per-vertex region (cluster index, -1 none), dense-marker
-    vertices, alignment of a user mesh, the skinning check, and a JSON-ready report."""
+    vertices, alignment of a user mesh, the skinning check, a JSON-ready report, and the
+    default face's lid joints."""
 
     rig: Rig
     layout: Layout
@@ -127,6 +148,19 @@ class RigBuild:
     alignment: Alignment | None
     check: SkinningError
     report: dict[str, Any] = field(default_factory=dict)
+    lids: LidJoints | None = None
+
+    @property
+    def marker_joints(self) -> slice:
+        """The rig joints of the layout's markers (after the root; lid joints follow them)."""
+        return slice(1, 1 + len(self.layout.clusters))
+
+    def joint_displacements(self, displacement: np.ndarray) -> np.ndarray:
+        """Displacements (F, J - 1, 3) mm of every joint but the root from the layout joints'
+        (F, L, 3) mm: the lid joints' are derived from them."""
+        if self.lids is None:
+            return displacement
+        return np.concatenate([displacement, self.lids.displacements(displacement)], axis=1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,7 +212,9 @@ def bake_capture(build: RigBuild, capture: Capture) -> RigAnimation:
         pose_rot, pose_trans = head_pose_between(raw, relative.positions)
         head_rot = np.einsum("ij,fjk,lk->fil", rotation, pose_rot, rotation)  # Q R Q^T
         head_trans = pose_trans @ rotation.T
-    return bake_animation(build.rig, positions @ rotation.T, rate=relative.rate,
+    bind = build.rig.joint_positions[1:]
+    positions = bind + build.joint_displacements(positions @ rotation.T - bind[:positions.shape[1]])
+    return bake_animation(build.rig, positions, rate=relative.rate,
                           head_rotations=head_rot, head_translations=head_trans,
                           takes=relative.takes, name=capture.name)
 
@@ -309,11 +345,14 @@ def dense_cloud(layout: Layout, session: Trajectories, *, rotation: np.ndarray |
 
 
 def _weight_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
-                   spacing: float) -> tuple[np.ndarray, np.ndarray] | None:
+                   spacing: float, *, vertex: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """(vertex mirror (V,), joint mirror (J,) over the clusters) for a mirrored layout on a
-    mirror-symmetric mesh (every vertex's image within 5 % of the marker spacing), else None."""
+    mirror-symmetric mesh (every vertex's image within 5 % of the marker spacing; ``vertex``:
+    the mesh's own vertex mirror when it has one), else None."""
     clusters = layout.clusters
-    vertex = _vertex_mirror(layout, cloud, vertices, spacing)
+    if vertex is None:
+        vertex = _vertex_mirror(layout, cloud, vertices, spacing)
     if vertex is None:
         return None
     by_label = {c.representative: i for i, c in enumerate(clusters)}
@@ -332,6 +371,14 @@ def _vertex_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
     plane = _sagittal_plane(layout)
     return mirror_maps(vertices, cloud.rotation @ plane.point, cloud.rotation @ plane.normal,
                        tolerance_mm=0.05 * spacing)
+
+
+def _rig_plane(layout: Layout, cloud: DenseCloud) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sagittal plane ``(point, normal)`` in the rig frame for a mirrored layout, else None."""
+    if not any(c.mirrored_from for c in layout.clusters):
+        return None
+    plane = _sagittal_plane(layout)
+    return cloud.rotation @ plane.point, cloud.rotation @ plane.normal
 
 
 def _sagittal_plane(layout: Layout) -> SagittalPlane:
@@ -364,7 +411,20 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     cut = np.zeros((0, 2), dtype=np.int64)  # marker pairs across an opening (default mesh)
     eye_cut = None  # eye apertures cut from the fitted face template (default mesh)
     chart_kind = None  # what the default mesh was triangulated in
-    if mesh is None:
+    texcoords = None
+    check_surface(options.surface)
+    face = None
+    if mesh is None and options.surface == "face":
+        say("fitting the face")
+        face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud))
+    if face is not None:
+        vertices, faces, texcoords = face.vertices, face.faces, face.uv
+        # anchored where the markers are: the fitted face before its lips close
+        dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
+        dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
+                                                    dense_vertices[rep_idx])
+        mesh_kind = "face"
+    elif mesh is None:
         say("triangulating the marker surface")
         # coincident markers (a duplicated label, a mislabel) share one vertex
         unique, first, dense_vertices = np.unique(cloud.neutral, axis=0, return_index=True,
@@ -421,7 +481,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                                          members=member_vertices))
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
-    mirror = _weight_mirror(layout, cloud, vertices, spacing)
+    mirror = _weight_mirror(layout, cloud, vertices, spacing,
+                            vertex=None if face is None else face.mirror)
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
@@ -429,15 +490,26 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     index, value = cap_weights(weights, max_influences=options.max_influences,
                                min_weight=options.min_weight, fallback=nearest, mirror=mirror)
     joint_positions = cloud.neutral[rep_idx]
-    rig = Rig.from_markers(vertices, faces, marker_labels=reps, marker_positions=joint_positions,
-                           marker_sides=[c.side for c in layout.clusters],
-                           marker_regions=[c.region for c in layout.clusters],
-                           weight_index=index, weight_value=value)
+    labels, sides = list(reps), [c.side for c in layout.clusters]
+    regions_of = [c.region for c in layout.clusters]
+    lids = None
+    if face is not None and face.lids and options.max_influences > 1:
+        lids, index, value = lid_joints(face, index, value, joint_vertices=joint_vertices,
+                                        min_weight=options.min_weight)
+        lids = lids.calibrated(cloud.trajectories[:, rep_idx] - cloud.neutral[rep_idx])
+        joint_positions = np.vstack([joint_positions, lids.positions])
+        labels += [LID_JOINT] * len(face.lids)
+        sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
+        regions_of += ["eye"] * len(face.lids)
+    rig = Rig.from_markers(vertices, faces, marker_labels=labels, marker_positions=joint_positions,
+                           marker_sides=sides, marker_regions=regions_of,
+                           weight_index=index, weight_value=value, texcoords=texcoords)
     quality = mesh_quality(vertices, faces)
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
-                 "subdivisions": options.subdivisions if mesh is None else 0, "chart": chart_kind,
+                 "subdivisions": options.subdivisions if mesh_kind == "marker surface" else 0,
+                 "chart": chart_kind,
                  "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut],
                  "eye_openings": eye_cut},
         "alignment": None if alignment is None else {
@@ -456,7 +528,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         "skinning_check": None,  # its place in rig_report.json; filled by with_check
     }
     build = RigBuild(rig, layout, cloud, regions, dense_vertices, joint_vertices, alignment,
-                     SkinningError(float("nan"), float("nan"), float("nan"), 0, 0), report)
+                     SkinningError(float("nan"), float("nan"), float("nan"), 0, 0), report, lids)
     if not check:
         return build
     say("checking by animation")
@@ -555,7 +627,7 @@ def _marker_distances(build: RigBuild, cloud: DenseCloud | None, truth: np.ndarr
         joints -= bind_joints
         frames = np.flatnonzero(np.isfinite(joints).all(axis=(1, 2)))
         disp = np.zeros((frames.size, rig.joint_count, 3))
-        disp[:, 1:] = np.take(joints, frames, axis=0)  # joint 0 is the static root
+        disp[:, 1:] = build.joint_displacements(np.take(joints, frames, axis=0))  # 0: the root
         predicted = skin_vertices(rest, weight_index, weight_value, disp)
         predicted += offset[None]
         target = (np.take(block, captured, axis=1) if truth is None
@@ -595,7 +667,7 @@ def mesh_ground_truth_error(build: RigBuild, session: Trajectories,
     joints = cloud.trajectories[:, cloud.index(build.layout.labels)] - bind
     usable = np.isfinite(joints).all(axis=(1, 2))
     disp = np.zeros((int(usable.sum()), rig.joint_count, 3))
-    disp[:, 1:] = joints[usable]
+    disp[:, 1:] = build.joint_displacements(joints[usable])
     predicted = skin_vertices(rig.vertices, rig.weight_index, rig.weight_value, disp)
     truth = np.asarray(truth_vertices, float)[usable] @ build.cloud.rotation.T
     if truth.shape != predicted.shape:
@@ -646,7 +718,8 @@ def guide_rows(build: RigBuild) -> list[GuideMarker]:
     heads = [(label, side_tag(label) or "C", np.asarray(pos, float)) for label, pos in
              zip(stabilization.get("rigid_labels") or (), stabilization.get("reference") or ())]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
-                         [c.side for c in clusters], np.asarray(build.rig.joint_positions)[1:],
+                         [c.side for c in clusters],
+                         np.asarray(build.rig.joint_positions)[build.marker_joints],
                          members, nose, mirrored_from=[c.mirrored_from for c in clusters],
                          stabilization=heads)
 
@@ -722,7 +795,7 @@ def _write_guide(build: RigBuild, names: dict[str, Path], animation: RigAnimatio
     from .renders import render_view
 
     clusters = build.layout.clusters
-    joints = np.asarray(build.rig.joint_positions)[1:]
+    joints = np.asarray(build.rig.joint_positions)[build.marker_joints]
     rows = guide_rows(build)
     numbers = [row.name for row in rows]  # the guide's names (16L / 16R) in every view
     for view in ("front", "profile"):
@@ -737,7 +810,9 @@ def _write_guide(build: RigBuild, names: dict[str, Path], animation: RigAnimatio
                                                          if t.start <= frame < t.end)}
         posed_joints = animation.translations[frame, 1:] + build.rig.joint_positions[0]
         posed = skin_vertices(build.rig.vertices, build.rig.weight_index, build.rig.weight_value,
-                              np.vstack([np.zeros(3), posed_joints - joints])[None])[0]
+                              np.vstack([np.zeros(3), posed_joints
+                                         - build.rig.joint_positions[1:]])[None])[0]
+        posed_joints = posed_joints[:len(clusters)]
         for view in ("front", "profile"):  # at rest: the guide's view, the same picture
             write_bytes(names[f"render_rest_{view}"], names[view].read_bytes(), force=True)
             render_view(posed, build.rig.faces, build.regions, [c.region for c in clusters],

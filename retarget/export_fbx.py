@@ -8,7 +8,8 @@ side and region as user properties (``marker``/``side``/``region``). An animatio
 (:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one AnimationStack per take with one
 layer, linear keys on every joint's ``Lcl Translation`` and on ``face_root``'s ``Lcl Rotation``
 (Euler XYZ degrees, unwrapped), at the capture's frame rate (``TimeMode``: the standard rate
-when there is one, else custom with ``CustomFrameRate``).
+when there is one, else custom with ``CustomFrameRate``). Every take starts at time 0, as in
+the glTF; the scene's time span is the longest take's.
 """
 
 from __future__ import annotations
@@ -130,7 +131,8 @@ def _header_extension() -> Node:
 def _global_settings(animation: RigAnimation | None) -> Node:
     rate = 24.0 if animation is None else animation.rate
     mode = TIME_MODES.get(rate, _CUSTOM_TIME_MODE)
-    stop = ktime(np.array([animation.frame_count - 1 if animation else 24]), rate)[0]
+    longest = max((t.end - t.start for t in animation.takes), default=1) if animation else 25
+    stop = ktime(np.array([longest - 1]), rate)[0]
     props = Node("Properties70", [], [
         _p("UpAxis", "int", "Integer", "", 1), _p("UpAxisSign", "int", "Integer", "", 1),
         _p("FrontAxis", "int", "Integer", "", 2), _p("FrontAxisSign", "int", "Integer", "", 1),
@@ -347,8 +349,7 @@ class _Animation:
                                      axis=0))
         root = rig.root
         for take in animation.takes:
-            frames = np.arange(take.start, take.end)
-            times = ktime(frames, animation.rate)
+            times = ktime(np.arange(take.end - take.start), animation.rate)  # the clip's own time
             name = _safe_take_name(take.name, self.stack_names)
             self.stack_names.append(name)
             self.spans.append((int(times[0]), int(times[-1])))

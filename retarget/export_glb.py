@@ -6,8 +6,9 @@ per ``JOINTS_n``/``WEIGHTS_n`` pair (a second pair when the rig has 5-8 influenc
 joint node carries its marker label, side and region in ``extras``. An animation
 (:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one glTF animation per take: LINEAR
 samplers on every joint's translation and on the root's rotation, times in seconds from the
-start of the capture (glTF has no frame rate: it is in the scene's ``extras``; set Blender's
-scene rate before importing, or its importer maps the seconds to 24 fps frames).
+take's first frame (every clip starts at 0, as in the FBX; glTF has no frame rate: it is in the
+scene's ``extras``; set Blender's scene rate before importing, or its importer maps the seconds
+to 24 fps frames).
 """
 
 from __future__ import annotations
@@ -95,8 +96,7 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
         nodes=nodes,
         meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
             attributes=attributes, indices=indices, mode=_TRIANGLES, material=0)])],
-        materials=[pygltflib.Material(name="face_skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-            baseColorFactor=[*SKIN_COLOUR, 1.0], metallicFactor=0.0, roughnessFactor=0.6))],
+        **skin_material(builder),
         skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
                               joints=[1 + j for j in range(rig.joint_count)])],
         animations=[pygltflib.Animation(**a) for a in animations],
@@ -117,8 +117,8 @@ def _animations(builder: _BufferBuilder, animation: RigAnimation, root: int) -> 
     rotations = animation.root_rotations.astype(np.float32)
     for take in animation.takes:
         frames = slice(take.start, take.end)
-        times = builder.add((np.arange(take.start, take.end) / animation.rate).astype(np.float32),
-                            bounds=True)
+        times = builder.add((np.arange(take.end - take.start) / animation.rate).astype(np.float32),
+                            bounds=True)  # the clip's own time, from 0
         samplers, channels = [], []
         tracks = [(joint, "translation", translations[frames, joint])
                   for joint in range(len(animation.joint_names))]
@@ -158,3 +158,37 @@ class _BufferBuilder:
             accessor["max"] = [float(v) for v in flat.max(axis=0)]
         self.accessors.append(accessor)
         return len(self.accessors) - 1
+
+    def add_bytes(self, data: bytes) -> int:
+        """Append raw bytes (an image); returns their bufferView index."""
+        self.views.append({"buffer": 0, "byteOffset": len(self.blob), "byteLength": len(data)})
+        self.blob += data + b"\x00" * (-len(data) % 4)
+        return len(self.views) - 1
+
+
+#: Squares per side of the base-colour texture, a UV checker in two skin tones.
+CHECKER_SQUARES = 16
+CHECKER_PIXELS = 256
+
+
+def skin_material(builder: _BufferBuilder) -> dict:
+    """The one material of every face glTF and its texture, as pygltflib.GLTF2 keyword
+    arguments: a skin-tone UV checker (so TEXCOORD_0 is used and the UV layout shows), not
+    metallic."""
+    import cv2
+    import pygltflib
+
+    cell = CHECKER_PIXELS // CHECKER_SQUARES
+    squares = (np.add.outer(np.arange(CHECKER_PIXELS) // cell, np.arange(CHECKER_PIXELS) // cell)
+               % 2).astype(bool)
+    light = np.round(np.array(SKIN_COLOUR[::-1]) * 255).astype(np.uint8)  # OpenCV is BGR
+    image = np.where(squares[..., None], light, (light * 0.88).astype(np.uint8))
+    png = cv2.imencode(".png", image)[1].tobytes()
+    return {"materials": [pygltflib.Material(
+                name="face_skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                    baseColorTexture=pygltflib.TextureInfo(index=0, texCoord=0),
+                    metallicFactor=0.0, roughnessFactor=0.6))],
+            "textures": [pygltflib.Texture(sampler=0, source=0, name="face_skin_uv_checker")],
+            "images": [pygltflib.Image(bufferView=builder.add_bytes(png), mimeType="image/png",
+                                       name="face_skin_uv_checker")],
+            "samplers": [pygltflib.Sampler()]}

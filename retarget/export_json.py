@@ -44,7 +44,9 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
     return {
         "format": FORMAT, "version": VERSION, "unit": "mm", "up_axis": "Y", "front_axis": "+Z",
         "mesh": {"vertex_count": rig.vertex_count, "face_count": len(faces),
-                 "sha256": mesh_sha256(vertices, faces), "vertices": vertices, "faces": faces},
+                 "sha256": mesh_sha256(vertices, faces), "vertices": vertices, "faces": faces,
+                 **({} if rig.texcoords is None else
+                    {"uv": to_plain(rig.texcoords, digits=MESH_DIGITS)})},
         "joints": joints,
         "weights": {"max_influences": rig.max_influences,
                     "joint_index": rig.weight_index.tolist(),
@@ -159,4 +161,5 @@ def _rig_from_dict(doc: dict[str, Any]) -> Rig:
         joint_markers=tuple(str(j["marker"]) for j in joints),
         weight_index=np.array(weights["joint_index"], dtype=np.int64),
         weight_value=np.array(weights["value"], dtype=np.float64),
+        texcoords=(np.array(doc["mesh"]["uv"], dtype=np.float64) if "uv" in doc["mesh"] else None),
     )

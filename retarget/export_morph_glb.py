@@ -20,7 +20,8 @@ from mocaptk.atomic import write_bytes
 from mocaptk.errors import OptionError
 from mocaptk.surface_mesh import vertex_normals
 
-from .export_glb import _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER, _TRIANGLES, MM_TO_M, _BufferBuilder
+from .export_glb import (_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER, _TRIANGLES, MM_TO_M, _BufferBuilder,
+                         skin_material)
 
 __all__ = ["GLB_FRAME_CAP", "morph_glb_bytes", "write_morph_glb"]
 
@@ -30,14 +31,17 @@ _LINEAR = "LINEAR"
 
 
 def write_morph_glb(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.ndarray,
-                    frames: np.ndarray, rate: float, force: bool = True) -> Path:
+                    frames: np.ndarray, rate: float, uv: np.ndarray | None = None,
+                    force: bool = True) -> Path:
     """Atomically write the animation ``frames`` (F, V, 3) mm of the mesh ``rest`` (V, 3) mm,
-    ``faces`` (T, 3) at ``rate`` Hz (NaN frames: neutral)."""
-    return write_bytes(path, morph_glb_bytes(rest=rest, faces=faces, frames=frames, rate=rate),
-                       force=force)
+    ``faces`` (T, 3) at ``rate`` Hz (NaN frames: neutral); ``uv`` (V, 2) its texture
+    coordinates (V up) if it has them."""
+    return write_bytes(path, morph_glb_bytes(rest=rest, faces=faces, frames=frames, rate=rate,
+                                             uv=uv), force=force)
 
 
-def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, rate: float) -> bytes:
+def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, rate: float,
+                    uv: np.ndarray | None = None) -> bytes:
     """The .glb file (deterministic bytes); see :func:`write_morph_glb`."""
     import pygltflib  # ~0.2 s to import: only when writing glTF
 
@@ -50,6 +54,9 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
     attributes = pygltflib.Attributes(
         POSITION=builder.add((rest * MM_TO_M).astype(np.float32), target=_ARRAY_BUFFER, bounds=True),
         NORMAL=builder.add(vertex_normals(rest, faces).astype(np.float32), target=_ARRAY_BUFFER))
+    if uv is not None:  # glTF's V runs down
+        attributes.TEXCOORD_0 = builder.add((np.asarray(uv) * (1.0, -1.0) + (0.0, 1.0))
+                                            .astype(np.float32), target=_ARRAY_BUFFER)
     index_type = np.uint16 if len(rest) <= 65535 else np.uint32
     indices = builder.add(np.asarray(faces).astype(index_type).ravel(), target=_ELEMENT_ARRAY_BUFFER)
     targets = []
@@ -68,7 +75,8 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
                                extras={"targetNames": [f"frame_{k:05d}" for k in range(n_frames)]},
                                primitives=[pygltflib.Primitive(
                                    attributes=attributes, indices=indices, mode=_TRIANGLES,
-                                   targets=targets)])],
+                                   material=None if uv is None else 0, targets=targets)])],
+        **(skin_material(builder) if uv is not None else {}),
         animations=[pygltflib.Animation(
             name="solve",
             samplers=[pygltflib.AnimationSampler(input=times, output=weights, interpolation=_LINEAR)],

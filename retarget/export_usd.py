@@ -2,7 +2,9 @@
 
 Conventions: millimetres (``metersPerUnit`` 0.001), Y up, time codes = capture frames
 (``timeCodesPerSecond`` = ``framesPerSecond`` = the capture rate, frame 0 at time code 0);
-triangles counter-clockwise (``orientation`` rightHanded), a ``primvars:displayColor``.
+triangles counter-clockwise (``orientation`` rightHanded), a ``primvars:displayColor``, vertex
+normals of the rest pose, ``primvars:st`` texture coordinates when the mesh has them, and one
+``UsdPreviewSurface`` material (a skin tone) bound to the mesh.
 Blender, Houdini, Maya, Unreal and Omniverse read this. The binary crate (``.usdc`` content) is
 written to a temporary sibling and renamed into place. usd-core keeps every time sample in memory
 until the file is saved (about ``frames × vertices × 12`` bytes).
@@ -25,7 +27,7 @@ MESH_PATH = "/Face/face_mesh"
 
 def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.ndarray,
                    frames: Iterable[np.ndarray], n_frames: int, rate: float,
-                   force: bool = True) -> Path:
+                   uv: np.ndarray | None = None, force: bool = True) -> Path:
     """Write the mesh animation to ``path`` (``.usd``/``.usdc``; ``.usda`` for text).
 
     Parameters
@@ -34,8 +36,13 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     faces : (T, 3) vertex indices
     frames : chunks (f, V, 3) mm, in order, ``n_frames`` frames in all (NaN rows: rest pose)
     rate : capture rate, Hz
+    uv : (V, 2) texture coordinates in [0, 1] (V up), optional
     """
-    from pxr import Gf, UsdGeom, Vt  # ~0.3 s to import: only when writing USD
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt  # ~0.3 s to import: only when writing USD
+
+    from mocaptk.surface_mesh import vertex_normals
+
+    from .export_fbx import SKIN_COLOUR
 
     rest = np.asarray(rest, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
@@ -49,6 +56,21 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         mesh.CreateDisplayColorAttr([Gf.Vec3f(0.8, 0.66, 0.58)])
+        normals = vertex_normals(rest, faces)
+        normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(normals.astype(np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        if uv is not None:
+            st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                         UsdGeom.Tokens.vertex)
+            st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, dtype=np.float32)))
+        material = UsdShade.Material.Define(stage, "/Face/face_skin")
+        shader = UsdShade.Shader.Define(stage, "/Face/face_skin/surface")
+        shader.CreateIdAttr("UsdPreviewSurface")
+        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*SKIN_COLOUR))
+        shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+        material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
         points = mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(rest))
         low, high = rest.min(axis=0), rest.max(axis=0)
         written = 0

@@ -18,12 +18,12 @@ from mocaptk.surface_mesh import boundary_edges, remove_triangles
 
 from .face_template import FittedTemplate, template_face
 
-__all__ = ["cut_eye_openings", "eye_loops", "template_eye_loops"]
+__all__ = ["boundary_loops", "cut_eye_openings", "eye_loops", "template_eye_loops"]
 
 
-def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
-    """Ordered vertex loops (each (K,) int) of the openings above the nose tip: the eyes of a
-    face mesh whose border is its longest boundary loop (Y up, nose tip = largest Z)."""
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """Every boundary loop of a triangle mesh as ordered vertices (each (K,) int64), in the
+    direction of its triangles' edges."""
     faces = np.asarray(faces, dtype=np.int64)
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     undirected = {tuple(e) for e in boundary_edges(faces).tolist()}
@@ -37,6 +37,13 @@ def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
             loop.append(following[loop[-1]])
         seen.update(loop)
         loops.append(np.array(loop, dtype=np.int64))
+    return loops
+
+
+def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
+    """Ordered vertex loops (each (K,) int) of the openings above the nose tip: the eyes of a
+    face mesh whose border is its longest boundary loop (Y up, nose tip = largest Z)."""
+    loops = boundary_loops(faces)
     if len(loops) < 2:
         return []
     border = max(range(len(loops)), key=lambda i: len(loops[i]))

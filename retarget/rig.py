@@ -66,6 +66,9 @@ class Rig:
     weight_value : (V, k) float64
         Matching weights in [0, 1]; rows sum to 1, at least one positive entry per row.
         Unused slots hold weight 0 (their index is stored as 0).
+    texcoords : (V, 2) float64, optional
+        Texture coordinates in [0, 1] (the default face's own layout); default: :meth:`uv`'s
+        front projection.
     """
 
     vertices: np.ndarray
@@ -78,6 +81,7 @@ class Rig:
     joint_markers: tuple[str, ...]
     weight_index: np.ndarray
     weight_value: np.ndarray
+    texcoords: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: object) -> None:
@@ -124,6 +128,12 @@ class Rig:
             raise RigError("a vertex lists the same joint twice among its influences")
 
         index[value <= 0] = 0  # unused slots: weight 0, joint 0
+        if self.texcoords is not None:
+            uv = _array(self.texcoords, np.float64, "texcoords", (len(vertices), 2))
+            if not np.all(np.isfinite(uv)):
+                raise RigError("texcoords must be finite")
+            uv.setflags(write=False)
+            put("texcoords", uv)
 
         for name, array in (("vertices", vertices), ("faces", faces),
                             ("joint_positions", positions), ("joint_parents", parents),
@@ -167,9 +177,11 @@ class Rig:
         return normals
 
     def uv(self) -> np.ndarray:
-        """Texture coordinates (V, 2) in [0, 1]: the front (X, Y) projection of the mesh scaled
-        to its bounding square, U towards +X, V up (one chart, no seams: a face seen from the
-        front)."""
+        """Texture coordinates (V, 2) in [0, 1], V up: :attr:`texcoords` when the rig has them,
+        else the front (X, Y) projection of the mesh scaled to its bounding square, U towards
+        +X (one chart, no seams: a face seen from the front)."""
+        if self.texcoords is not None:
+            return np.array(self.texcoords)
         xy = self.vertices[:, :2]
         low = xy.min(axis=0)
         size = max(float(np.ptp(xy, axis=0).max()), 1e-12)
@@ -195,7 +207,7 @@ class Rig:
                      marker_sides: Sequence[str], marker_regions: Sequence[str],
                      weight_index: np.ndarray, weight_value: np.ndarray,
                      root_position: np.ndarray | None = None,
-                     root_name: str = ROOT_NAME) -> Rig:
+                     root_name: str = ROOT_NAME, texcoords: np.ndarray | None = None) -> Rig:
         """Build a rig with one joint per marker under a root joint.
 
         Parameters
@@ -229,7 +241,7 @@ class Rig:
             joint_regions=("", *marker_regions),
             joint_markers=("", *marker_labels),
             weight_index=np.asarray(weight_index) + 1,
-            weight_value=weight_value,
+            weight_value=weight_value, texcoords=texcoords,
         )
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from mocaptk.atomic import write_text
+from mocaptk.clustering.layout import Layout
 from mocaptk.clustering.reconstruction_models import save_model
 from mocaptk.errors import OptionError
 from mocaptk.jsonio import write_json
@@ -27,6 +28,7 @@ from mocaptk.trajectories import Trajectories
 from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
 from .consistency import capture_screen, screen_frames
 from .head_pose import HeadPoses, refine_poses
+from .build import check_surface
 from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
                     solve_chunks, to_head_frame)
 
@@ -43,13 +45,16 @@ CONSISTENCY_WEIGHT = 1.0
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
                         staging: Path, *, formats: Sequence[str] = SOLVE_FORMATS,
                         subdivisions: int = 0, mesh_path: str | os.PathLike[str] | None = None,
+                        layout: Layout | None = None, surface: str = "face",
                         stabilize: bool = True, save_trained: bool = True,
                         chunk: int = CHUNK_FRAMES, notes: Sequence[str] = (),
                         adapt: bool = False, rest_frames: np.ndarray | None = None,
                         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Solve ``capture`` and write every output into ``staging`` (a fresh folder); returns the
-    summary written to ``solve.json`` (``notes`` go into it). The mesh is the marker surface
-    (``subdivisions``), or the mesh file ``mesh_path`` aligned to the dense neutral."""
+    summary written to ``solve.json`` (``notes`` go into it). The mesh is the mesh file
+    ``mesh_path`` aligned to the dense neutral, else ``surface``: ``"face"`` the default face
+    (:meth:`MeshMap.face`; the whole face for a half-face ``layout``) or ``"markers"`` the marker
+    surface (``subdivisions``; also where the face does not fit)."""
     say = progress or (lambda _: None)
     unknown = [f for f in formats if f not in SOLVE_FORMATS]
     if unknown:
@@ -96,12 +101,18 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                          "capture's own neutral")
     del head
     n_frames, n_dense = capture.n_frames, len(solver.labels)
-    if mesh_path is None:
-        mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
-        mesh_info: dict[str, Any] = {"kind": "marker surface", "subdivisions": subdivisions}
-    else:
+    check_surface(surface)
+    mesh = None
+    if mesh_path is not None:
         say(f"aligning {Path(mesh_path).name} to the dense neutral")
         mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral)
+    elif surface == "face":
+        say("fitting the face to the dense neutral")
+        mesh = face_mesh(solver, layout)
+        mesh_info = {"kind": "face", "whole_face_mirrored": mesh is not None and mesh.mirror is not None}
+    if mesh is None:
+        mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
+        mesh_info = {"kind": "marker surface", "subdivisions": subdivisions}
     dense = np.full((n_frames, n_dense, 3), np.nan)
     error = np.full(n_frames, np.nan)
     consistency = np.full(n_frames, np.nan)
@@ -118,7 +129,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         if part.flagged is not None:
             flagged[rows], consistency[rows] = part.flagged, part.consistency_mm
         if frames_file is not None:
-            frames_file[rows] = mesh.apply(part.positions)
+            frames_file[rows] = mesh.apply(part.positions, None if poses is None else
+                                           (poses.rotations[rows], poses.translations[rows]))
     estimated = estimated_error(error, consistency, solver.training_consistency_mm)
     solved = np.isfinite(dense).all(axis=2).any(axis=1)
     written = ["dense.c3d", "solve_frames.csv", "solve.json"]
@@ -137,7 +149,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         written.append("model.npz")
     if frames_file is not None:
         frames_file.flush()
-        _write_obj(staging / "mesh_neutral.obj", mesh.vertices, mesh.faces)
+        _write_obj(staging / "mesh_neutral.obj", mesh.vertices, mesh.faces, uv=mesh.uv)
         written += ["mesh_neutral.obj"] + (["mesh_frames.npy"] if "npz" in formats else [])
     if "usd" in formats:
         say("writing mesh.usd")
@@ -145,7 +157,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
 
         write_mesh_usd(staging / "mesh.usd", rest=mesh.vertices, faces=mesh.faces, n_frames=n_frames,
                        frames=(frames_file[s:s + chunk] for s in range(0, n_frames, chunk)),
-                       rate=capture.rate)
+                       rate=capture.rate, uv=mesh.uv)
         written.append("mesh.usd")
     if "glb" in formats:
         from .export_morph_glb import GLB_FRAME_CAP, write_morph_glb
@@ -153,7 +165,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         if n_frames <= GLB_FRAME_CAP:
             say("writing mesh.glb")
             write_morph_glb(staging / "mesh.glb", rest=mesh.vertices, faces=mesh.faces,
-                            frames=frames_file, rate=capture.rate)
+                            frames=frames_file, rate=capture.rate, uv=mesh.uv)
             written.append("mesh.glb")
         else:
             notes.append(f"mesh.glb not written: {n_frames} frames > the morph-target cap of "
@@ -169,6 +181,16 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                        outputs=sorted(written), notes=notes)
     write_json(staging / "solve.json", summary)
     return summary
+
+
+def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
+    """The default face on ``solver``'s dense neutral (:meth:`MeshMap.face`), mirrored to the
+    whole face when ``layout`` has mirrored markers; None where it does not fit."""
+    plane = None if layout is None else layout.extra.get("sagittal_plane")
+    plane = None if not isinstance(plane, dict) else (np.asarray(plane["point"], float),
+                                                      np.asarray(plane["normal"], float))
+    mirrored = layout is not None and any(c.mirrored_from for c in layout.clusters)
+    return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored)
 
 
 def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray) -> tuple[MeshMap, dict[str, Any]]:
@@ -212,10 +234,21 @@ def estimated_error(expected: np.ndarray, consistency: np.ndarray, training_mm: 
     return np.sqrt(expected ** 2 + CONSISTENCY_WEIGHT ** 2 * np.maximum(excess, 0.0))
 
 
-def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, *,
+               uv: np.ndarray | None = None) -> None:
+    """The neutral mesh as OBJ (mm) with vertex normals, and texture coordinates when given."""
+    from mocaptk.surface_mesh import vertex_normals
+
+    normals = vertex_normals(vertices, faces)
+    normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
     lines = ["# mocaptk solve: neutral face mesh, mm"]
     lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    lines += [f"vn {x:.5f} {y:.5f} {z:.5f}" for x, y, z in normals]
+    if uv is None:
+        lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in np.asarray(faces) + 1]
+    else:
+        lines += [f"vt {u:.6f} {v:.6f}" for u, v in uv]
+        lines += [f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in np.asarray(faces) + 1]
     write_text(path, "\n".join(lines) + "\n")
 
 

@@ -10,8 +10,8 @@ Prints one JSON report and exits 0 when every check passes, 1 otherwise. Checks:
 and hierarchy, bone heads (bind positions), vertex positions, per-vertex weights (vertex groups),
 the rest-pose skinned mesh equals the mesh (bind matrices consistent), and moving one joint moves
 each vertex by its weight times the joint's displacement. When rig.json names an animation
-(rig_animation.npz): one action per take with the take's frame range, the scene at the
-capture's frame rate, and at 5 frames the armature-deformed mesh against the rig's own skinning
+(rig_animation.npz): one action per take spanning frames 0 .. its length - 1 (every take its
+own clip from 0), the scene at the capture's frame rate, and at 5 frames the armature-deformed mesh against the rig's own skinning
 of the baked tracks; the world joint positions at those frames are reported (``joint_world_mm``)
 for the caller to compare with the raw capture, and the bones whose ``bpy.utils.flip_name``
 names no bone (``flip_name_unmatched``: empty when Blender's mirror tools pair every bone).
@@ -52,8 +52,10 @@ def check(fbx_path: str, rig: dict) -> dict:
         if tracks is not None:  # glTF keys seconds: import at the capture's rate
             bpy.context.scene.render.fps = int(round(float(tracks["rate"])))
         bpy.ops.import_scene.gltf(filepath=fbx_path)
-    else:
-        bpy.ops.import_scene.fbx(filepath=fbx_path)
+    else:  # Blender's importer shifts FBX keys by its "Animation Offset" (default 1 frame): 0
+        # keeps the file's frames, clip frame 0 at Blender frame 0 as with the glTF
+        bpy.ops.import_scene.fbx(filepath=fbx_path, anim_offset=0.0)
+    bpy.context.scene.frame_set(0)  # every clip's first key (the static checks below start there)
     # skinned meshes only (the glTF importer adds an unskinned bone-shape icosphere)
     meshes = [o for o in bpy.context.scene.objects if o.type == "MESH" and o.vertex_groups]
     armatures = [o for o in bpy.context.scene.objects if o.type == "ARMATURE"]
@@ -180,13 +182,10 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
     for name, start, end in takes:
         action = action_of(name)
         ranges[name] = None if action is None else [float(v) for v in action.frame_range]
-    offset = None  # Blender frame of capture frame 0 (the FBX importer starts at 1)
-    first = ranges.get(takes[0][0])
-    if first is not None:
-        offset = first[0] - takes[0][1]
-    ranges_ok = all(r is not None and abs(r[0] - offset - a) < 1e-3
-                    and abs(r[1] - offset - (b - 1)) < 1e-3
-                    for (n, a, b), r in zip(takes, ranges.values())) if offset is not None else False
+    # every take is its own clip from frame 0: its action spans 0 .. its length - 1
+    offset = 0.0
+    ranges_ok = all(r is not None and abs(r[0]) < 1e-3 and abs(r[1] - (b - a - 1)) < 1e-3
+                    for (n, a, b), r in zip(takes, ranges.values()))
 
     vertices = np.array(rig["mesh"]["vertices"])
     bind = np.array([j["bind_position"] for j in rig["joints"]])
@@ -198,7 +197,7 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
     for frame in frames:
         take = next(t for t in takes if t[1] <= frame < t[2])
         action = action_of(take[0])
-        if action is None or offset is None:
+        if action is None:
             mesh_errors.append(float("inf"))
             continue
         arm_obj.animation_data.action = action
@@ -207,7 +206,7 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
             arm_obj.animation_data.action_slot = arm_obj.animation_data.action_suitable_slots[0]
         for bone in arm_obj.pose.bones:  # the keys, not the earlier test pose
             bone.matrix_basis = Matrix.Identity(4)
-        scene.frame_set(int(round(frame + offset)))
+        scene.frame_set(int(round(frame - take[1] + offset)))  # the clip's own frame
         bpy.context.view_layer.update()
         got = _world_vertices(mesh_obj, evaluated=True) * to_mm
         x, y, z, w = quaternions[frame]

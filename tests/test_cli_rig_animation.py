@@ -110,9 +110,10 @@ def test_rig_on_the_written_layout_reports_the_same_numbers(moving):
 
 @pytest.mark.parametrize("name", ["rig.fbx", "rig.glb"])
 def test_blender_plays_the_baked_animation(moving, name):
-    """Blender imports FBX and GLB: one action per take at 60 fps, the deformed mesh at 5 frames
-    equals the rig's own skinning (< 0.01 mm), world joints equal the raw capture (< 0.1 mm),
-    bpy.utils.flip_name maps every bone to a bone."""
+    """Blender imports FBX and GLB: one action per take at 60 fps, each its own clip from frame 0
+    (FBX and glTF alike; issue 30: they started at the take's place in the whole animation, and
+    differed by one), the deformed mesh at 5 frames equals the rig's own skinning (< 0.01 mm),
+    world joints equal the raw capture (< 0.1 mm), bpy.utils.flip_name maps every bone to a bone."""
     from mocaptk.clustering.layout import read_layout
 
     _, out, raw, labels, _ = moving
@@ -125,6 +126,9 @@ def test_blender_plays_the_baked_animation(moving, name):
     print("Blender:", json.dumps(report, sort_keys=True))
     assert done.returncode == 0 and report["ok"], report
     assert report["scene_fps"] == 60.0 and report["max_animated_mesh_error_mm"] < 0.01
+    takes = json.loads((out / "rig_report.json").read_text())["animation"]["takes"]
+    assert report["action_frame_ranges"] == {t["name"]: [0.0, t["end"] - t["start"] - 1.0]
+                                             for t in takes}
     assert report["flip_name_unmatched"] == []  # Blender's mirror tools pair every bone
     if name == "rig.fbx":
         assert report["max_bone_length_mm"] <= 10.0 + 1e-3

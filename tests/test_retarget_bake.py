@@ -105,6 +105,9 @@ def test_fbx_stacks_curves_and_frame_rate(baked, tmp_path):
     assert len(curves) == 2 * per_stack
     times = curves[0].first("KeyTime").props[0]
     np.testing.assert_array_equal(times, np.arange(40) * (KTIME_PER_SECOND // 60))
+    # the second take is its own clip from 0 too (it started at frame 40: issue 30)
+    later = curves[per_stack].first("KeyTime").props[0]
+    np.testing.assert_array_equal(later, np.arange(50) * (KTIME_PER_SECOND // 60))
     assert all(np.isfinite(c.first("KeyValueFloat").props[0]).all() for c in curves)
     assert [t.props[0] for t in root.first("Takes").find("Take")] == ["neutral", "smile"]
     # another rate: custom time mode
@@ -149,15 +152,18 @@ def test_gltf_animations_validate(baked, tmp_path):
 
     gltf = pygltflib.GLTF2().load(str(path))
     assert [a.name for a in gltf.animations] == ["neutral", "smile"]
-    for animation in gltf.animations:
+    for animation, frames in zip(gltf.animations, (40, 50)):
         assert {s.interpolation for s in animation.samplers} == {"LINEAR"}
+        times = gltf.accessors[animation.samplers[0].input]  # every clip from time 0
+        assert times.min == [0.0] and times.max == [pytest.approx((frames - 1) / 60)]
         paths = [c.target.path for c in animation.channels]
         assert paths.count("translation") == rig.joint_count and paths.count("rotation") == 1
     assert gltf.nodes[1].extras == {"side": "C"}  # the root: no marker, no region
     assert gltf.nodes[2].extras == {"marker": "LBrow", "side": "L", "region": "brow"}
     report = installed.run_validator(path)
     issues = report["issues"]
-    assert (issues["numErrors"], issues["numWarnings"]) == (0, 0), issues["messages"]
+    assert (issues["numErrors"], issues["numWarnings"], issues["numInfos"]) == (0, 0, 0), \
+        issues["messages"]
     assert report["info"]["animationCount"] == 2
 
 

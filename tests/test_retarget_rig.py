@@ -24,24 +24,50 @@ def sample():
     return truth, session, layout, build_rig(layout, session)
 
 
-def test_rig_weights_partition_unity_capped_and_exact_at_markers(sample):
+@pytest.fixture(scope="module")
+def markers(sample):
+    """The rig on the marker surface (``surface="markers"``) of the sample's session."""
+    from mocaptk.retarget.build import RigOptions, build_rig
+
+    truth, session, layout, _ = sample
+    return truth, session, layout, build_rig(layout, session, options=RigOptions(surface="markers"))
+
+
+def test_rig_weights_partition_unity_capped_and_exact_at_markers(sample, markers):
     _, _, layout, build = sample
     rig = build.rig
-    assert rig.joint_count == len(layout.clusters) + 1
+    # a joint per layout marker, then the default face's two upper-lid joints
+    assert rig.joint_count == len(layout.clusters) + 3
+    assert rig.joint_names[-2:] == ("upperLid_R", "upperLid_L")
     assert rig.max_influences == 4
     np.testing.assert_allclose(rig.weight_value.sum(axis=1), 1.0, atol=1e-12)
     assert np.all((rig.weight_value > 0).sum(axis=1) >= 1)
     assert np.all((rig.weight_value == 0) | (rig.weight_value >= 1e-3))
-    # at its marker's vertex a joint has weight exactly 1
+    # at its marker's vertex a joint has weight exactly 1, but where the lid moves it (EYE_08,
+    # under the brow: 0.99 on its lid)
+    lids = rig.dense_weights()[:, -2:]
     for j, v in enumerate(build.joint_vertices):
-        assert rig.weight_index[v, 0] == j + 1 and rig.weight_value[v, 0] == 1.0
-    # joints sit at their markers' neutral positions, under one root
-    np.testing.assert_allclose(rig.joint_positions[1:], rig.vertices[build.joint_vertices],
-                               atol=1e-9)
-    assert list(rig.joint_parents) == [-1] + [0] * len(layout.clusters)
-    # every captured dense marker is a vertex of the marker surface and has a region
+        if not lids[v].any():
+            assert rig.weight_index[v, 0] == j + 1 and rig.weight_value[v, 0] == 1.0
+    assert (lids[build.joint_vertices] > 0).any(axis=1).sum() == 2
+    # joints sit at their markers' neutral positions, under one root; their vertices are on the
+    # fitted face, moved by the lips' closing (the sample's lips are 11 mm apart at rest)
+    np.testing.assert_allclose(rig.joint_positions[build.marker_joints],
+                               build.cloud.neutral[build.cloud.index(layout.labels)], atol=1e-9)
+    assert np.linalg.norm(rig.joint_positions[build.marker_joints]
+                          - rig.vertices[build.joint_vertices], axis=1).max() < 5.5
+    assert list(rig.joint_parents) == [-1] + [0] * (rig.joint_count - 1)
+    # every captured dense marker has a vertex with a region
     assert np.all(build.regions[build.dense_vertices] >= 0)
-    assert build.report["mesh"]["kind"] == "marker surface"
+    assert build.report["mesh"]["kind"] == "face"
+    # on the marker surface every joint is its marker's vertex, exact
+    rig = markers[3].rig
+    assert rig.joint_count == len(layout.clusters) + 1
+    for j, v in enumerate(markers[3].joint_vertices):
+        assert rig.weight_index[v, 0] == j + 1 and rig.weight_value[v, 0] == 1.0
+    np.testing.assert_allclose(rig.joint_positions[1:], rig.vertices[markers[3].joint_vertices],
+                               atol=1e-9)
+    assert markers[3].report["mesh"]["kind"] == "marker surface"
 
 
 def test_marker_driven_rmse_on_held_out_performance(sample):
@@ -64,7 +90,7 @@ def test_marker_driven_rmse_on_held_out_performance(sample):
 
     blunt = RigBuild(build.rig.__class__(**{**_rig_fields(build.rig), "weight_value": rigid}),
                      build.layout, build.cloud, build.regions, build.dense_vertices,
-                     build.joint_vertices, None, build.check)
+                     build.joint_vertices, None, build.check, lids=build.lids)
     assert ground_truth_error(blunt, perf, truth.positions, truth.labels).rmse_mm > 1.15 * err.rmse_mm
 
 
@@ -100,7 +126,7 @@ def test_eight_influences_and_pure_thin_shell(sample):
 
     _, session, layout, build4 = sample
     build8 = build_rig(layout, session, options=RigOptions(max_influences=8, pure_thin_shell=True,
-                                                            subdivisions=0))
+                                                            subdivisions=0, surface="markers"))
     assert build8.rig.max_influences == 8
     assert (build8.rig.weight_value > 0).sum(axis=1).max() > 4
     assert build8.rig.vertex_count == len(build8.cloud.labels)  # no subdivision
@@ -124,7 +150,8 @@ def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
         assert (out / name).stat().st_size > 0
     assert not (out / "rig.fbx").exists()
     rig = read_rig_json(out / "rig.json")
-    assert rig.joint_count == len(layout.clusters) + 1
+    assert rig.joint_count == len(layout.clusters) + 3  # and the two lids
+    assert rig.texcoords is not None and rig.vertex_count == 9409  # the face, its UVs kept
     report = json.loads((out / "rig_report.json").read_text())
     assert report["skinning_check"]["rmse_mm"] < 1.5
     # existing outputs are refused without --force, in one line
@@ -139,6 +166,7 @@ def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
     (["--max-influences", "0"], "--max-influences"),
     (["--mesh", "nothere.obj"], "mesh file not found"),
     (["--falloff", "-1"], "--falloff"),
+    (["--surface", "bogus"], "unknown --surface 'bogus' (choose from face, markers)"),
 ])
 def test_cli_rig_bad_input_is_one_line_exit_2(sample, tmp_path, run_cli, args, message):
     from mocaptk.clustering.layout import write_layout
@@ -252,12 +280,12 @@ def _every(session, step):
     return session.replace(positions=session.positions[::step], metadata={})
 
 
-def test_default_mesh_separates_the_lips(sample):
+def test_marker_surface_separates_the_lips(markers):
     """The marker surface is cut where the motion opens it: no triangle spans the lip line, the
     mouth is its own boundary loop, and no vertex of the upper lip shares an edge with the lower."""
     from mocaptk.surface_mesh import mesh_edges
 
-    _, _, _, build = sample
+    _, _, _, build = markers
     mesh = build.report["mesh"]
     cut = {tuple(sorted(pair)) for pair in mesh["opening_edges_cut"]}
     assert ("MOUTH_05_C", "MOUTH_12_C") in cut and len(cut) >= 6
@@ -302,13 +330,13 @@ def _true_face(truth) -> tuple[np.ndarray, np.ndarray]:
             model.face_triangles)
 
 
-def test_default_mesh_opens_the_eyes(sample):
+def test_marker_surface_opens_the_eyes(markers):
     """No triangle of the marker surface spans an eye of the ICT-FaceKit face the sample was
     made from; the cut is mirror-symmetric and every marker stays on the surface."""
     from mocaptk.retarget.eye_openings import eye_loops
     from mocaptk.surface_mesh import boundary_edges
 
-    truth, _, _, build = sample
+    truth, _, _, build = markers
     face, triangles = _true_face(truth)
     loops = eye_loops(face, triangles)
     assert len(loops) == 2 and build.report["mesh"]["eye_openings"]["openings"] == 2
@@ -378,9 +406,8 @@ def test_mirrored_clusters_influence_their_sources_midline_markers(sample):
 def test_mirrored_layout_gives_mirrored_weights_and_names(sample):
     """Mirrored vertices with L/R joints swapped carry the same weights (< 1e-6; before: up to
     0.27), and every joint's flip_name (swap the trailing _L/_R) is a joint of the rig."""
-    from scipy.spatial import cKDTree
-
     from mocaptk.retarget.build import _sagittal_plane
+    from mocaptk.retarget.default_face import template_openings
 
     _, _, _, build = sample
     rig = build.rig
@@ -388,8 +415,8 @@ def test_mirrored_layout_gives_mirrored_weights_and_names(sample):
     plane = _sagittal_plane(build.layout)
     normal, point = build.cloud.rotation @ plane.normal, build.cloud.rotation @ plane.point
     image = rig.vertices - 2 * ((rig.vertices - point) @ normal)[:, None] * normal
-    distance, mirror = cKDTree(rig.vertices).query(image)
-    assert distance.max() < 0.05
+    mirror = template_openings()[2]  # ICT-FaceKit's own pairs (the lips' seam has twins)
+    assert np.abs(rig.vertices[mirror] - image).max() < 1e-9
     flip = {"L": "R", "R": "L", "C": "C"}
     names = list(rig.joint_names)
     assert all(n[:-1] + flip[n[-1]] in names for n in names[1:])
@@ -409,7 +436,7 @@ def _faces_against(vertices, faces, surface, surface_faces):
                      vertex_normals(surface, surface_faces)[nearest])
 
 
-def test_default_mesh_does_not_fold_at_the_nostrils(sample):
+def test_marker_surface_does_not_fold_at_the_nostrils(markers):
     """Triangulated in the fitted ICT-FaceKit face's chart, the marker surface follows the true
     skin around the nose (the sphere chart folded it: 46 of the 1,816 triangles face into the
     head there, the worst at 162 degrees from the skin), and a mirrored layout gets a
@@ -417,7 +444,7 @@ def test_default_mesh_does_not_fold_at_the_nostrils(sample):
     from mocaptk.retarget.build import _subdivide, _vertex_mirror
     from mocaptk.surface_mesh import marker_spacing, marker_surface_mesh
 
-    truth, _, layout, build = sample
+    truth, _, layout, build = markers
     face, triangles = _true_face(truth)
     assert build.report["mesh"]["chart"] == "ICT-FaceKit face fitted to the markers"
     rig = build.rig
@@ -439,7 +466,7 @@ def test_render_labels_do_not_overlap(sample, tmp_path):
     from mocaptk.retarget.renders import _draw_markers
 
     *_, build = sample
-    joints = np.asarray(build.rig.joint_positions)[1:]
+    joints = np.asarray(build.rig.joint_positions)[build.marker_joints]
     width, height = 1050, 1200  # the front view: x right, y up, framed on the markers like it
     half = 1.2 * max(np.ptp(joints[:, 1]) / 2, np.ptp(joints[:, 0]) / 2 * height / width) + 8.0
     scale = height / (2 * half)  # pixels per mm, as render_view's parallel camera
@@ -463,3 +490,46 @@ def test_render_labels_do_not_overlap(sample, tmp_path):
         dots = np.delete(pixels, k, axis=0)  # 7 pt dots: radius ~5 px
         near = np.clip(dots, box[:2], box[2:])
         assert np.linalg.norm(near - dots, axis=1).min() >= 4.5, names[k]
+
+
+def test_default_face_closes_its_lips_and_eyes_on_the_performance(sample, markers):
+    """The default face on the held-out performance (issue 30): lips closed at rest (seam area
+    <= 5 % of the widest opening; measured 0.02 %), open at the widest jaw, the lids closed at
+    the true full blink (aperture <= 20 % of rest; measured 8.8 %) and the blink sensed from the
+    eye-region markers following the true one (r = 0.98); per region the marker-driven error is
+    within 5 % of the marker surface's (mouth 0.26 vs 0.29 mm, nose 0.43 vs 0.42 mm) and the
+    mouth's at most 1.5x the others'."""
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.animate import skin_vertices
+    from mocaptk.retarget.build import Capture, bake_capture, held_out_check, jaw_open_frame
+    from mocaptk.retarget.default_face import loop_area, template_openings
+
+    _, _, _, build = sample
+    rig = build.rig
+    perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")
+    animation = bake_capture(build, Capture("performance", perf))
+    joints = animation.translations[:, 1:] + rig.joint_positions[0]
+    disp = np.concatenate([np.zeros((len(joints), 1, 3)), joints - rig.joint_positions[1:]], axis=1)
+    posed = skin_vertices(rig.vertices, rig.weight_index, rig.weight_value, disp)
+    (upper, lower), eyes, _ = template_openings()
+    mouth = loop_area(posed[:, np.concatenate([upper, lower[::-1][1:-1]])])
+    rest = loop_area(rig.vertices[np.concatenate([upper, lower[::-1][1:-1]])])
+    widest = jaw_open_frame(build, animation)
+    assert rest <= 0.05 * mouth[widest] and mouth[widest] > 400  # mm²
+    names = list(truth.blendshape_names)
+    for (top, bottom), blink in zip(eyes, ("eyeBlink_R", "eyeBlink_L")):
+        loop = np.concatenate([top, bottom[::-1][1:-1]])
+        aperture = loop_area(posed[:, loop]) / loop_area(rig.vertices[loop])
+        weight = truth.weights[:, names.index(blink)]
+        assert aperture[int(np.argmax(weight))] <= 0.2
+        assert np.corrcoef(weight, 1 - aperture)[0, 1] > 0.95
+        assert np.percentile(aperture[weight < 0.05], 5) > 0.8  # open when not blinking
+    held = {region: r["rmse_mm"] for region, r in
+            held_out_check(build, Capture("performance", perf))["regions"].items()}
+    before = {region: r["rmse_mm"] for region, r in
+              held_out_check(markers[3], Capture("performance", perf))["regions"].items()}
+    assert all(held[r] <= 1.05 * before[r] for r in before), (held, before)
+    assert held["mouth"] <= 1.5 * np.mean([v for r, v in held.items() if r != "mouth"])
+    assert rig.uv().min() >= 0 and rig.uv().max() <= 1 and rig.texcoords is not None

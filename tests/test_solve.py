@@ -78,7 +78,7 @@ def test_solve_writes_every_dense_marker_of_the_held_out_performance(workspace, 
 def test_round_trip_reproduces_the_session_within_the_training_error(workspace, tmp_path):
     root, layout = workspace
     done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
-                   tmp_path / "own", "--formats", "glb", "--subdivisions", "0")
+                   tmp_path / "own", "--formats", "glb", "--surface", "markers", "--subdivisions", "0")
     assert done.returncode == 0, done.stderr
     dense = read_c3d(tmp_path / "own" / "dense.c3d")
     session = read_c3d(root / "dense_halfface.c3d").positions[4523:5003]
@@ -223,7 +223,7 @@ def test_blender_imports_and_plays_the_usd_and_gltf_mesh(workspace, tmp_path):
     python = installed.blender_python()
     root, _ = workspace
     done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
-                   tmp_path / "b", "--formats", "npz,usd,glb", "--subdivisions", "0")
+                   tmp_path / "b", "--formats", "npz,usd,glb")  # the default face
     assert done.returncode == 0, done.stderr
     script = installed.REPO / "scripts" / "check_mesh_blender.py"
     for name in ("mesh.usd", "mesh.glb"):

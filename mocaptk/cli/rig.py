@@ -31,7 +31,7 @@ def read_landmarks(path: Path) -> dict[str, int]:
 
 
 def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: bool,
-                subdivisions: int):
+                subdivisions: int, surface: str = "face"):
     """Validated :class:`~mocaptk.retarget.build.RigOptions` from command-line values."""
     from mocaptk.retarget.build import RigOptions
 
@@ -42,7 +42,7 @@ def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: boo
     if subdivisions < 0 or subdivisions > 3:
         raise OptionError(f"--subdivisions must be 0..3, got {subdivisions}")
     return RigOptions(max_influences=max_influences, falloff_mm=falloff,
-                      pure_thin_shell=pure_thin_shell, subdivisions=subdivisions)
+                      pure_thin_shell=pure_thin_shell, subdivisions=subdivisions, surface=surface)
 
 
 def animation_captures(layout, session, relative, performances, *, no_stabilize: bool = False,
@@ -82,8 +82,10 @@ def rig(
     session: Path = typer.Option(..., "--session", help="The dense session the layout was made "
                                  "from (its neutral pose places the mesh and the joints)."),
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh (OBJ, PLY, glTF/GLB, STL, "
-                              "OFF; Y up, facing +Z, any unit). Default: a surface through the "
-                              "dense markers."),
+                              "OFF; Y up, facing +Z, any unit). Default: --surface."),
+    surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
+                                "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
+                                "the whole face) or markers (a surface through the dense markers)."),
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
                                    "index} (>= 3) to start the mesh alignment (default: ICP)."),
     max_influences: int = typer.Option(4, "--max-influences", help="Joints per vertex (1-8; 4 "
@@ -95,8 +97,8 @@ def rig(
                                   "the dense marker spacing)."),
     pure_thin_shell: bool = typer.Option(False, "--pure-thin-shell", help="Do not shape the "
                                          "thin-shell weights by the influence regions."),
-    subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the default marker "
-                                     "surface this many times (0-3)."),
+    subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface "
+                                     "(--surface markers) this many times (0-3)."),
     animate: list[Path] = typer.Option(None, "--animate", help="A performance (C3D/CSV/TRC with "
                                        "the layout's labels; other markers are ignored) to bake "
                                        "onto the rig after the session's own motion; repeatable."),
@@ -116,7 +118,7 @@ def rig(
     from mocaptk.retarget.build import write_rig_outputs
     from mocaptk.clustering.layout import layout_rigid_set
 
-    options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
+    options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions, surface)
     chosen = parse_formats(formats)
     lay = read_layout(layout)
     session_rate, session_units = recorded_reading(lay, session, rate=rate, units=units)

@@ -104,6 +104,9 @@ def solve(
                                    "tapered-ridge, thin-shell, pdm-linear, pdm-biquadratic."),
     formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
                                 "usd, glb (clips up to 600 frames); dense.c3d is always written."),
+    surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
+                                "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
+                                "the whole face) or markers (the marker surface)."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
                                      "this many times (0-4; 3 gives ~7,700 vertices)."),
     mesh: Path = typer.Option(None, "--mesh", help="Animate this face mesh (OBJ, PLY, glTF/GLB, STL, "
@@ -134,6 +137,7 @@ def solve(
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS
     from mocaptk.jsonio import write_json
+    from mocaptk.retarget.build import check_surface
     from mocaptk.retarget.solve import load_solver, train_solver
     from mocaptk.retarget.solve_outputs import write_solve_outputs
     from .cluster import staged_folder
@@ -147,6 +151,7 @@ def solve(
         raise OptionError("--model-kind chooses a model to train; a --model file already has its kind")
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
     rest = parse_frame_range(neutral, "--neutral")
+    check_surface(surface)
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
@@ -184,6 +189,7 @@ def solve(
         with staged_folder(out, force=force) as staging:
             summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
                                           subdivisions=subdivisions, mesh_path=mesh,
+                                          layout=lay, surface=surface,
                                           stabilize=not no_stabilize,
                                           adapt=adapt_neutral or rest is not None,
                                           rest_frames=None if rest is None else list(rest),

@@ -169,7 +169,8 @@ def _mesh(cloud: DenseCloud, build: RigBuild | None, cluster_of: np.ndarray,
         rig = build.rig
         vertices = np.asarray(rig.vertices, float)
         faces = np.asarray(rig.faces, np.int64)
-        joint_marker = np.concatenate([[-1], cloud.index(build.layout.labels)])  # joint 0: root
+        joint_marker = np.full(rig.joint_count, -1)  # the root and the lid joints: no marker
+        joint_marker[build.marker_joints] = cloud.index(build.layout.labels)
         skin_index = joint_marker[np.asarray(rig.weight_index)]
         skin_weight = np.where(skin_index >= 0, np.asarray(rig.weight_value, float), 0.0)
         vertex_cluster = np.asarray(build.regions)

@@ -1,0 +1,211 @@
+"""The default face: the bundled ICT-FaceKit face region fitted to the actor's dense neutral.
+
+Used by the rig (``rig.fbx``/``rig.glb``) and by ``solve``'s mesh alike:
+
+1. **Fit.** The similarity ICP of :func:`~mocaptk.retarget.face_template.fit_template`, then a
+   non-rigid pass: each marker's offset from its closest point on the face, spread over the
+   face by a Gaussian RBF (width :data:`RBF_WIDTH_SPACINGS` marker spacings, zero far from the
+   markers, so the border keeps the template's shape), :data:`FIT_ROUNDS` rounds.
+2. **Whole face.** A half-face session's cloud holds the mirrored markers already; given the
+   sagittal plane, the face is then made exactly mirror-symmetric (ICT-FaceKit's own
+   left/right vertex pairs), so a mirrored layout gets mirrored weights.
+3. **Closed lips with a seam.** The ICT-FaceKit neutral has its lips 11 mm apart; the two
+   inner-lip rims are brought onto their mid-curve (the seam) and the lips follow by a
+   biharmonic deformation that vanishes :data:`LIP_REACH_MM` from the mouth. The seam stays an
+   opening of the mesh: no triangle joins the lips, so the upper and lower lip part when the
+   jaw opens.
+4. **Lids.** Each eye opening's upper rim and where it goes in a full blink (onto the lower
+   rim), spread over the lid the same way: a blink displacement per eye.
+
+UVs are ICT-FaceKit's own texture layout. Where the template does not fit (not a face), there is
+no default face and the caller keeps the marker surface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+
+from .align import SurfaceProximity
+from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
+
+__all__ = ["DefaultFace", "Lid", "default_face", "loop_area", "template_openings"]
+
+#: Rounds of the non-rigid fit (closest points move as the face does).
+FIT_ROUNDS = 3
+#: Gaussian RBF width of the non-rigid fit, in dense marker spacings.
+RBF_WIDTH_SPACINGS = 2.0
+#: Ridge of the RBF (on a unit-diagonal kernel): noise in the markers is not fitted exactly.
+RBF_SMOOTHING = 0.05
+#: Vertices this far (mm) from the mouth opening keep their place when the lips close.
+LIP_REACH_MM = 14.0
+#: Vertices this far (mm) from an eye opening keep their place when its lid closes (sample:
+#: 8 mm puts the eye region's marker-driven error within 4 % of the marker surface's; 12 mm: +23 %).
+LID_REACH_MM = 8.0
+
+
+@dataclass(frozen=True, eq=False)
+class Lid:
+    """One eye: ``upper``/``lower`` rim vertices (corner to corner, both with the corners) and
+    ``blink`` (V, 3) mm, each vertex's displacement at a full blink."""
+
+    upper: np.ndarray
+    lower: np.ndarray
+    blink: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class DefaultFace:
+    """The fitted face: ``vertices`` (V, 3) mm with the lips closed, ``fitted`` (V, 3) mm before
+    they close (where the markers are), ``faces`` (T, 3), ``uv`` (V, 2) in [0, 1], the mouth's
+    ``upper_lip``/``lower_lip`` rims (corner to corner), the ``lids`` (right eye first:
+    the smaller X) and ``mirror`` (V,) each vertex's mirror vertex when made symmetric, else
+    None (the lips' seam has coincident vertices: a nearest-image search cannot pair them)."""
+
+    vertices: np.ndarray
+    fitted: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    upper_lip: np.ndarray
+    lower_lip: np.ndarray
+    lids: tuple[Lid, ...]
+    mirror: np.ndarray | None
+
+
+@lru_cache(maxsize=1)
+def _template() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with resources.files(__package__).joinpath(TEMPLATE_FILE).open("rb") as handle:
+        with np.load(handle, allow_pickle=False) as data:
+            return data["vertices"], data["triangles"].astype(np.int64), data["uv"]
+
+
+@lru_cache(maxsize=1)
+def template_openings() -> tuple[tuple[np.ndarray, np.ndarray], tuple[tuple[np.ndarray, np.ndarray], ...],
+                                 np.ndarray]:
+    """The template's mouth ``(upper, lower)`` rims, its eyes' ``(upper, lower)`` rims (right eye
+    first) and its left/right vertex pairs (V,) (an involution; the midline maps to itself)."""
+    from scipy.spatial import cKDTree
+
+    from .eye_openings import boundary_loops
+
+    vertices, faces, _ = _template()
+    loops = boundary_loops(faces)
+    border = max(loops, key=len)
+    inner = [loop for loop in loops if loop is not border]
+    nose_y = vertices[int(np.argmax(vertices[:, 2])), 1]
+    mouth = min((loop for loop in inner if vertices[loop, 1].mean() < nose_y),
+                key=lambda loop: vertices[loop, 1].mean())
+    eyes = sorted((loop for loop in inner if vertices[loop, 1].mean() > nose_y),
+                  key=lambda loop: vertices[loop, 0].mean())
+    mirror = cKDTree(vertices).query(vertices * (-1.0, 1.0, 1.0))[1].astype(np.int64)
+    return _split(vertices, mouth), tuple(_split(vertices, eye) for eye in eyes), mirror
+
+
+def _split(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An opening's loop split at its corners (smallest and largest X) into its upper and lower
+    rims, each from the right corner to the left one (both corners in both)."""
+    loop = np.roll(loop, -int(np.argmin(vertices[loop, 0])))
+    right = int(np.argmax(vertices[loop, 0]))
+    one = loop[:right + 1]
+    other = np.concatenate([loop[right:], loop[:1]])[::-1]
+    return (one, other) if vertices[one, 1].mean() > vertices[other, 1].mean() else (other, one)
+
+
+def default_face(points: np.ndarray, *, spacing: float,
+                 plane: tuple[np.ndarray, np.ndarray] | None = None) -> DefaultFace | None:
+    """The ICT-FaceKit face fitted to the dense neutral ``points`` (N, 3) mm (rig frame: Y up,
+    facing +Z; ``spacing`` their marker spacing, mm); ``plane`` ``(point, unit normal)`` makes it
+    mirror-symmetric. None when the template does not fit (see :func:`fit_template`)."""
+    points = np.asarray(points, dtype=float)
+    template = fit_template(points, spacing=spacing)
+    if template is None:
+        return None
+    _, faces, uv = _template()
+    (upper, lower), eyes, mirror = template_openings()
+    if len(points) > MAX_FIT_POINTS:
+        points = points[np.linspace(0, len(points) - 1, MAX_FIT_POINTS).round().astype(np.int64)]
+    vertices = _nonrigid(template.vertices, faces, points, spacing=spacing)
+    if plane is not None:
+        vertices = _symmetric(vertices, mirror, *plane)
+    closed = vertices + _closing(vertices, faces, [(upper, lower, 0.5)], reach_mm=LIP_REACH_MM)
+    if plane is not None:
+        closed = _symmetric(closed, mirror, *plane)
+    lids = [Lid(top, bottom, _closing(closed, faces, [(top, bottom, 0.0)], reach_mm=LID_REACH_MM))
+            for top, bottom in eyes]
+    if plane is not None:  # the other eye's blink: the mirror image of the first's
+        normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
+        image = lids[0].blink[mirror]
+        lids[1] = Lid(lids[1].upper, lids[1].lower, image - 2.0 * (image @ normal)[:, None] * normal)
+    return DefaultFace(closed, vertices, faces, uv, upper, lower, tuple(lids),
+                       None if plane is None else mirror)
+
+
+def _nonrigid(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
+              spacing: float) -> np.ndarray:
+    """``vertices`` moved onto ``points`` by :data:`FIT_ROUNDS` rounds of a Gaussian RBF of
+    the points' offsets from their closest surface points."""
+    from scipy.interpolate import RBFInterpolator
+
+    vertices = np.array(vertices, dtype=float)
+    for _ in range(FIT_ROUNDS):
+        closest, _, _ = SurfaceProximity(vertices, faces).query(points)
+        field = RBFInterpolator(closest, points - closest, kernel="gaussian",
+                                epsilon=1.0 / (RBF_WIDTH_SPACINGS * spacing),
+                                smoothing=RBF_SMOOTHING, degree=-1)
+        vertices += field(vertices)
+    return vertices
+
+
+def _symmetric(vertices: np.ndarray, mirror: np.ndarray, point: np.ndarray,
+               normal: np.ndarray) -> np.ndarray:
+    """``vertices`` averaged with their mirror vertices' reflections: mirror-symmetric."""
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    image = vertices[mirror]
+    image = image - 2.0 * ((image - point) @ normal)[:, None] * normal
+    return (vertices + image) / 2
+
+
+def _closing(vertices: np.ndarray, faces: np.ndarray,
+             rims: list[tuple[np.ndarray, np.ndarray, float]], *, reach_mm: float) -> np.ndarray:
+    """Displacements (V, 3) mm closing openings: each ``(upper, lower, line)`` rim pair meets on
+    the curve ``lower + line (upper - lower)`` (at each rim vertex's arc-length fraction; line 0:
+    the lower rim stays), and a biharmonic field carries it over, zero ``reach_mm`` away."""
+    import igl
+    from scipy.spatial import cKDTree
+
+    fixed, values = [], []
+    for upper, lower, line in rims:
+        fixed += [upper, lower]
+        values += [_along(vertices, upper, lower, line) - vertices[upper],
+                   _along(vertices, lower, upper, 1.0 - line) - vertices[lower]]
+    rim, first = np.unique(np.concatenate(fixed), return_index=True)  # corners: in both rims
+    far = np.flatnonzero(cKDTree(vertices[rim]).query(vertices)[0] > reach_mm)
+    b = np.concatenate([rim, far]).astype(np.int64)
+    bc = np.concatenate([np.concatenate(values)[first], np.zeros((len(far), 3))])
+    return np.asarray(igl.harmonic(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
+                                   b, bc, 2))
+
+
+def _along(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:
+    """Points (K, 3) on the curve ``other + line (rim - other)`` at the arc-length fractions of
+    ``rim``'s vertices (both rims run corner to corner)."""
+    own = _fractions(vertices[rim])
+    theirs = _fractions(vertices[other])
+    across = np.stack([np.interp(own, theirs, vertices[other][:, k]) for k in range(3)], axis=1)
+    return across + line * (vertices[rim] - across)
+
+
+def _fractions(polyline: np.ndarray) -> np.ndarray:
+    steps = np.linalg.norm(np.diff(polyline, axis=0), axis=1)
+    run = np.concatenate([[0.0], np.cumsum(steps)])
+    return run / run[-1]
+
+
+def loop_area(points: np.ndarray) -> np.ndarray:
+    """Area (...,) mm² enclosed by closed polygons ``points`` (..., K, 3) mm: half the norm of
+    their vector area (0 for a closed seam, the opening's size when open)."""
+    p = np.asarray(points, dtype=float)
+    return 0.5 * np.linalg.norm(np.cross(p, np.roll(p, -1, axis=-2)).sum(axis=-2), axis=-1)

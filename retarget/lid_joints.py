@@ -1,0 +1,126 @@
+"""Upper-lid joints that close the default face's eyes when the actor blinks.
+
+A dense session has no marker on the eyelid, but the layout's eye-region markers under the
+brow move with it (sample: EYE_08_L 5.7 mm down at a full blink, correlation 0.85 with the true
+blink weight). Per eye:
+
+- the **blink** ``b(t)`` in [0, 1] is the least-squares fraction of the full-blink displacement
+  (:class:`~mocaptk.retarget.default_face.Lid`) that the eye's *sensor* markers (layout markers
+  that a full blink moves more than :data:`SENSOR_MIN_MM`) show, over the fraction they show at
+  the session's fullest blinks (its :data:`FULL_PERCENTILE`: the dense session's eye take
+  blinks);
+- the **lid joint** sits at the upper rim's centre; it follows the markers as the rim's own
+  weights would (``follow``) and adds ``b(t)`` times the rim's full-blink displacement;
+- each vertex's weight on it is the fraction of the rim's full blink its own full-blink
+  displacement is, and its other weights shrink to leave room.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .default_face import DefaultFace
+
+__all__ = ["LidJoints", "lid_joints"]
+
+#: A layout marker senses a blink when a full blink moves its vertex more than this (mm).
+SENSOR_MIN_MM = 1.0
+#: Percentile of the sensed blink over the session taken as a full blink.
+FULL_PERCENTILE = 99.5
+#: A session whose sensed blink never reaches this fraction of the template's has no blink to
+#: calibrate on (the template's full blink is kept).
+MIN_FULL = 0.3
+#: Lid weights below this are dropped (the lid's influence ends smoothly before it).
+MIN_LID_WEIGHT = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class LidJoints:
+    """Per eye (E eyes): ``positions`` (E, 3) mm bind positions, ``follow`` (E, L) weights over
+    the layout joints, ``closed`` (E, 3) mm the displacement at a full blink, and the sensors:
+    ``sensor_index`` (E,) arrays of layout joints with ``sensor_blink`` (E,) arrays (S, 3) mm,
+    their displacement at a full blink."""
+
+    positions: np.ndarray
+    follow: np.ndarray
+    closed: np.ndarray
+    sensor_index: tuple[np.ndarray, ...]
+    sensor_blink: tuple[np.ndarray, ...]
+    full: np.ndarray | None = None
+
+    def sensed(self, displacement: np.ndarray) -> np.ndarray:
+        """The fraction (F, E) of the full-blink displacement the sensors show (least squares,
+        unclipped) for the layout joints' displacements (F, L, 3) mm."""
+        out = np.zeros((displacement.shape[0], len(self.positions)))
+        for e, (index, full) in enumerate(zip(self.sensor_index, self.sensor_blink)):
+            if len(index):
+                seen = np.einsum("fsk,sk->f", displacement[:, index], full)
+                out[:, e] = seen / float(np.sum(full * full))
+        return out
+
+    def calibrated(self, displacement: np.ndarray) -> LidJoints:
+        """These joints with the full blink of each eye taken as the :data:`FULL_PERCENTILE`
+        of :meth:`sensed` over the session ``displacement`` (F, L, 3) mm (its eye take has
+        full blinks), when that is above :data:`MIN_FULL` (else the template's own)."""
+        sensed = self.sensed(displacement)
+        full = np.array([np.nanpercentile(column, FULL_PERCENTILE) if np.isfinite(column).any()
+                         else np.nan for column in sensed.T])
+        return replace(self, full=np.where(full > MIN_FULL, full, 1.0))
+
+    def blink(self, displacement: np.ndarray) -> np.ndarray:
+        """Blink (F, E) in [0, 1] from the layout joints' displacements (F, L, 3) mm."""
+        full = np.ones(len(self.positions)) if self.full is None else self.full
+        return np.clip(self.sensed(displacement) / full, 0.0, 1.0)
+
+    def displacements(self, displacement: np.ndarray) -> np.ndarray:
+        """The lid joints' displacements (F, E, 3) mm from the layout joints' (F, L, 3) mm (NaN
+        where a marker it uses is missing)."""
+        used = self.follow.any(axis=0)
+        for index in self.sensor_index:
+            used[index] = True
+        displacement = np.where(used[None, :, None], displacement, 0.0)  # others' gaps: no matter
+        follow = np.einsum("el,flk->fek", self.follow, displacement)
+        return follow + self.blink(displacement)[..., None] * self.closed
+
+
+def lid_joints(face: DefaultFace, index: np.ndarray, value: np.ndarray, *,
+               joint_vertices: np.ndarray, min_weight: float) -> tuple[LidJoints, np.ndarray, np.ndarray]:
+    """The lid joints of ``face`` and the weights with them: ``index``/``value`` (V, k) capped
+    weights over the L layout joints (``joint_vertices`` (L,) their vertices); the lid joints
+    become joints L, L + 1... Each row keeps k influences (its weakest gives way to the lid,
+    the rest scaled back to sum 1, none below ``min_weight``)."""
+    n_layout = len(joint_vertices)
+    dense = np.zeros((len(face.vertices), n_layout))
+    np.add.at(dense, (np.repeat(np.arange(len(dense)), index.shape[1]), index.ravel()),
+              value.ravel())
+    lid_weight = np.zeros((len(face.vertices), len(face.lids)))
+    positions, follow, closed, sensors, sensor_blink = [], [], [], [], []
+    for e, lid in enumerate(face.lids):
+        full = lid.blink[lid.upper].mean(axis=0)
+        lid_weight[:, e] = np.clip(lid.blink @ full / float(full @ full), 0.0, 1.0)
+        positions.append(face.vertices[lid.upper].mean(axis=0))
+        follow.append(dense[lid.upper].mean(axis=0))
+        closed.append(full)
+        moved = np.linalg.norm(lid.blink[joint_vertices], axis=1)
+        sensors.append(np.flatnonzero(moved > SENSOR_MIN_MM))
+        sensor_blink.append(lid.blink[joint_vertices[sensors[-1]]])
+    lid_weight[lid_weight < max(MIN_LID_WEIGHT, min_weight)] = 0.0
+    k = index.shape[1]
+    new_index = np.column_stack([index, np.zeros((len(index), 1), np.int64)])
+    new_value = np.column_stack([value, np.zeros(len(value))])
+    rows = np.flatnonzero(lid_weight.any(axis=1))
+    eye = np.argmax(lid_weight[rows], axis=1)  # one lid per vertex: the eyes are far apart
+    w = lid_weight[rows, eye]
+    new_index[rows, k] = n_layout + eye
+    new_value[rows, k] = w
+    new_value[rows, :k] *= (1.0 - w)[:, None]
+    order = np.argsort(-new_value, axis=1, kind="stable")[:, :k]  # the weakest gives way
+    new_index = np.take_along_axis(new_index, order, axis=1)
+    new_value = np.take_along_axis(new_value, order, axis=1)
+    new_value[new_value < min_weight] = 0.0  # as capped: no weight below min_weight
+    new_value /= new_value.sum(axis=1, keepdims=True)
+    new_index[new_value <= 0] = 0
+    return (LidJoints(np.array(positions), np.array(follow), np.array(closed), tuple(sensors),
+                      tuple(sensor_blink)), new_index, new_value)

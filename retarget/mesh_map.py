@@ -1,0 +1,296 @@
+"""The animated mesh of ``mocaptk solve``: a sparse linear map from dense markers to mesh vertices.
+
+The default face (:meth:`MeshMap.face`: the ICT-FaceKit face fitted to the dense neutral, lips
+closed with a seam, lids that close on a blink, the whole face for a half-face session); the
+marker surface through the dense neutral (vertices = dense markers), optionally
+midpoint-subdivided; a given mesh following the markers by thin-shell weights; or a map learned
+from training frames of the mesh itself.
+
+Half-face sessions: the map's extra columns are the seen dense markers reflected across the
+sagittal plane (:class:`Mirror`), so the uncaptured half moves as the mirror image. Blinks: the
+lid's full-blink shape is added in proportion to the blink its sensor markers show
+(:class:`Blink`), less what the linear map already makes of those markers' motion, so a pure
+blink gives exactly the lid's shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from mocaptk.clustering.neutral import neutral_pose
+from mocaptk.clustering.reconstruction_models import DEFAULT_RIDGE, batched_ridge
+from mocaptk.errors import OptionError
+from mocaptk.surface_mesh import marker_surface_mesh
+
+from .align import Alignment, SurfaceProximity, align_mesh_to_markers
+from .influence import anchor_vertices
+
+__all__ = ["Blink", "MeshMap", "Mirror"]
+
+#: Dense markers each vertex of a learned mesh map is regressed from (:meth:`MeshMap.learned`).
+MESH_NEIGHBOURS = 8
+#: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
+ANCHOR_REACH_MM = 5.0
+
+
+@dataclass(frozen=True, eq=False)
+class Mirror:
+    """Extra dense columns: the markers ``source`` (K,) reflected across the plane through
+    ``point`` (3,) mm with unit ``normal`` (3,) (head-relative session frame)."""
+
+    source: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+
+    def extend(self, dense: np.ndarray) -> np.ndarray:
+        """``dense`` (f, M, 3) mm with the reflected columns appended: (f, M + K, 3)."""
+        image = np.take(dense, self.source, axis=1)
+        image = image - 2.0 * ((image - self.point) @ self.normal)[..., None] * self.normal
+        return np.concatenate([dense, image], axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Blink:
+    """One eye: ``sensors`` (S,) dense columns, their ``rest`` (S, 3) mm and ``full`` (S, 3) mm
+    displacement at a full blink, and ``shape`` (V, 3) mm added to the mesh at a full blink."""
+
+    sensors: np.ndarray
+    rest: np.ndarray
+    full: np.ndarray
+    shape: np.ndarray
+
+    def amount(self, dense: np.ndarray) -> np.ndarray:
+        """The blink (f,) in [0, 1]: the least-squares fraction of ``full`` the sensors show."""
+        moved = np.nan_to_num(np.take(dense, self.sensors, axis=1) - self.rest)
+        return np.clip(np.einsum("fsk,sk->f", moved, self.full) / float(np.sum(self.full ** 2)),
+                       0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class MeshMap:
+    """The animated mesh: ``vertices`` (V, 3) mm neutral, ``faces`` (T, 3), ``matrix`` the linear
+    map and ``offset`` (V, 3) mm: vertex positions = matrix @ dense markers + offset (unseen dense
+    markers have no column weight); ``uv`` (V, 2) texture coordinates when the mesh has them,
+    ``mirror`` the reflected columns of a half-face session, ``blinks`` the lids' shapes. ``matrix`` is (V, M) dense float32 when x, y and z share the
+    weights (one GEMM per chunk: ~15x a sparse product of the same map), else (3V, 3M) sparse on
+    the flattened coordinates (x, y, z per point)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    matrix: np.ndarray | sp.csr_matrix
+    offset: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    mirror: Mirror | None = None
+    blinks: tuple[Blink, ...] = ()
+
+    @classmethod
+    def face(cls, neutral: np.ndarray, *, plane: tuple[np.ndarray, np.ndarray] | None = None,
+             mirrored: bool = False) -> MeshMap | None:
+        """The default face (:mod:`~mocaptk.retarget.default_face`) fitted to the dense neutral
+        ``neutral`` (M, 3) mm (NaN = unseen; head-relative session frame), following the dense
+        markers pinned to it (:meth:`anchored`), or None where the template does not fit.
+
+        ``plane`` ``(point, unit normal)``: the sagittal plane (the subject's left); with
+        ``mirrored`` (a half-face session) the face is completed by the markers' mirror images.
+        """
+        from mocaptk.surface_mesh import marker_spacing
+
+        from .build import rig_frame_rotation
+        from .default_face import default_face
+        from .lid_joints import SENSOR_MIN_MM
+
+        neutral = np.asarray(neutral, dtype=np.float64)
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        mirror = None
+        if mirrored:
+            if plane is None:
+                raise OptionError("a mirrored layout needs its sagittal_plane; re-run mocaptk cluster")
+            normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
+            mirror = Mirror(seen, np.asarray(plane[0], float), normal)
+        columns = neutral if mirror is None else mirror.extend(neutral[None])[0]
+        used = seen if mirror is None else np.concatenate([seen, len(neutral) + np.arange(seen.size)])
+        rotation = rig_frame_rotation(neutral[seen], np.zeros(seen.size),
+                                      lateral=None if plane is None else plane[1])
+        points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
+        rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
+        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane)
+        if face is None:
+            return None
+        nearest, dist = anchor_vertices(face.fitted, face.faces, points)
+        anchors = np.full(len(columns), -1, dtype=np.intp)
+        close = dist <= ANCHOR_REACH_MM
+        anchors[used[close]] = nearest[close]
+        vertices = face.vertices @ rotation  # back to the session frame
+        mesh = cls.anchored(vertices, face.faces, anchors, columns)
+        blinks = []
+        for lid in face.lids:
+            shape = lid.blink @ rotation
+            full = np.where((anchors >= 0)[:, None], shape[np.maximum(anchors, 0)], 0.0)
+            sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > SENSOR_MIN_MM)  # as the rig
+            if sensors.size:
+                made = mesh.matrix @ full  # what the map already makes of the sensors' blink
+                blinks.append(Blink(sensors, columns[sensors], full[sensors], shape - made))
+        return cls(mesh.vertices, mesh.faces, mesh.matrix, mesh.offset, face.uv, mirror,
+                   tuple(blinks))
+
+    @classmethod
+    def marker_surface(cls, neutral: np.ndarray, *, subdivisions: int = 0) -> MeshMap:
+        """The marker surface through the dense neutral ``neutral`` (M, 3) mm (NaN = unseen),
+        midpoint-subdivided ``subdivisions`` times (each splits a triangle into 4)."""
+        if subdivisions < 0 or subdivisions > 4:
+            raise OptionError(f"--subdivisions must be 0..4, got {subdivisions}")
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        _, faces = marker_surface_mesh(neutral[seen])
+        faces = np.asarray(faces, dtype=np.int64)
+        matrix = sp.csr_matrix((np.ones(seen.size), (np.arange(seen.size), seen)),
+                               shape=(seen.size, neutral.shape[0]))
+        for _ in range(subdivisions):
+            matrix, faces = _midpoint_subdivide(matrix, faces)
+        return cls(matrix @ np.nan_to_num(neutral), faces, _per_axis(matrix))
+
+    @classmethod
+    def anchored(cls, vertices: np.ndarray, faces: np.ndarray, anchors: np.ndarray,
+                 neutral: np.ndarray, *, min_weight: float = 1e-4) -> MeshMap:
+        """A given mesh ``vertices`` (V, 3) mm, ``faces`` (T, 3) following the dense markers pinned
+        at vertices ``anchors`` (M,) (-1: not pinned; neutral ``neutral`` (M, 3) mm) by
+        thin-shell interpolation (Le et al.'s ``W = Â⁻¹B̂``). A vertex several markers are
+        pinned to moves by their mean displacement (a coarse mesh); weights below
+        ``min_weight`` are dropped (sparse, fast)."""
+        from mocaptk.clustering.reconstruction_models import KB, KS, TIKHONOV
+        from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
+
+        anchors = np.asarray(anchors, dtype=np.intp)
+        pinned = np.flatnonzero(anchors >= 0)
+        if pinned.size == 0:
+            raise OptionError("no dense marker is pinned to the mesh")
+        held, slot = np.unique(anchors[pinned], return_inverse=True)
+        share = np.bincount(slot)
+        mean = sp.csr_matrix((1.0 / share[slot], (slot, pinned)), shape=(held.size, len(anchors)))
+        op = thin_shell_operator(vertices, faces, ks=KS, kb=KB)
+        op = op + TIKHONOV * float(np.abs(op.diagonal()).mean()) * sp.identity(op.shape[0])
+        weights = interpolation_weights(op, held)
+        weights[np.abs(weights) < min_weight] = 0.0
+        matrix = sp.csr_matrix(sp.csr_matrix(weights) @ mean)
+        offset = (np.asarray(vertices, dtype=np.float64)
+                  - matrix @ np.nan_to_num(np.asarray(neutral, dtype=np.float64)))
+        return cls(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
+                   _per_axis(matrix), offset)
+
+    @classmethod
+    def fitted(cls, vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray, *,
+               reach_mm: float = ANCHOR_REACH_MM) -> tuple[MeshMap, Alignment, int]:
+        """A user's mesh ``vertices`` (V, 3) (any unit, Y up, facing +Z), ``faces`` (T, 3) aligned
+        onto the dense neutral ``neutral`` (M, 3) mm (NaN = unseen) by ICP with scale, as
+        ``mocaptk rig --mesh`` does; each seen dense marker is pinned at the vertex nearest to
+        its closest surface point unless it is more than ``reach_mm`` from the surface (beyond
+        the mesh's border), then :meth:`anchored`. Returns the map, the alignment and how many
+        markers were pinned."""
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        alignment = align_mesh_to_markers(vertices, faces, neutral[seen])
+        placed = alignment.transform.apply(vertices)
+        nearest, dist = anchor_vertices(placed, faces, neutral[seen],
+                                        proximity=SurfaceProximity(placed, faces))
+        anchors = np.full(len(neutral), -1, dtype=np.intp)
+        close = dist <= reach_mm
+        anchors[seen[close]] = nearest[close]
+        return cls.anchored(placed, faces, anchors, neutral), alignment, int(close.sum())
+
+    @classmethod
+    def learned(cls, vertices: np.ndarray, faces: np.ndarray, markers: np.ndarray,
+                positions: np.ndarray, *, neighbours: int = MESH_NEIGHBOURS,
+                ridge: float = DEFAULT_RIDGE, block: int = 256) -> MeshMap:
+        """A mesh seen moving with the dense markers: per vertex, ridge regression of its position
+        from the 3 coordinates of its ``neighbours`` nearest dense markers (neutral pose).
+
+        ``vertices`` (V, 3) mm the neutral mesh, ``faces`` (T, 3); ``markers`` (F, M, 3) mm
+        training frames of the dense markers (NaN gaps; the frames without any gap are used, as
+        the ridge models do) and ``positions`` (F, V, 3) mm the mesh in those frames (a synthetic
+        session's ground truth, or registered scans). Unlike :meth:`anchored` it learns how
+        vertices beyond the markers move (the neck with the jaw, the inner lips).
+        """
+        n_verts, n_markers = len(vertices), markers.shape[1]
+        neutral = neutral_pose(markers)
+        seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
+        rows = np.isfinite(markers[:, seen]).all(axis=(1, 2)) & np.isfinite(positions).all(axis=(1, 2))
+        k = min(int(neighbours), seen.size)
+        if rows.sum() < 2 * 3 * k or k < 1:
+            raise OptionError(f"a learned mesh map needs at least {2 * 3 * k} training frames "
+                              f"without gaps, got {int(rows.sum())}")
+        x = markers[rows].reshape(int(rows.sum()), -1)
+        x_mean = x.mean(axis=0)
+        x -= x_mean
+        near = seen[cKDTree(neutral[seen]).query(vertices, k=k)[1].reshape(n_verts, k)]
+        cols = (3 * near[..., None] + np.arange(3)).reshape(n_verts, 3 * k)  # (V, 3k)
+        coef = np.empty((n_verts, 3 * k, 3))
+        offset = np.empty((n_verts, 3))
+        for start in range(0, n_verts, block):  # bounded memory: (frames, block, 3k) at a time
+            part = slice(start, start + block)
+            xs = x[:, cols[part]].transpose(1, 0, 2)  # (b, F, 3k)
+            ys = np.asarray(positions[rows, part], dtype=np.float64).transpose(1, 0, 2)  # (b, F, 3)
+            y_mean = ys.mean(axis=1)
+            coef[part] = batched_ridge(xs.transpose(0, 2, 1) @ xs,
+                                       xs.transpose(0, 2, 1) @ (ys - y_mean[:, None]), ridge)
+            offset[part] = y_mean - np.einsum("bk,bkc->bc", x_mean[cols[part]], coef[part])
+        matrix = sp.csr_matrix((coef.transpose(0, 2, 1).ravel().astype(np.float32),
+                                (np.repeat(np.arange(3 * n_verts), 3 * k),
+                                 np.repeat(cols, 3, axis=0).ravel())),
+                               shape=(3 * n_verts, 3 * n_markers))
+        return cls(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
+                   matrix, offset)
+
+    def apply(self, dense: np.ndarray,
+              poses: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Vertex positions (f, V, 3) float32 mm from dense markers (f, M, 3) (unsolved frames NaN).
+
+        ``poses`` ``(R (f, 3, 3), t (f, 3))``: the head pose of each frame (dense = R y + t for
+        head-relative y) when the map has head-relative parts (mirror images, blinks): those
+        are taken head-relative and the result put back."""
+        solved = np.isfinite(dense).all(axis=2).any(axis=1)
+        if poses is not None and (self.mirror is not None or self.blinks):
+            rot, trans = poses
+            relative = np.einsum("fji,fmj->fmi", rot, dense - trans[:, None])
+            verts = self.apply(relative)
+            verts = np.einsum("fij,fvj->fvi", rot, verts) + trans[:, None]
+            verts[~solved] = np.nan
+            return verts.astype(np.float32)
+        full_dense = dense if self.mirror is None else self.mirror.extend(dense)
+        verts = self._linear(full_dense)
+        for blink in self.blinks:
+            verts += (blink.amount(full_dense)[:, None, None] * blink.shape).astype(np.float32)
+        verts[~solved] = np.nan
+        return verts
+
+    def _linear(self, dense: np.ndarray) -> np.ndarray:
+        f, m, _ = dense.shape
+        x = np.nan_to_num(dense).astype(np.float32)  # unseen: weight 0
+        if isinstance(self.matrix, np.ndarray):
+            verts = (x.transpose(0, 2, 1).reshape(3 * f, m) @ self.matrix.T).reshape(f, 3, -1)
+            verts = verts.transpose(0, 2, 1)
+        else:
+            verts = np.asarray(self.matrix @ x.reshape(f, 3 * m).T).T.reshape(f, -1, 3)
+        return verts + (0.0 if self.offset is None else self.offset.astype(np.float32))
+
+
+def _per_axis(matrix: sp.spmatrix) -> np.ndarray:
+    """A (V, M) map applied to x, y and z alike, as a dense float32 array."""
+    return np.asarray(matrix.toarray(), dtype=np.float32)
+
+
+def _midpoint_subdivide(matrix: sp.csr_matrix, faces: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """One midpoint subdivision of a mesh given as rows of a linear map: each edge gets its
+    midpoint row (the mean of its ends), each triangle becomes 4 (orientation kept)."""
+    n = matrix.shape[0]
+    corners = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1)  # (T, 3, 2)
+    edges, inverse = np.unique(np.sort(corners.reshape(-1, 2), axis=1), axis=0, return_inverse=True)
+    mid = n + inverse.reshape(-1, 3)  # midpoint of edge ab, bc, ca per face
+    half = sp.csr_matrix((np.full(2 * len(edges), 0.5),
+                          (np.repeat(np.arange(len(edges)), 2), edges.ravel())), shape=(len(edges), n))
+    a, b, c = faces.T
+    ab, bc, ca = mid.T
+    new_faces = np.concatenate([np.stack(t, axis=1) for t in
+                                ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return sp.csr_matrix(sp.vstack([matrix, half @ matrix])), new_faces
