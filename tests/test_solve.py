@@ -333,7 +333,7 @@ def test_head_motion_ghosts_and_dropouts_on_a_head_relative_session(workspace, t
         capture, motion, ghost = moving_capture(performance, labels, **kw)
         write_c3d(capture, tmp_path / f"{name}.c3d")
         done = mocaptk("solve", root / "layout" / "layout.json", tmp_path / f"{name}.c3d", "--out",
-                       tmp_path / name, "--formats", "npz")
+                       tmp_path / name, "--formats", "none", "--surface", "markers")
         assert done.returncode == 0, done.stderr
         results[name] = dense_rmse(tmp_path / name, truth, motion, layout["layout"]), ghost
     summary = json.loads((tmp_path / "moving" / "solve.json").read_text())
@@ -368,7 +368,8 @@ def test_another_face_size_is_warned_and_adapted(workspace, solved, tmp_path):
     errors = {}
     for name, extra in (("plain", ()), ("adapted", ("--adapt-neutral",))):
         done = mocaptk("solve", root / "layout" / "layout.json", tmp_path / "big.c3d", "--out",
-                       tmp_path / name, "--formats", "npz", "--model", out / "model.npz", *extra)
+                       tmp_path / name, "--formats", "none", "--surface", "markers", "--model",
+                       out / "model.npz", *extra)
         assert done.returncode == 0, done.stderr
         summary = json.loads((tmp_path / name / "solve.json").read_text())
         errors[name] = dense_rmse(tmp_path / name, (truth - centre) * 1.08 + centre,
