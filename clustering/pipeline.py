@@ -369,12 +369,28 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     from mocaptk.acquisition.formats import read_trajectories
 
     file = Path(path)
+    if file.is_dir():
+        raise InputFileError(file, "is a folder, expected a file")
     if not file.is_file():
         raise InputFileError(file, "no such file")
-    traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
+    # the sha256 recorded is that of the bytes read: hashed before, and the file unchanged after
+    before = _identity(file)
     with open(file, "rb") as handle:  # streamed: no copy of the whole file in memory
         digest = hashlib.file_digest(handle, "sha256").hexdigest()
+    traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
+    if _identity(file) != before:
+        raise InputFileError(file, "changed while it was read (still being written or copied?); "
+                                   "run again when it is complete")
     return traj, {"path": file.name, "sha256": digest}
+
+
+def _identity(file: Path) -> tuple[int, ...]:
+    """What changes when a file is rewritten, cut or replaced: inode, size, modification time (ns)."""
+    try:
+        stat = file.stat()
+    except OSError:  # removed meanwhile
+        return ()
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
 
 
 def stabilization_note(stabilization: dict[str, Any]) -> str | None:

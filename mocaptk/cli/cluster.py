@@ -187,17 +187,21 @@ def cluster(
     from mocaptk.clustering.takes import read_takes
     from mocaptk.background import beside
 
-    session = sessions[0]
-    out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
-                           hint=OUT_HINT)
-    console = Console(stderr=True, quiet=quiet)
+    from mocaptk.errors import OptionError
     from .rig import (animation_summary, check_summary, cluster_rig_outputs, parse_formats,
                       rig_options)
 
+    session = sessions[0]
+    if not factor > 0:  # options first: a bad value is reported, not the output folder
+        raise OptionError(f"--factor must be > 0, got {factor}")
+    if step < 1:
+        raise OptionError(f"--step must be >= 1, got {step}")
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
+    out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
+                           hint=OUT_HINT)
+    console = Console(stderr=True, quiet=quiet)
     if len(sessions) > 1:
-        from mocaptk.errors import OptionError
         if rig is not None:
             raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
         from mocaptk.clustering.multi_actor import load_actors

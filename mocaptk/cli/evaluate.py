@@ -37,7 +37,7 @@ def layout_rigid_set(layout) -> tuple[str, ...] | None:
     already head-relative, or not recorded)."""
     if not layout.parameters.get("stabilized"):  # a detected set is recorded even when not applied
         return None
-    labels = layout.extra.get("stabilization", {}).get("rigid_labels")
+    labels = (layout.extra.get("stabilization") or {}).get("rigid_labels")  # null: none recorded
     return tuple(labels) if labels else None
 
 

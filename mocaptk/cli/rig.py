@@ -106,6 +106,7 @@ def rig(
     """Build a skinned face rig and a printable marker guide from a layout."""
     from rich.console import Console
 
+    from mocaptk.atomic import claim_output
     from mocaptk.clustering.layout import read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.build import write_rig_outputs
@@ -113,6 +114,8 @@ def rig(
 
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions)
     chosen = parse_formats(formats)
+    # refused (read-only, exists) and locked before any work; rig_report.json: written by every run
+    claim_output((out or layout.parent) / "rig_report.json", force=force)
     lay = read_layout(layout)
     traj, source = load_session(session)
     raw = traj

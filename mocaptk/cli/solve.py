@@ -92,6 +92,7 @@ def solve(
     """Solve every dense marker and an animated face mesh from a capture of the layout's markers."""
     from rich.console import Console
 
+    from mocaptk.atomic import claim_output
     from mocaptk.clustering.layout import read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
@@ -108,6 +109,7 @@ def solve(
     if model is not None and model_kind is not None:
         raise OptionError("--model-kind chooses a model to train; a --model file already has its kind")
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
+    claim_output(out, force=force, folder=True)  # refused (read-only, exists) and locked before any work
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
@@ -116,7 +118,7 @@ def solve(
         traj, capture_source = load_session(str(capture), rate=rate, units=units)
         if model is not None:
             identity = {"sha256": lay.source.get("sha256")} if lay.source.get("sha256") else {}
-            face_model, header = load_model(model, session=identity)
+            face_model, header = load_model(model, session=identity, labelled=True)
             solver = FaceSolver.from_header(face_model, header)
             unknown = [label for label in solver.layout_labels if label not in set(lay.labels)]
             if unknown:
