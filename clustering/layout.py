@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mocaptk.errors import InputFileError
+from mocaptk.errors import InputFileError, shorten
 from mocaptk.jsonio import read_json, write_json
 
 FORMAT = "mocaptk.layout"
@@ -243,3 +243,17 @@ def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str 
         raise InputFileError(layout_path, f"{len(unknown)} layout markers are not in {session_name}: "
                              + ", ".join(unknown[:5]))
     return [index[label] for label in measured]
+
+
+def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,
+                  session_name: str) -> None:
+    """InputFileError naming the layout file when a cluster member is neither a marker of the
+    session ``session_name`` (``labels``) nor the mirror image of one (a half-face layout's twin)."""
+    from .symmetry import mirror_label
+
+    known = set(labels)
+    unknown = list(dict.fromkeys(m for c in layout.clusters for m in c.members
+                                 if m not in known and mirror_label(m) not in known))
+    if unknown:
+        raise InputFileError(layout_path, f"{len(unknown)} layout members are not markers of {session_name} "
+                             "(nor mirror twins of them): " + ", ".join(shorten(m, 40) for m in unknown[:5]))

@@ -913,8 +913,8 @@ def load_model(path: str | os.PathLike[str], *, session: Mapping[str, Any] | Non
     ``labelled``: the header must name the markers (``labels``, ``layout_labels``, a ``session``),
     as solve's model files do.
     """
-    try:
-        with np.load(path, allow_pickle=False) as data:
+    try:  # our own handle: np.load leaves its own open when the archive is damaged
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except OSError as exc:
         raise unreadable(path, exc) from None
@@ -1001,10 +1001,15 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
     indices("layout", m)
     if np.unique(a["layout"]).size != n_layout or not np.isfinite(neutral[a["layout"]]).all():
         raise _BadModel("layout must name distinct markers with a neutral position")
+    seen = neutral[np.isfinite(neutral).all(axis=1)]
+    try:  # every model's mesh (solve's surface, thin-shell) is laid over the neutral markers
+        marker_surface_mesh(seen)
+    except ValueError as exc:
+        raise _BadModel(f"neutral positions give no marker surface ({exc})") from None
     shape("error_base")
     shape("error_drop", n_layout)
-    finite("error_base", low=0, nan=True)
-    finite("error_drop", low=0, nan=True)
+    finite("error_base", low=0, high=_REACH_MM, nan=True)
+    finite("error_drop", low=0, high=_REACH_MM, nan=True)
     if kind in ("ridge", "local-ridge", "tapered-ridge"):
         shape("mean", 3 * m)
         shape("cov", 3 * m, 3 * m)

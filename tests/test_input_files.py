@@ -243,3 +243,48 @@ def test_long_messages_are_cut_in_the_middle_keeping_where_and_what():
     text = str(exc)
     assert len(text) <= MAX_LINE and text.startswith("/data/ddd") and text.endswith("is not a number")
     assert len(str(OptionError("y" * 10_000))) == MAX_LINE
+
+
+def test_takes_too_short_for_the_folds_name_the_takes_file(run_cli, tmp_path):
+    """evaluate's "too few frames (N) for 2 folds" came from the takes file without naming it."""
+    session = SAMPLES / "dense_halfface.c3d"
+    layout = tmp_path / "layout.json"
+    doc = {"format": "mocaptk.layout", "version": 1, "units": "mm", "source": {"path": session.name},
+           "parameters": {}, "regions": [],
+           "clusters": [{"representative": "MOUTH_01_L", "region": "mouth", "members": ["MOUTH_01_L"],
+                         "member_correlation": {}, "position": [0, 0, 0], "side": "L"}]}
+    layout.write_text(json.dumps(doc))
+    takes = tmp_path / "takes.json"
+    takes.write_text(json.dumps({"takes": [{"name": "t", "start": 0, "end": 1}]}))
+    result = run_cli("evaluate", session, "--layout", layout, "--takes", takes, "--folds", "2",
+                     "--out", tmp_path / "e.json")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"mocaptk: error: {takes}: too few frames"), lines[0]
+
+
+def test_layout_members_the_model_does_not_know_name_the_layout(tmp_path, layout_doc):
+    from mocaptk.clustering.layout import check_members
+
+    doc = json.loads(json.dumps(layout_doc))
+    doc["clusters"][0]["members"] += ["paper", "EYE_99_R"]
+    layout = read_layout(write_layout_doc(tmp_path / "layout.json", doc))
+    with pytest.raises(InputFileError) as info:
+        check_members(layout, ["MOUTH_01_L", "EYE_99_L"], layout_path=tmp_path / "layout.json",
+                      session_name="s.c3d")
+    assert "1 layout members are not markers of s.c3d" in one_line(info.value, tmp_path / "layout.json")
+    assert "paper" in str(info.value) and "EYE_99_R" not in str(info.value)  # a mirror twin is known
+
+
+@pytest.mark.parametrize("change, problem", [
+    (lambda a: a.update(neutral=np.zeros_like(a["neutral"])), "neutral positions give no marker surface"),
+    (lambda a: a.update(error_base=np.array(1e308)), "error_base has values out of range"),
+])
+def test_model_values_that_crashed_solve_are_refused(tmp_path, model_parts, change, problem):
+    arrays = {k: v.copy() for k, v in model_parts[0].items()}
+    change(arrays)
+    header = np.frombuffer(json.dumps(model_parts[1]).encode(), np.uint8)
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": header})
+    with pytest.raises(InputFileError) as info:
+        load_model(path, labelled=True)
+    assert problem in one_line(info.value, path)

@@ -104,6 +104,10 @@ def evaluate(
 
     if seeds < 1:
         raise OptionError(f"--seeds must be >= 1, got {seeds}")
+    if split not in ("blocks", "takes"):  # options before outputs; what remains is the data's
+        raise OptionError(f"unknown split {split!r} (use 'blocks' or 'takes')")
+    if folds < 2:
+        raise OptionError(f"need at least 2 folds, got {folds}")
     from .cluster import OUT_HINT
 
     out_path = claim_output(out or layout.with_name("evaluation.json"), force=force, hint=OUT_HINT)
@@ -119,6 +123,14 @@ def evaluate(
     regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
     name = str(lay.parameters.get("method", "layout"))
     take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
+    if test is None:  # held-out folds of these takes, checked now so that a failure names the file
+        from mocaptk.clustering.evaluation import holdout_splits
+        from mocaptk.errors import source_error
+
+        try:
+            holdout_splits(traj.n_frames, take_list, split=split, folds=folds)
+        except OptionError as exc:
+            raise source_error(takes or session, f"{exc} (held-out blocks follow its takes)") from None
     with Console(stderr=True, quiet=quiet).status(f"evaluating {len(measured)}-marker layouts"):
         result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
                                  test=test_positions, regions=regions, name=name, split=split, folds=folds,

@@ -107,7 +107,7 @@ def rig(
     from rich.console import Console
 
     from mocaptk.atomic import claim_output
-    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.layout import check_members, read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.build import write_rig_outputs
     from .evaluate import layout_rigid_set
@@ -118,6 +118,7 @@ def rig(
     claim_output((out or layout.parent) / "rig_report.json", force=force)
     lay = read_layout(layout)
     traj, source = load_session(session)
+    check_members(lay, traj.labels, layout_path=layout, session_name=session.name)
     raw = traj
     expected = lay.source.get("sha256")
     if expected and expected != source["sha256"]:

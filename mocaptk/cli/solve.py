@@ -93,7 +93,7 @@ def solve(
     from rich.console import Console
 
     from mocaptk.atomic import claim_output
-    from mocaptk.clustering.layout import read_layout
+    from mocaptk.clustering.layout import check_members, read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS, load_model
     from mocaptk.jsonio import write_json
@@ -134,6 +134,8 @@ def solve(
             say(f"training the {model_kind or DEFAULT_KIND} model")
             solver = train_solver(lay, dense, source, kind=model_kind or DEFAULT_KIND, ridge=ridge,
                                   rigid_labels=rigid or ())
+        check_members(lay, solver.labels, layout_path=layout, session_name="the model's session"
+                      if model is not None else path.name)
         uncaptured = [label for label in lay.labels if label not in set(solver.layout_labels)]
         notes = [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
