@@ -288,3 +288,13 @@ def test_model_values_that_crashed_solve_are_refused(tmp_path, model_parts, chan
     with pytest.raises(InputFileError) as info:
         load_model(path, labelled=True)
     assert problem in one_line(info.value, path)
+
+
+def test_read_trajectories_takes_units_as_a_number_as_documented(tmp_path):
+    """docs/formats.md: "a number = millimetres per file unit"; from Python a float raised AttributeError."""
+    path = tmp_path / "faces.csv"
+    path.write_text("A_x,A_y,A_z\n1,2,3\n2,3,4\n")
+    traj = read_trajectories(path, rate=25, units=187.6)
+    assert traj.rate == 25 and np.allclose(traj.positions[0, 0], [187.6, 375.2, 562.8])
+    with pytest.raises(OptionError, match="unknown length units True"):
+        read_trajectories(path, rate=25, units=True)
