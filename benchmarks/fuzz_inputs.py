@@ -11,9 +11,10 @@ Kinds and the commands each case runs (in-process ``mocaptk.cli.main`` in an iso
 - ``sidecar``: a batch sidecar ``<stem>.mocaptk.json`` -> batch's per-session preparation
   (``session_argv``, ``input_files``), then the command it makes (every 20th case);
 - ``session``: header values of a session (C3D parameters POINT:RATE/UNITS/SCALE/LABELS, TRC
-  header fields) -> ``info``, and ``cluster`` every 20th case.
+  header fields) -> ``info``, and ``cluster`` every 5th case.
 
-Seeds are made by our own commands from the bundled sample (a layout, a model, a rig) and the
+``cluster`` runs with ``--method paper`` except on every 20th case (the default hybrid method
+costs 10x more CPU and reads the inputs the same way). Seeds are made by our own commands from the bundled sample (a layout, a model, a rig) and the
 sample's own takes/regions files. A JSON case mutates one or more nodes of the parsed seed (a value
 replaced by an interesting one: null, booleans, 0, -1, 1e308, 1e-300, NaN, a 5,000-digit integer,
 a 5,000-character or control-character string, an empty or wrong-typed container, a deep nest), a
@@ -434,7 +435,8 @@ def make_case(kind: str, seeds: dict[str, Path], labels: list[str], seed: int, i
     # the slow commands (plan, evaluate, cluster with costs) on a share of the cases only
     plan = ["plan", lay, "--session", cap, "--rig", "cara", "--out", out, "-q"]  # a 40-frame session
     evaluate = ["evaluate", s, "--layout", lay, "--seeds", "1", "--folds", "2", "--out", out + "/e.json", "-q"]
-    cluster = ["cluster", s, "--formats", "none", "--out", out, "-q"]
+    # the paper's method (0.15 CPU-s) for most cluster runs; the default hybrid (1-2 CPU-s) on 1 in 20
+    cluster = ["cluster", s, "--formats", "none", "--out", out, "-q", *(["--method", "paper"] if i % 20 else [])]
     if kind == "layout":
         case["argv"] = ({0: [*plan[:1], p, *plan[2:]], 8: [*evaluate[:3], p, *evaluate[4:]]}.get(i % 16)
                         or ["solve", p, cap, "--model", model, "--out", out, "--formats", "npz", "-q"])
@@ -445,7 +447,7 @@ def make_case(kind: str, seeds: dict[str, Path], labels: list[str], seed: int, i
     elif kind in ("regions_json", "regions_csv"):
         case["argv"] = [*cluster, "--regions", p]
     elif kind == "rig":
-        case["argv"] = [*plan[:5], p, *plan[6:]] if i % 10 else [*cluster, "--rig", p]
+        case["argv"] = [*plan[:5], p, *plan[6:]] if i % 10 else [*cluster[:7], "--rig", p]  # hybrid: weighs the rig
     elif kind == "sidecar":
         session = case_dir / "session.c3d"
         session.symlink_to(seeds["session"])
@@ -453,7 +455,7 @@ def make_case(kind: str, seeds: dict[str, Path], labels: list[str], seed: int, i
             (case_dir / name).symlink_to(seeds["regions_json" if name == "regions.json" else "takes"])
         case.update(sidecar=True, session=str(session), out=out, command="cluster", run=i % 20 == 0)
     else:
-        case["argv"] = ["info", p] if i % 20 else [*cluster[:1], p, *cluster[2:]]
+        case["argv"] = ["info", p] if i % 5 else [*cluster[:1], p, *cluster[2:]]
     return case
 
 
@@ -518,16 +520,27 @@ class Worker:
             self.proc.wait(timeout=30)
 
 
-def run_kind(kind: str, seeds: dict[str, Path], labels: list[str], cases: int, *, seed: int, timeout: float,
-             workers: int, memory_limit: int, start: int = 0, progress: bool = True) -> dict:
-    """Run ``cases`` cases of ``kind``; returns the tally and the findings."""
+def run_kinds(kinds: list[str], seeds: dict[str, Path], labels: list[str], cases: int, *, seed: int,
+              timeout: float, workers: int, memory_limit: int, start: int = 0, progress: bool = True,
+              partial: Path | None = None) -> dict:
+    """Run ``cases`` cases of each of ``kinds``, interleaved (case i of every kind, then i + 1: a
+    stopped campaign has as many cases of each); returns the tally and findings per kind (also
+    written to ``partial`` every 50 cases)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    outcomes, findings, began = Counter(), [], time.perf_counter()
+    order = [(i, kind) for i in range(start, start + cases) for kind in kinds]
+    outcomes = {kind: Counter() for kind in kinds}
+    findings: dict[str, list] = {kind: [] for kind in kinds}
+    began, done = time.perf_counter(), [0]
+
+    def summary() -> dict:
+        return {kind: {"cases": sum(outcomes[kind].values()), "outcomes": dict(outcomes[kind]),
+                       "findings": findings[kind][:40]} for kind in kinds} | {
+            "seconds": round(time.perf_counter() - began, 1), "load": os.getloadavg()[0], "seed": seed}
 
     def share(w: int) -> None:
         worker = Worker(memory_limit)
-        for i in range(start + w, start + cases, workers):
+        for i, kind in order[w::workers]:
             case_dir = Path(tempfile.mkdtemp(prefix=f"fz_{kind}_{i}_"))
             try:
                 case = make_case(kind, seeds, labels, seed, i, case_dir)
@@ -535,22 +548,23 @@ def run_kind(kind: str, seeds: dict[str, Path], labels: list[str], cases: int, *
                 outcome = classify(answer, case)
             finally:
                 shutil.rmtree(case_dir, ignore_errors=True)
-            outcomes[outcome] += 1
+            outcomes[kind][outcome] += 1
             if outcome not in ("ok", "error"):
-                findings.append({"kind": kind, "case": i, "outcome": outcome, "argv": case.get("argv"),
-                                 "stderr": answer.get("stderr", "")[-1500:], "warnings": answer.get("warnings")})
-            done = sum(outcomes.values())
-            if progress and done % 100 == 0:
-                print(f"  {kind}: {done} cases, {time.perf_counter() - began:.0f} s  {dict(outcomes)}", flush=True)
+                findings[kind].append({"case": i, "outcome": outcome, "argv": case.get("argv"),
+                                       "stderr": answer.get("stderr", "")[-1500:],
+                                       "warnings": answer.get("warnings")})
+            done[0] += 1
+            if done[0] % 50 == 0:
+                if progress:
+                    print(f"  {done[0]} cases, {time.perf_counter() - began:.0f} s  "
+                          + "  ".join(f"{k}={dict(v)}" for k, v in outcomes.items()), flush=True)
+                if partial is not None:
+                    partial.write_text(json.dumps(summary(), indent=1) + "\n")
         worker.close()
 
-    before = os.times()
     with ThreadPoolExecutor(workers) as pool:
         list(pool.map(share, range(workers)))
-    after = os.times()
-    cpu = after.children_user + after.children_system - before.children_user - before.children_system
-    return {"cases": cases, "seconds": round(time.perf_counter() - began, 1), "cpu_seconds": round(cpu, 1),
-            "outcomes": dict(outcomes), "findings": findings[:40], "load": os.getloadavg()[0]}
+    return summary()
 
 
 def main() -> None:
@@ -562,24 +576,24 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds per case before 'hang' (a loaded machine is slow)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--memory", type=int, default=6 << 30, help="address-space limit per worker (bytes)")
-    parser.add_argument("--json", type=Path, help="write the summary here (after each kind)")
+    parser.add_argument("--json", type=Path, help="write the summary here (every 50 cases and at the end)")
     args = parser.parse_args()
     seed_dir = Path(tempfile.mkdtemp(prefix="fz_seeds_"))
     seeds = make_seeds(seed_dir)
     from mocaptk.acquisition.formats import read_trajectories
 
     labels = list(read_trajectories(seeds["session"]).labels)
-    summary = json.loads(args.json.read_text()) if args.json and args.json.exists() else {}
-    for kind in args.kinds.split(","):
-        result = run_kind(kind, seeds, labels, args.cases, seed=args.seed, timeout=args.timeout,
-                          workers=args.workers, memory_limit=args.memory, start=args.start)
-        summary[kind] = result
-        print(f"{kind:13s} {result['cases']:6d} cases {result['seconds']:8.1f} s  "
-              + "  ".join(f"{k}={v}" for k, v in sorted(result["outcomes"].items())), flush=True)
-        for finding in result["findings"][:8]:
+    kinds = args.kinds.split(",")
+    result = run_kinds(kinds, seeds, labels, args.cases, seed=args.seed, timeout=args.timeout,
+                       workers=args.workers, memory_limit=args.memory, start=args.start, partial=args.json)
+    for kind in kinds:
+        print(f"{kind:13s} {result[kind]['cases']:6d} cases  "
+              + "  ".join(f"{k}={v}" for k, v in sorted(result[kind]["outcomes"].items())), flush=True)
+        for finding in result[kind]["findings"][:8]:
             print("   ", json.dumps(finding)[:600], flush=True)
-        if args.json:
-            args.json.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    print(f"{result['seconds']:.0f} s, load {result['load']:.1f}")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
     shutil.rmtree(seed_dir, ignore_errors=True)
 
 

@@ -161,7 +161,9 @@ def cluster(
     rigid: Rigid = None,
     rate: Rate = None,
     units: Units = None,
-    force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing, non-empty output folder as a "
+                               "whole: what else is in it goes too (e.g. evaluate's evaluation.json "
+                               "and .html beside layout.json; write those elsewhere with evaluate --out)."),
     quiet: Quiet = False,
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh for the rig (OBJ, PLY, glTF; "
                               "default: a surface through the dense markers)."),
@@ -249,7 +251,7 @@ def cluster(
                                   check_summary(build.report),
                                   animation_summary(build.report["animation"])]) + "\n"
         report = write_cluster_report(result, build, folder / "report.html", summary=summary)
-    if not quiet:
-        typer.echo(summary, nl=False)
+    if not quiet:  # the warnings were printed as they came (stderr): summary.txt keeps them, not stdout
+        typer.echo("".join(line for line in summary.splitlines(True) if not line.startswith("warning: ")), nl=False)
         typer.echo(report)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

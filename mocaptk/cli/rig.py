@@ -166,7 +166,7 @@ def region_summary(check: dict, what: str) -> str:
     """Per-region RMSE lines and where the largest error is (which marker, which frame)."""
     regions = check["regions"]
     lines = [f"  {region:<16} RMSE {r['rmse_mm']:.2f} mm, max {r['max_mm']:.2f} mm "
-             f"({r['markers']} markers)" for region, r in regions.items()]
+             f"({r['markers']} marker{'' if r['markers'] == 1 else 's'})" for region, r in regions.items()]
     others = [r["rmse_mm"] for name, r in regions.items() if name != "mouth"]
     if "mouth" in regions and sum(others) > 0:  # the weak region of a face rig (issue 11)
         lines.append(f"  mouth / mean of the other regions: "
