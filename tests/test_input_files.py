@@ -298,3 +298,15 @@ def test_read_trajectories_takes_units_as_a_number_as_documented(tmp_path):
     assert traj.rate == 25 and np.allclose(traj.positions[0, 0], [187.6, 375.2, 562.8])
     with pytest.raises(OptionError, match="unknown length units True"):
         read_trajectories(path, rate=25, units=True)
+
+
+def test_plug_in_gait_model_outputs_are_not_read_as_markers():
+    """POINT:ANGLES / FORCES / MOMENTS / POWERS share the POINT block but are degrees, newtons...:
+    they were read as markers in mm; now left out and counted (info shows the note)."""
+    from conftest import shared_path
+
+    path = shared_path("c3d", "btkdata", "PiG", "PiG_Calibration-FlatFoot-Full.c3d")
+    traj = read_trajectories(path)
+    assert traj.n_markers == 137 - 26 and traj.metadata["model_outputs"] == {"ANGLES": 26}
+    assert not any(label.endswith("Angles") for label in traj.labels)
+    assert any("26 model outputs are not markers" in note for note in traj.metadata["notes"])

@@ -133,7 +133,7 @@ def write_cluster_pictures(result, folder: Path) -> list[Path]:
 
 @app.command()
 def cluster(
-    sessions: list[Path] = typer.Argument(..., metavar="SESSION...", help="Dense session file (C3D, "
+    sessions: list[Path] = typer.Argument(..., metavar="SESSION", help="Dense session file (C3D, "
                                           "Vicon CSV, TRC, generic CSV, npz); several: one actor each, "
                                           "one layout for all (registered to the first)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
@@ -141,7 +141,7 @@ def cluster(
     method: str = typer.Option("hybrid", "--method", help="Layout method choosing the measured markers: "
                                "hybrid (default, the best on held-out data), paper (the paper's "
                                "representatives: Will, De Martino & Bezerra as written), qr, greedy, "
-                               "kmeans, thin-shell, set-cover, farthest-point, random. The paper's rule "
+                               "kmeans, thin-shell, set-cover, robust, farthest-point, random. The paper's rule "
                                "at --factor sets the count and the influence regions (see mocaptk compare)."),
     rig: str = typer.Option(None, "--rig", help="Camera rig the layout is for: cara, room or a rig "
                             "file; the method then avoids markers the rig sees badly or triangulates "

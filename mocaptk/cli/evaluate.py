@@ -74,7 +74,7 @@ def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, 
 
 @app.command()
 def evaluate(
-    session: Path = typer.Argument(..., help="Dense session the layout was computed from."),
+    session: Path = typer.Argument(..., metavar="SESSION", help="Dense session the layout was computed from."),
     layout: Path = typer.Option(..., "--layout", help="layout.json written by mocaptk cluster."),
     test: Path = typer.Option(None, "--test", help="Separate performance file (same markers) to test on; "
                               "default: held-out parts of the session."),
@@ -86,8 +86,9 @@ def evaluate(
     folds: int = typer.Option(5, "--folds", help="Folds for --split blocks."),
     seeds: int = typer.Option(10, "--seeds", help="Random layouts to average (mean ± sd)."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength, relative to the mean input variance."),
-    out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout); "
-                             "the HTML report goes beside it (evaluation.html)."),
+    out: Path = typer.Option(None, "--out", help="Output folder for evaluation.json and evaluation.html "
+                             "(as every other --out; default: beside the layout), or a .json file name "
+                             "(the HTML report goes beside it)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
@@ -110,6 +111,8 @@ def evaluate(
         raise OptionError(f"need at least 2 folds, got {folds}")
     from .cluster import OUT_HINT
 
+    if out is not None and out.suffix.lower() != ".json":  # a folder, as every other command's --out
+        out = out / "evaluation.json"
     out_path = claim_output(out or layout.with_name("evaluation.json"), force=force, hint=OUT_HINT)
     claim_output(out_path.with_suffix(".html"), force=force, hint=OUT_HINT)
     lay = read_layout(layout)
@@ -149,4 +152,4 @@ def evaluate(
               f"evaluated the {len(measured)} measured ones", file=sys.stderr)
     if not quiet:
         typer.echo(evaluation_table(result), nl=False)
-        typer.echo(f"wrote {out_path}\nwrote {report}")
+        typer.echo(f"wrote {out_path}\nwrote {out_path.parent}/{report}")  # the report line starts with its name

@@ -75,7 +75,7 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
 
 @app.command()
 def rig(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
     session: Path = typer.Option(..., "--session", help="The dense session the layout was made "
                                  "from (its neutral pose places the mesh and the joints)."),
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh (OBJ, PLY, glTF/GLB, STL, "

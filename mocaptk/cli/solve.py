@@ -59,8 +59,8 @@ def summary_text(summary: dict) -> str:
 
 @app.command()
 def solve(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
-    capture: Path = typer.Argument(..., help="Production capture holding the layout's markers "
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
+    capture: Path = typer.Argument(..., metavar="CAPTURE", help="Production capture holding the layout's markers "
                                    "(C3D, CSV, TRC); other markers are ignored."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     session: Path = typer.Option(None, "--session", help="Dense session to train on (default: the "
