@@ -982,7 +982,8 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
         return a[name]
 
     def finite(name: str, *, low: float = -np.inf, high: float = np.inf, nan: bool = False) -> None:
-        v = a[name][~np.isnan(a[name])] if nan else a[name]
+        v = a[name].astype(np.float64)  # float16 / int8 compared with 1e12 warned of an overflow
+        v = v[~np.isnan(v)] if nan else v
         if not (np.isfinite(v).all() and (v >= low).all() and (v <= high).all()):
             raise _BadModel(f"{name} has values out of range")
 

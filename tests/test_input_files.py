@@ -310,3 +310,16 @@ def test_plug_in_gait_model_outputs_are_not_read_as_markers():
     assert traj.n_markers == 137 - 26 and traj.metadata["model_outputs"] == {"ANGLES": 26}
     assert not any(label.endswith("Angles") for label in traj.labels)
     assert any("26 model outputs are not markers" in note for note in traj.metadata["notes"])
+
+
+def test_small_float_types_in_a_model_are_checked_without_warnings(tmp_path, model_parts):
+    arrays = {k: v.copy() for k, v in model_parts[0].items()}
+    arrays["cov"] = arrays["cov"].astype(np.float16)
+    header = np.frombuffer(json.dumps(model_parts[1]).encode(), np.uint8)
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": header})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            load_model(path, labelled=True)
+        except InputFileError as exc:
+            one_line(exc, path)
