@@ -34,7 +34,6 @@ import argparse
 import json
 import os
 import random
-import selectors
 import shutil
 import subprocess
 import sys
@@ -484,40 +483,25 @@ def classify(answer: dict, case: dict) -> str:
     return "error" if any(n in message for n in names) else "unnamed"
 
 
-class Worker:
-    """A CLI subprocess (memory-limited) running cases in-process; restarted after a crash or hang."""
+def _reader_worker():
+    """``benchmarks/fuzz_readers.py``'s worker process (memory-limited, restarted on a crash or hang)."""
+    import importlib.util
 
-    def __init__(self, memory_limit: int) -> None:
-        self.memory_limit, self.proc = memory_limit, None
+    if "fuzz_readers" not in sys.modules:  # its dataclasses look their module up by name
+        spec = importlib.util.spec_from_file_location("fuzz_readers", Path(__file__).with_name("fuzz_readers.py"))
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["fuzz_readers"] = module
+        spec.loader.exec_module(module)
+    return sys.modules["fuzz_readers"].Worker
 
-    def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(self.memory_limit)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, bufsize=1)
-        assert json.loads(self.proc.stdout.readline())["ready"]
+
+class Worker(_reader_worker()):
+    """A CLI subprocess running cases in-process (:data:`WORKER`)."""
+
+    script = WORKER
 
     def run(self, case: dict, timeout: float) -> dict:
-        if self.proc is None or self.proc.poll() is not None:
-            self.start()
-        self.proc.stdin.write(json.dumps(case) + "\n")
-        self.proc.stdin.flush()
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        if not sel.select(timeout):
-            self.proc.kill()
-            self.proc.wait()
-            self.proc = None
-            return {"outcome": "hang"}
-        line = self.proc.stdout.readline()
-        if not line:
-            code = self.proc.wait()
-            self.proc = None
-            return {"outcome": "crash", "stderr": f"worker exited with {code}"}
-        return json.loads(line)
-
-    def close(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.stdin.close()
-            self.proc.wait(timeout=30)
+        return self.ask(json.dumps(case), timeout)
 
 
 def run_kinds(kinds: list[str], seeds: dict[str, Path], labels: list[str], cases: int, *, seed: int,

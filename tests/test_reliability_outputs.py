@@ -131,6 +131,14 @@ def test_force_replaces_the_whole_folder(run_cli, session, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing aside, no lock left
 
 
+def old_folder(out: Path) -> Path:
+    """``out`` holding 17 files reading "old" (a killed swap's new folder holds 17 "new" ones)."""
+    out.mkdir()
+    for i in range(17):
+        (out / f"file{i:02d}.txt").write_text("old")
+    return out
+
+
 SWAP_KILLER = """
 import os, signal, sys
 from pathlib import Path
@@ -157,10 +165,7 @@ def test_sigkill_mid_swap_leaves_old_or_new_never_a_mix(tmp_path, kill_at):
     """Without an atomic exchange (two renames): killed before the swap, between its two renames,
     or after it (before the old folder is removed): the next claim recovers a complete folder,
     old or new, and cleans up."""
-    out = tmp_path / "out"
-    out.mkdir()
-    for i in range(17):
-        (out / f"file{i:02d}.txt").write_text("old")
+    out = old_folder(tmp_path / "out")
     proc = subprocess.run([sys.executable, "-c", SWAP_KILLER, str(out), str(kill_at)], cwd=REPO)
     assert proc.returncode == -signal.SIGKILL
     claim_output(out, force=True, folder=True)
@@ -218,10 +223,7 @@ def test_sigkill_during_the_exchange_swap_leaves_a_complete_out_at_every_moment(
     next claim only removes the leftover."""
     if not exchange_supported(tmp_path):
         pytest.skip("no renameat2(RENAME_EXCHANGE) on this system or filesystem")
-    out = tmp_path / "out"
-    out.mkdir()
-    for i in range(17):
-        (out / f"file{i:02d}.txt").write_text("old")
+    out = old_folder(tmp_path / "out")
     proc = subprocess.run([sys.executable, "-c", EXCHANGE_KILLER, str(out), str(kill_at)], cwd=REPO)
     assert proc.returncode == -signal.SIGKILL
     contents = {p.read_text() for p in out.iterdir()}  # as a reader sees it, before any recovery
@@ -232,18 +234,24 @@ def test_sigkill_during_the_exchange_swap_leaves_a_complete_out_at_every_moment(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+def holding_the_lock(argv: list[str], out: Path, *, cwd: Path | None = None) -> subprocess.Popen:
+    """``mocaptk ARGV`` started in a process, returned once it holds the lock of ``out``."""
+    first = subprocess.Popen([sys.executable, "-m", "mocaptk", *argv], cwd=cwd,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out.parent / f".{out.name}.lock").exists():
+        assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
+        time.sleep(0.05)
+    return first
+
+
 def test_second_writer_of_the_same_output_fails_in_one_line(run_cli, tmp_path):
     """Two concurrent ``cluster`` runs into one folder: the second stops at once, the first wins."""
     out = tmp_path / "out"
     session_file = SAMPLES / "dense_halfface.c3d"
-    first = subprocess.Popen([sys.executable, "-m", "mocaptk", "cluster", str(session_file), "--factor", "1.1",
-                              "--formats", "none", "--out", str(out), "-q"], cwd=tmp_path,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = holding_the_lock(["cluster", str(session_file), "--factor", "1.1", "--formats", "none",
+                              "--out", str(out), "-q"], out, cwd=tmp_path)
     try:
-        deadline = time.monotonic() + 120
-        while not (tmp_path / ".out.lock").exists():
-            assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
-            time.sleep(0.05)
         second = run_cli("cluster", session_file, "--factor", "1.3", "--formats", "none", "--out", out)
         line = one_error_line(second)
         assert line == f"mocaptk: error: {out}: is being written by another mocaptk process"
@@ -343,29 +351,24 @@ def test_a_failed_run_leaves_no_empty_output_folder(run_cli, session, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_second_solve_one_second_later_into_the_same_folder_is_refused(run_cli, session, tmp_path):
+def test_a_second_solve_one_second_later_into_the_same_folder_is_refused(run_cli, tmp_path):
     """The lock is taken before the training, not only for the final swap: two solves started 1 s
-    apart into one folder both ran to exit 0 before."""
+    apart into one folder (with --force) both ran to exit 0 before. The sample's 6,841 frames make
+    the first one train for seconds."""
     from mocaptk.cli import main
 
-    lay = tmp_path / "lay"
-    main(["cluster", str(session), "--no-stabilize", "--formats", "none", "--out", str(lay), "-q"])
-    out = tmp_path / "out"
-    first = subprocess.Popen([sys.executable, "-m", "mocaptk", "solve", str(lay / "layout.json"), str(session),
-                              "--session", str(session), "--out", str(out), "--formats", "npz", "--no-stabilize",
-                              "-q"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    session, lay, out = SAMPLES / "dense_halfface.c3d", tmp_path / "lay", tmp_path / "out"
+    main(["cluster", str(session), "--method", "paper", "--formats", "none", "--out", str(lay), "-q"])
+    argv = ["solve", str(lay / "layout.json"), str(session), "--session", str(session), "--out", str(out),
+            "--formats", "npz", "--force", "-q"]
+    first = holding_the_lock(argv, out)
     try:
-        deadline = time.monotonic() + 120
-        while not (tmp_path / ".out.lock").exists():
-            assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
-            time.sleep(0.05)
         time.sleep(1)
-        second = run_cli("solve", lay / "layout.json", session, "--session", session, "--out", out,
-                         "--formats", "npz", "--no-stabilize")
+        assert first.poll() is None, "the first solve ended within a second: nothing to race"
+        second = run_cli(*argv)
         assert one_error_line(second) == f"mocaptk: error: {out}: is being written by another mocaptk process"
     finally:
-        _, err = first.communicate(timeout=600)
+        _, err = first.communicate(timeout=900)
     assert first.returncode == 0, err
 
 
