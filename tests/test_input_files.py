@@ -315,3 +315,14 @@ def test_small_float_types_in_a_model_are_checked_without_warnings(tmp_path, mod
             load_model(path, labelled=True)
         except InputFileError as exc:
             one_line(exc, path)
+
+
+def test_rigid_labels_not_in_the_session_name_the_option(run_cli, tmp_path):
+    """A sidecar's "rigid" reaches cluster as --rigid: the error said only "rigid markers not in
+    the session" (the campaign's one unnamed sidecar error)."""
+    result = run_cli("cluster", SAMPLES / "dense_halfface.c3d", "--rigid", "R,X,NOSE_02_C", "--formats", "none",
+                     "--out", tmp_path / "out")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and lines == ["mocaptk: error: --rigid: 2 labels are not markers of "
+                                               "dense_halfface.c3d: R, X"], result.stderr
+    assert not (tmp_path / "out").exists()
