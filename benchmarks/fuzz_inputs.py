@@ -479,7 +479,8 @@ def classify(answer: dict, case: dict) -> str:
     if len(message) > MAX_LINE:
         return "long_line"
     names = [case["case"], Path(case["case"]).name, "session.c3d", "capture.c3d", "layout.json", "model.npz",
-             str(Path(case["cwd"]) / "out"), "--"]  # the case, another input, the output, or an option
+             str(Path(case["cwd"]) / "out"), "--",  # the case, another input, the output, or an option
+             *(f"{Path(case['cwd'])}/" for _ in (0,))]  # a file a sidecar names (relative to its folder)
     return "error" if any(n in message for n in names) else "unnamed"
 
 

@@ -326,3 +326,13 @@ def test_rigid_labels_not_in_the_session_name_the_option(run_cli, tmp_path):
     assert result.exit_code == 2 and lines == ["mocaptk: error: --rigid: 2 labels are not markers of "
                                                "dense_halfface.c3d: R, X"], result.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_sidecar_path_too_long_for_the_system_is_an_error_not_a_traceback(tmp_path):
+    from mocaptk.batch.sessions import input_files, session_argv
+
+    session = tmp_path / "s.c3d"
+    session.write_bytes(b"")
+    (tmp_path / "s.mocaptk.json").write_text(json.dumps({"regions": "regions.json" * 50}))
+    argv = session_argv("cluster", session, tmp_path / "o", [])
+    assert input_files("cluster", argv, session) == [session, tmp_path / "s.mocaptk.json"]

@@ -221,10 +221,18 @@ def _option_tokens(path: Path, name: str, param, value: Any) -> list[str]:
     return [name, _absolute(text, path.parent) if _is_path(param) else text]
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the system refuses (too long: a sidecar's value)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def sidecars(session: Path) -> list[Path]:
     """The options files that apply to ``session`` (folder-wide first, then its own)."""
     candidates = [session.parent / FOLDER_SIDECAR, session.with_name(session.stem + SIDECAR_SUFFIX)]
-    return [p for p in candidates if p.is_file()]
+    return [p for p in candidates if _is_file(p)]
 
 
 def session_argv(command: str, session: Path, out_dir: Path, options: list[str]) -> list[str]:
@@ -259,11 +267,11 @@ def input_files(command: str, argv: list[str], session: Path) -> list[Path]:
     """Files the run reads: the session, its sidecars and every existing path-valued option."""
     table = _option_table(click_command(command))
     files = [session, *sidecars(session)]
-    if COMMANDS[command].layout_argument and Path(argv[1]).is_file():
+    if COMMANDS[command].layout_argument and _is_file(Path(argv[1])):
         files.append(Path(argv[1]))
     for name, value in zip(argv, argv[1:]):
         param = table.get(name)
-        if param is not None and not _controlled(param) and _is_path(param) and Path(value).is_file():
+        if param is not None and not _controlled(param) and _is_path(param) and _is_file(Path(value)):
             files.append(Path(value))
     return list(dict.fromkeys(files))
 

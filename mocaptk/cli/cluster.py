@@ -212,7 +212,8 @@ def cluster(
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
         traj, source = load_session(session, rate=rate, units=units)
-        unknown = [label for label in rigid_labels(rigid) or () if label not in set(traj.labels)]
+        unknown = [label for label in (rigid_labels(rigid) if not no_stabilize else None) or ()
+                   if label not in set(traj.labels)]
         if unknown:  # named here: from a batch sidecar the option is not on the user's command line
             raise OptionError(f"--rigid: {len(unknown)} labels are not markers of {session.name}: "
                               + ", ".join(unknown[:5]))
