@@ -252,7 +252,7 @@ def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | o
     from .symmetry import mirror_label
 
     known = set(labels)
-    unknown = list(dict.fromkeys(m for c in layout.clusters for m in c.members
+    unknown = list(dict.fromkeys(m for c in layout.clusters for m in (c.representative, *c.members)
                                  if m not in known and mirror_label(m) not in known))
     if unknown:
         raise InputFileError(layout_path, f"{len(unknown)} layout members are not markers of {session_name} "

@@ -57,6 +57,11 @@ def read_regions(path: str | os.PathLike[str], labels: Sequence[str]) -> dict[st
             regions.setdefault(row[1].strip(), []).append(row[0].strip())
     if not regions:
         raise InputFileError(path, "no regions defined")
+    for name, members in regions.items():  # a line break would split every message naming it
+        odd = next((t for t in (name, *members)
+                    if any((ch.isspace() and ch != " ") or ord(ch) < 32 or 127 <= ord(ch) < 160 for ch in t)), None)
+        if odd is not None:
+            raise InputFileError(path, f"{quoted(odd)} holds a control character or a line break")
     seen: dict[str, str] = {}
     for name, members in regions.items():
         for label in members:

@@ -336,3 +336,33 @@ def test_sidecar_path_too_long_for_the_system_is_an_error_not_a_traceback(tmp_pa
     (tmp_path / "s.mocaptk.json").write_text(json.dumps({"regions": "regions.json" * 50}))
     argv = session_argv("cluster", session, tmp_path / "o", [])
     assert input_files("cluster", argv, session) == [session, tmp_path / "s.mocaptk.json"]
+
+
+def test_regions_with_a_line_break_in_a_name_are_refused(tmp_path, session):
+    path = tmp_path / "regions.json"
+    for odd in ("\x1d", "\u2028", "\t", "\n"):  # a name str.splitlines() splits: messages broke
+        path.write_text(json.dumps({f"mouth{odd}and more": ["MOUTH_01_L"]}))
+        with pytest.raises(InputFileError) as info:
+            read_regions(path, session.labels)
+        assert "holds a control character or a line break" in one_line(info.value, path)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--formats", "json,forehead_brow_01_c"], "--formats: unknown rig format(s) forehead_brow_01_c"),
+    (["--rigid", "A,B"], "--rigid: stabilization needs at least 3 distinct rigid markers, got 2"),
+])
+def test_cluster_options_a_sidecar_can_set_are_named_before_any_work(run_cli, tmp_path, args, message):
+    result = run_cli("cluster", SAMPLES / "dense_halfface.c3d", *args, "--out", tmp_path / "out")
+    assert result.exit_code == 2 and result.stderr == f"mocaptk: error: {message}" + result.stderr[
+        len(f"mocaptk: error: {message}"):] and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert message in result.stderr and not (tmp_path / "out").exists()
+
+
+def test_layout_representatives_unknown_to_the_session_name_the_layout(tmp_path, layout_doc):
+    from mocaptk.clustering.layout import check_members
+
+    doc = json.loads(json.dumps(layout_doc))
+    doc["clusters"][0]["representative"] = "mm"  # a campaign case: solve's report raised KeyError
+    layout = read_layout(write_layout_doc(tmp_path / "layout.json", doc))
+    with pytest.raises(InputFileError, match="not markers of s.c3d .*: mm"):
+        check_members(layout, ["MOUTH_01_L"], layout_path=tmp_path / "layout.json", session_name="s.c3d")

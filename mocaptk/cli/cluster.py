@@ -198,6 +198,12 @@ def cluster(
         raise OptionError(f"--factor must be > 0, got {factor}")
     if step < 1:
         raise OptionError(f"--step must be >= 1, got {step}")
+    unknown_formats = [f for f in parse_formats(formats) if f not in ("json", "fbx", "glb", "none")]
+    if unknown_formats:
+        raise OptionError(f"--formats: unknown rig format(s) {', '.join(unknown_formats[:5])} (choose from json, fbx, glb, none)")
+    given_rigid = rigid_labels(rigid) if not no_stabilize else None
+    if given_rigid is not None and len(set(given_rigid)) < 3:
+        raise OptionError(f"--rigid: stabilization needs at least 3 distinct rigid markers, got {len(set(given_rigid))}")
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
@@ -212,8 +218,7 @@ def cluster(
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
         traj, source = load_session(session, rate=rate, units=units)
-        unknown = [label for label in (rigid_labels(rigid) if not no_stabilize else None) or ()
-                   if label not in set(traj.labels)]
+        unknown = [label for label in given_rigid or () if label not in set(traj.labels)]
         if unknown:  # named here: from a batch sidecar the option is not on the user's command line
             raise OptionError(f"--rigid: {len(unknown)} labels are not markers of {session.name}: "
                               + ", ".join(unknown[:5]))
