@@ -89,7 +89,7 @@ class Camera:
         if np.abs(values["tvec"][0]).max() > MAX_REACH_MM or np.abs(values["matrix"][0]).max() > MAX_REACH_MM:
             raise ValueError(f"camera {self.name!r}: tvec or matrix beyond {MAX_REACH_MM:g} (mm / pixels)")
         object.__setattr__(self, "image_size", (width, height))
-        object.__setattr__(self, "name", str(self.name))
+        object.__setattr__(self, "name", " ".join(str(self.name).split()))  # a tab broke plan.png's text
 
     @property
     def rotation(self) -> np.ndarray:

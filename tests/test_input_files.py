@@ -366,3 +366,12 @@ def test_layout_representatives_unknown_to_the_session_name_the_layout(tmp_path,
     layout = read_layout(write_layout_doc(tmp_path / "layout.json", doc))
     with pytest.raises(InputFileError, match="not markers of s.c3d .*: mm"):
         check_members(layout, ["MOUTH_01_L"], layout_path=tmp_path / "layout.json", session_name="s.c3d")
+
+
+def test_camera_names_with_a_tab_are_read_as_spaces(tmp_path):
+    """plan.png drew a camera named "A\\tB" with matplotlib's "Glyph 9 missing" warning."""
+    path = save_rig(cara_rig(), tmp_path / "rig.json")
+    doc = json.loads(path.read_text())
+    doc["cameras"][0]["name"] = "cam\tone"
+    path.write_text(json.dumps(doc))
+    assert load_rig(path).cameras[0].name == "cam one"
