@@ -37,7 +37,7 @@ EZC3D_MAX_POINTS = 0x7FFF
 
 
 def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False,
-             reader: str = "mocaptk") -> Trajectories:
+             reader: str = "mocaptk", model_outputs: bool = True) -> Trajectories:
     """Read the 3-D points of a C3D file.
 
     Parameters
@@ -46,6 +46,10 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False,
     strip_prefixes : drop ``Subject:`` label prefixes (the subjects stay in the metadata).
     reader : ``"mocaptk"`` (our numpy reader, ezc3d if it fails) or ``"ezc3d"`` (ezc3d in a
         guarded child, our reader where ezc3d cannot read or misreads the file, noted).
+    model_outputs : keep the points POINT:ANGLES / FORCES / MOMENTS / POWERS list (Plug-in Gait's
+        joint angles in degrees, forces...; every point, as other C3D readers give them); False
+        leaves them out (noted, counted in metadata ``model_outputs``), as ``read_trajectories``
+        and so every command does: they are no markers.
 
     Returns
     -------
@@ -69,8 +73,19 @@ def read_c3d(path: str | os.PathLike[str], *, strip_prefixes: bool = False,
     except MemoryError:  # within MAX_POINT_SAMPLES but more than this machine/process can hold
         raise InputFileError(path, f"not enough memory to read {structure.n_frames} frames of "
                                    f"{structure.n_points} markers") from None
+    outputs = {} if model_outputs else _model_outputs(structure, labels)
+    if outputs:  # Plug-in Gait's angles, forces, moments, powers share POINT but are no markers
+        dropped = sorted(i for columns in outputs.values() for i in columns)
+        if len(dropped) == len(labels):
+            raise InputFileError(path, "no 3-D marker data (every point is a model output: "
+                                       + ", ".join(f"POINT:{k}" for k in outputs) + ")")
+        keep = np.setdiff1d(np.arange(len(labels)), dropped)
+        xyz, residual, labels = xyz[:, keep], residual[:, keep], [labels[i] for i in keep]
+        notes.append(f"{len(dropped)} model outputs are not markers and were left out ("
+                     + ", ".join(f"{len(v)} POINT:{k}" for k, v in outputs.items()) + ")")
     metadata: dict[str, Any] = {
         "source": str(path), "format": "c3d", "original_units": units,
+        "model_outputs": {k: len(v) for k, v in outputs.items()},
         "subjects": _subjects(structure, labels),
         "takes": _takes(structure, notes),
         "descriptions": _descriptions(structure, labels),
@@ -136,6 +151,26 @@ def _ezc3d_points(s: C3DStructure) -> tuple[np.ndarray, np.ndarray] | str:
         return (f"ezc3d's frame layout ({result.analog_words} analog samples per frame) "
                 f"disagrees with the file's ({s.analog_words})")
     return result.xyz, result.residual
+
+
+#: POINT groups of model outputs (Vicon Plug-in Gait and others): points that are no markers.
+MODEL_OUTPUTS = ("ANGLES", "FORCES", "MOMENTS", "POWERS")
+
+
+def _model_outputs(s: C3DStructure, labels: list[str]) -> dict[str, list[int]]:
+    """Columns of ``labels`` that POINT:ANGLES / FORCES / MOMENTS / POWERS list, per group."""
+    index: dict[str, int] = {}
+    for i, label in enumerate(labels):
+        index.setdefault(label.strip(), i)
+    found = {}
+    for group in MODEL_OUTPUTS:
+        value = s.param("POINT", group)
+        if value is None or isinstance(value, np.ndarray):
+            continue
+        columns = sorted({index[v.strip()] for v in value if isinstance(v, str) and v.strip() in index})
+        if columns:
+            found[group] = columns
+    return found
 
 
 def _units(s: C3DStructure) -> tuple[float, str]:

@@ -19,8 +19,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mocaptk.errors import InputFileError
-from mocaptk.jsonio import write_json
+from mocaptk.errors import InputFileError, quoted
+from mocaptk.jsonio import parse_json, read_input_bytes, write_json
 
 RIG_FORMAT = "mocaptk.camera_rig"
 RIG_VERSION = 1
@@ -28,6 +28,12 @@ RIG_VERSION = 1
 #: Default aim point of the presets: the centre of the ICT-FaceKit face in mm
 #: (face looks toward +Z, Y up, origin inside the head).
 FACE_CENTER_MM = (0.0, 0.0, 70.0)
+
+
+#: Largest image side (pixels) and camera distance / focal length (mm, pixels) a rig may give:
+#: beyond them, projections overflow.
+MAX_PIXELS = 1 << 20
+MAX_REACH_MM = 1e7
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,11 +81,15 @@ class Camera:
         if dist.size > 5:
             raise ValueError(f"camera {self.name!r}: at most 5 distortion coefficients")
         object.__setattr__(self, "distortion", np.pad(dist, (0, 5 - dist.size)))
-        width, height = (int(v) for v in self.image_size)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"camera {self.name!r}: image size must be positive")
+        size = np.asarray(self.image_size, dtype=np.float64).ravel()
+        if size.shape != (2,) or not (np.isfinite(size).all() and (size >= 1).all() and (size <= MAX_PIXELS).all()):
+            raise ValueError(f"camera {self.name!r}: image size must be 2 whole numbers of pixels, "
+                             f"1..{MAX_PIXELS}")
+        width, height = (int(v) for v in size)
+        if np.abs(values["tvec"][0]).max() > MAX_REACH_MM or np.abs(values["matrix"][0]).max() > MAX_REACH_MM:
+            raise ValueError(f"camera {self.name!r}: tvec or matrix beyond {MAX_REACH_MM:g} (mm / pixels)")
         object.__setattr__(self, "image_size", (width, height))
-        object.__setattr__(self, "name", str(self.name))
+        object.__setattr__(self, "name", " ".join(str(self.name).split()))  # a tab broke plan.png's text
 
     @property
     def rotation(self) -> np.ndarray:
@@ -259,28 +269,30 @@ def save_rig(rig: CameraRig, path: str | os.PathLike[str], *, force: bool = True
 
 def load_rig(path: str | os.PathLike[str]) -> CameraRig:
     """Read a rig: mocaptk JSON, or a Qualisys ``.qca.txt`` calibration (by content)."""
-    import json
-
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
+    text = read_input_bytes(path, what="a camera rig").decode("utf-8", errors="replace")
     if text.lstrip().startswith("<"):
         return read_qca(path)
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFileError(path, f"not a camera rig JSON or Qualisys .qca.txt ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != RIG_FORMAT:
+    if not text.lstrip().startswith("{"):
+        raise InputFileError(path, "not a camera rig JSON or Qualisys .qca.txt")
+    data = parse_json(text, path)
+    if data.get("format") != RIG_FORMAT:
         raise InputFileError(path, f"not a camera rig (expected format {RIG_FORMAT!r})")
     if data.get("version") != RIG_VERSION:
-        raise InputFileError(path, f"unsupported camera rig version {data.get('version')!r}")
+        raise InputFileError(path, f"unsupported camera rig version {quoted(data.get('version'))}")
+    rate = data.get("rate")
+    if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float))
+                             or not 0 < rate < 1e6):
+        raise InputFileError(path, "malformed camera rig: rate must be a positive number of Hz or null")
+    if not isinstance(data.get("metadata") or {}, dict):
+        raise InputFileError(path, "malformed camera rig: metadata must be an object")
     try:
         cameras = tuple(Camera.from_dict(cam) for cam in data["cameras"])
-        return CameraRig(cameras, name=str(data.get("name", "rig")), rate=data.get("rate"),
+        return CameraRig(cameras, name=str(data.get("name", "rig")), rate=rate,
                          metadata=dict(data.get("metadata") or {}))
-    except (KeyError, TypeError, ValueError) as exc:
+    except KeyError as exc:
+        raise InputFileError(path, f"malformed camera rig: no {quoted(exc.args[0])}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
         raise InputFileError(path, f"malformed camera rig: {exc}") from None
 
 

@@ -98,7 +98,7 @@ def read_trajectories(path: str | os.PathLike[str], *, fmt: str | None = None, u
         if fmt == "c3d":
             from .c3d_read import read_c3d
 
-            return read_c3d(path, strip_prefixes=strip_prefixes)
+            return read_c3d(path, strip_prefixes=strip_prefixes, model_outputs=False)
         if fmt == "vicon_csv":
             from .vicon_csv import read_vicon_csv
 

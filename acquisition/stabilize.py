@@ -305,7 +305,8 @@ def _pair_distance_stats(pos: np.ndarray, visible: np.ndarray,
         count = both.sum(axis=0)
         has = count > 0
         median = np.take_along_axis(np.sort(d, axis=0), np.maximum(count - 1, 0)[None] // 2, axis=0)[0]
-        dev = np.where(both, np.abs(d - median), np.inf)
+        with np.errstate(invalid="ignore"):  # inf - inf where never seen together: dropped below
+            dev = np.where(both, np.abs(d - median), np.inf)
         p95 = np.take_along_axis(np.sort(dev, axis=0), (np.maximum(count - 1, 0)[None] * 95) // 100, axis=0)[0]
         typical[lo:hi] = np.where(has, median, np.inf)
         change[lo:hi] = np.where(has, p95, np.inf)

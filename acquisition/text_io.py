@@ -78,13 +78,14 @@ def looks_utf16(head: bytes) -> bool:
     return False
 
 
-def mm_per_unit(units: str, *, source: str | os.PathLike[str] | None = None) -> float:
-    """Millimetres per ``units`` (mm, cm, dm, m, in, or a positive number = mm per unit).
+def mm_per_unit(units: str | float, *, source: str | os.PathLike[str] | None = None) -> float:
+    """Millimetres per ``units`` (mm, cm, dm, m, in, or a positive number = mm per unit, given as
+    text or, from Python, as a number: ``read_trajectories(p, units=187.6)``).
 
     Unknown units raise :class:`InputFileError` naming ``source`` when the units came from a file,
     else :class:`OptionError` (a bad ``--units`` option).
     """
-    key = units.strip().lower()
+    key = str(units).strip().lower() if isinstance(units, (str, int, float)) and not isinstance(units, bool) else ""
     if key in MM_PER_UNIT:
         return MM_PER_UNIT[key]
     try:  # a bare number: millimetres per file unit (e.g. Blender units scaled by a known distance)

@@ -241,7 +241,10 @@ class Campaign:
 
 
 class Worker:
-    """A reader subprocess with a memory limit; restarted after a crash or a hang."""
+    """A worker subprocess (``script``: reads one request per stdin line, answers one JSON line)
+    with a memory limit; restarted after a crash or a hang."""
+
+    script = WORKER
 
     def __init__(self, memory_limit: int) -> None:
         self.memory_limit = memory_limit
@@ -249,15 +252,19 @@ class Worker:
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", WORKER, str(self.memory_limit)], stdin=subprocess.PIPE,
+            [sys.executable, "-c", self.script, str(self.memory_limit)], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, bufsize=1)
         assert json.loads(self.proc.stdout.readline())["ready"]
 
     def read(self, path: str, timeout: float, rate: float | None = None) -> dict:
+        return self.ask(f"{path}\t{rate or ''}", timeout)
+
+    def ask(self, request: str, timeout: float) -> dict:
+        """Send one request line; its answer, or ``hang`` / ``crash`` (the worker restarts)."""
         if self.proc is None or self.proc.poll() is not None:
             self.start()
         assert self.proc and self.proc.stdin and self.proc.stdout
-        self.proc.stdin.write(f"{path}\t{rate or ''}\n")
+        self.proc.stdin.write(request + "\n")
         self.proc.stdin.flush()
         import selectors
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mocaptk.errors import InputFileError
+from mocaptk.errors import InputFileError, shorten
 from mocaptk.jsonio import read_json, write_json
 
 FORMAT = "mocaptk.layout"
@@ -101,6 +102,8 @@ def read_layout(path: str | os.PathLike[str]) -> Layout:
         regions = tuple(_region(r, f"regions[{i}]") for i, r in enumerate(_list(data, "regions")))
         source, parameters = (_field(data, key, dict, "an object") for key in ("source", "parameters"))
         _check_reading(source)
+        _check_source(source)
+        _check_parameters(parameters)
         _check_extras(data)
     except _Malformed as exc:
         raise InputFileError(path, f"malformed layout: {exc}") from None
@@ -184,6 +187,36 @@ def _check_reading(source: dict) -> None:
         raise _Malformed("source.reading.first_frame must be a whole number")
 
 
+def _check_source(source: dict) -> None:
+    """``source.path`` (the session's file name, looked up by solve / rig) and ``source.sha256``."""
+    path = source.get("path")
+    if path is not None:
+        if not isinstance(path, str) or not path or "\0" in path:
+            raise _Malformed("source.path must be a file name")
+        if len(os.fsencode(path)) > 4096 or any(len(os.fsencode(part)) > 255 for part in Path(path).parts):
+            raise _Malformed("source.path is too long for a file name")
+    if source.get("sha256") is not None and not isinstance(source["sha256"], str):
+        raise _Malformed("source.sha256 must be a text")
+
+
+#: Types of the parameters that commands read back from a layout (others are only shown).
+_PARAMETERS = {"stabilized": (bool, "true or false"), "mirror": (bool, "true or false"),
+               "method": (str, "a text"), "factor": ((int, float), "a number")}
+
+
+def _check_parameters(parameters: dict) -> None:
+    for key, (kind, what) in _PARAMETERS.items():
+        value = parameters.get(key)
+        if value is not None and (not isinstance(value, kind) or (kind != bool and isinstance(value, bool))):
+            raise _Malformed(f"parameters.{key} must be {what}")
+
+
+#: Largest coordinate (mm) of a sagittal-plane point, and the range of its normal's length: the
+#: writer stores a unit normal near the face; beyond these, products over- or underflow.
+_PLANE_REACH_MM = 1e6
+_NORMAL_LENGTH = (1e-6, 1e6)
+
+
 def _check_extras(data: dict) -> None:
     """The optional top-level keys that rig, plan, evaluate and the report read back."""
     if data.get("sagittal_plane") is not None:
@@ -202,6 +235,10 @@ def _check_extras(data: dict) -> None:
             raise _Malformed("orientation.frame must be 3 rows of 3 finite numbers")
         if orientation.get("labels") not in ("agree", "contradict", "decided", "none"):
             raise _Malformed("orientation.labels must be agree, contradict, decided or none")
+        if max(abs(v) for v in plane["point"]) > _PLANE_REACH_MM:
+            raise _Malformed(f"sagittal_plane.point is more than {_PLANE_REACH_MM:g} mm away")
+        if not _NORMAL_LENGTH[0] <= math.hypot(*plane["normal"]) <= _NORMAL_LENGTH[1]:
+            raise _Malformed("sagittal_plane.normal must be a direction (length about 1, not zero)")
     if data.get("stabilization") is not None:
         stabilization = _field(data, "stabilization", dict, "an object")
         if stabilization.get("rigid_labels") is not None:
@@ -247,3 +284,17 @@ def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str 
         raise InputFileError(layout_path, f"{len(unknown)} layout markers are not in {session_name}: "
                              + ", ".join(unknown[:5]))
     return [index[label] for label in measured]
+
+
+def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,
+                  session_name: str) -> None:
+    """InputFileError naming the layout file when a cluster member is neither a marker of the
+    session ``session_name`` (``labels``) nor the mirror image of one (a half-face layout's twin)."""
+    from .symmetry import mirror_label
+
+    known = set(labels)
+    unknown = list(dict.fromkeys(m for c in layout.clusters for m in (c.representative, *c.members)
+                                 if m not in known and mirror_label(m) not in known))
+    if unknown:
+        raise InputFileError(layout_path, f"{len(unknown)} layout members are not markers of {session_name} "
+                             "(nor mirror twins of them): " + ", ".join(shorten(m, 40) for m in unknown[:5]))

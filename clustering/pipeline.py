@@ -297,7 +297,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         elif idx.size >= 2 and result.unreachable:
             notes.append(f"region {name!r}: threshold {result.threshold:.3f} (factor {factor:g} x mean "
                          f"correlation {result.mean_correlation:.3f}) is not below its largest correlation "
-                         f"{result.max_correlation:.3f}, so every marker is its own cluster; "
+                         f"{result.max_correlation:.3f}, so the paper's rule makes every marker its own "
+                         f"cluster (counted in the layout's size{'' if options.method == 'paper' else f'; --method {options.method} places the measured markers'}); "
                          f"--factor {result.clustering_factor():.3f} or lower clusters it")
         member_labels = regions[name]
         reps = [member_labels[r] for r in result.representatives]
@@ -396,14 +397,30 @@ def load_session(path: str, *, rate: float | None = None, units: str | None = No
     from mocaptk.acquisition.formats import read_trajectories
 
     file = Path(path)
+    if file.is_dir():
+        raise InputFileError(file, "is a folder, expected a file")
     if not file.is_file():
         raise InputFileError(file, "no such file")
-    traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
+    # the sha256 recorded is that of the bytes read: hashed before, and the file unchanged after
+    before = _identity(file)
     with open(file, "rb") as handle:  # streamed: no copy of the whole file in memory
         digest = hashlib.file_digest(handle, "sha256").hexdigest()
+    traj = read_trajectories(file, strip_prefixes=True, rate=rate, units=units)
+    if _identity(file) != before:
+        raise InputFileError(file, "changed while it was read (still being written or copied?); "
+                                   "run again when it is complete")
     where = {} if layout_folder is None else {
         "absolute": str(file.resolve()), "relative": os.path.relpath(file.resolve(), Path(layout_folder).resolve())}
     return traj, {"path": file.name, "sha256": digest, **where}
+
+
+def _identity(file: Path) -> tuple[int, ...]:
+    """What changes when a file is rewritten, cut or replaced: inode, size, modification time (ns)."""
+    try:
+        stat = file.stat()
+    except OSError:  # removed meanwhile
+        return ()
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
 
 
 def stabilization_note(stabilization: dict[str, Any]) -> str | None:

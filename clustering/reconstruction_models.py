@@ -56,8 +56,8 @@ from typing import Any
 import numpy as np
 
 from mocaptk.atomic import write_bytes
-from mocaptk.errors import InputFileError, OptionError, unreadable
-from mocaptk.jsonio import dumps
+from mocaptk.errors import InputFileError, OptionError, quoted, unreadable
+from mocaptk.jsonio import dumps, parse_json
 from mocaptk.surface_mesh import marker_surface_mesh, mesh_edges
 from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
@@ -941,35 +941,185 @@ def save_model(model: FaceModel, path: str | os.PathLike[str], *, header: Mappin
     return write_bytes(path, buffer.getvalue(), force=force)
 
 
-def load_model(path: str | os.PathLike[str], *,
-               session: Mapping[str, Any] | None = None) -> tuple[FaceModel, dict]:
+def load_model(path: str | os.PathLike[str], *, session: Mapping[str, Any] | None = None,
+               labelled: bool = False) -> tuple[FaceModel, dict]:
     """Read a model written by :func:`save_model`; returns ``(model, header)``.
 
     ``session``: the identity the model must have been trained on (``header["session"]`` must
-    match it on every key given); raises :class:`InputFileError` otherwise.
+    match it on every key given); raises :class:`InputFileError` otherwise. Every array's shape and
+    every header field is checked first: a damaged or hand-made file is an error naming it.
+    ``labelled``: the header must name the markers (``labels``, ``layout_labels``, a ``session``),
+    as solve's model files do.
     """
-    try:
-        with np.load(path, allow_pickle=False) as data:
+    try:  # our own handle: np.load leaves its own open when the archive is damaged
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except OSError as exc:
         raise unreadable(path, exc) from None
-    except (ValueError, zipfile.BadZipFile, EOFError):
+    except (ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, RuntimeError):
         raise InputFileError(path, "not a mocaptk model file (.npz)") from None
+    if not isinstance(arrays.get("header"), np.ndarray) or arrays["header"].dtype != np.uint8:
+        raise InputFileError(path, "not a mocaptk model file (no header)")
     try:
-        header = json.loads(bytes(arrays.pop("header")).decode())
-    except (KeyError, ValueError):
+        header = parse_json(bytes(arrays.pop("header")).decode(), path)
+    except UnicodeDecodeError:
         raise InputFileError(path, "not a mocaptk model file (no header)") from None
-    if header.get("format") != MODEL_FORMAT:
-        raise InputFileError(path, f"not a mocaptk model file (format {header.get('format')!r})")
+    if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
+        found = header.get("format") if isinstance(header, dict) else None
+        raise InputFileError(path, f"not a mocaptk model file (format {quoted(found)})")
     if header.get("version") != MODEL_VERSION:
-        raise InputFileError(path, f"model version {header.get('version')} is not supported "
+        raise InputFileError(path, f"model version {quoted(header.get('version'))} is not supported "
                              f"(this mocaptk reads version {MODEL_VERSION})")
-    trained = header.get("session") or {}
+    trained = header.get("session") if isinstance(header.get("session"), dict) else {}
     for key, value in (session or {}).items():
         if trained.get(key) != value:
             raise InputFileError(path, f"the model was trained on another session ({key} "
-                                 f"{trained.get(key)!r}, expected {value!r})")
+                                 f"{quoted(trained.get(key))}, expected {quoted(value)})")
+    try:
+        _check_model(header, arrays, labelled=labelled)
+    except _BadModel as exc:
+        raise InputFileError(path, f"malformed model file: {exc}") from None
     try:
         return model_from_arrays(header["kind"], arrays), header
-    except KeyError as exc:
-        raise InputFileError(path, f"model file is incomplete (no {exc.args[0]})") from None
+    except (ValueError, IndexError, np.linalg.LinAlgError) as exc:  # e.g. a singular thin-shell
+        raise InputFileError(path, f"malformed model file ({type(exc).__name__}: {exc})") from None
+
+
+class _BadModel(ValueError):
+    """A model file's array or header field is not what :func:`save_model` writes."""
+
+
+#: Arrays every kind of model file holds, and those of each kind (beside layout, neutral, errors).
+_KIND_ARRAYS = {"ridge": ("mean", "cov", "frames", "ridge"),
+                "local-ridge": ("mean", "cov", "frames", "ridge", "neighbours"),
+                "tapered-ridge": ("mean", "cov", "frames", "ridge", "taper_mm", "cv_lengths_mm", "cv_rmse_mm"),
+                "thin-shell": ("faces",)}
+_PDM_ARRAYS = ("faces", "pdm_neighbours", "pdm_neighbour_counts", "pdm_tangents", "pdm_mean", "pdm_axes",
+               "pdm_bounds", "pdm_coef", "pdm_vertex_bounds")
+#: Largest coordinate (mm) of a stored position: beyond it, squares overflow.
+_REACH_MM = 1e6
+
+
+def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -> None:
+    """Raise :class:`_BadModel` unless ``header`` and arrays ``a`` are a model's, shapes matching."""
+    kind = header.get("kind")
+    if kind not in MODEL_KINDS:
+        raise _BadModel(f"unknown model kind {quoted(kind)} (known: {', '.join(MODEL_KINDS)})")
+    names = ("layout", "neutral", "error_base", "error_drop",
+             *_KIND_ARRAYS.get(kind, _PDM_ARRAYS))
+    missing = [n for n in names if n not in a]
+    if missing:
+        raise _BadModel(f"no {missing[0]} array")
+    for name in names:
+        if a[name].dtype.kind not in "iuf":
+            raise _BadModel(f"{name} must hold numbers")
+
+    def shape(name: str, *dims: int) -> np.ndarray:
+        if a[name].shape != dims:
+            raise _BadModel(f"{name} has shape {a[name].shape}, expected {dims}")
+        return a[name]
+
+    def finite(name: str, *, low: float = -np.inf, high: float = np.inf, nan: bool = False) -> None:
+        v = a[name].astype(np.float64)  # float16 / int8 compared with 1e12 warned of an overflow
+        v = v[~np.isnan(v)] if nan else v
+        if not (np.isfinite(v).all() and (v >= low).all() and (v <= high).all()):
+            raise _BadModel(f"{name} has values out of range")
+
+    def indices(name: str, n: int) -> None:
+        if a[name].dtype.kind not in "iu" or a[name].size and (a[name].min() < 0 or a[name].max() >= n):
+            raise _BadModel(f"{name} must hold indices 0..{n - 1}")
+
+    neutral = a["neutral"]
+    if neutral.ndim != 2 or neutral.shape[1:] != (3,) or not neutral.shape[0]:
+        raise _BadModel(f"neutral has shape {neutral.shape}, expected (markers, 3)")
+    m = neutral.shape[0]
+    finite("neutral", low=-_REACH_MM, high=_REACH_MM, nan=True)
+    if a["layout"].ndim != 1 or not a["layout"].size:
+        raise _BadModel(f"layout has shape {a['layout'].shape}, expected (layout markers,)")
+    n_layout = a["layout"].size
+    indices("layout", m)
+    if np.unique(a["layout"]).size != n_layout or not np.isfinite(neutral[a["layout"]]).all():
+        raise _BadModel("layout must name distinct markers with a neutral position")
+    seen = neutral[np.isfinite(neutral).all(axis=1)]
+    try:  # every model's mesh (solve's surface, thin-shell) is laid over the neutral markers
+        marker_surface_mesh(seen)
+    except ValueError as exc:
+        raise _BadModel(f"neutral positions give no marker surface ({exc})") from None
+    shape("error_base")
+    shape("error_drop", n_layout)
+    finite("error_base", low=0, high=_REACH_MM, nan=True)
+    finite("error_drop", low=0, high=_REACH_MM, nan=True)
+    if kind in ("ridge", "local-ridge", "tapered-ridge"):
+        shape("mean", 3 * m)
+        shape("cov", 3 * m, 3 * m)
+        for name in ("frames", "ridge"):
+            shape(name)
+        for name in ("mean", "cov"):
+            finite(name, low=-_REACH_MM ** 2, high=_REACH_MM ** 2)
+        finite("ridge", low=0, high=1e6)
+        finite("frames", low=0)
+    if kind == "local-ridge":
+        shape("neighbours")
+        finite("neighbours", low=1, high=n_layout)
+    if kind == "tapered-ridge":
+        shape("taper_mm")
+        if not a["taper_mm"] > 1e-6:  # inf: no taper (a length the CV may choose)
+            raise _BadModel("taper_mm has values out of range")
+        for name in ("cv_lengths_mm", "cv_rmse_mm"):
+            if a[name].ndim != 1:
+                raise _BadModel(f"{name} must be a list of numbers")
+    if "faces" in names:
+        if a["faces"].ndim != 2 or a["faces"].shape[1:] != (3,) or not a["faces"].size:
+            raise _BadModel(f"faces has shape {a['faces'].shape}, expected (triangles, 3)")
+        indices("faces", m)
+        if not np.isfinite(neutral[a["faces"]]).all():
+            raise _BadModel("faces must join markers with a neutral position")
+    if kind in ("pdm-linear", "pdm-biquadratic"):
+        counts = a["pdm_neighbour_counts"]
+        shape("pdm_neighbour_counts", n_layout)
+        indices("pdm_neighbour_counts", n_layout)
+        if a["pdm_neighbours"].ndim != 1 or a["pdm_neighbours"].size != counts.sum():
+            raise _BadModel("pdm_neighbours must list pdm_neighbour_counts neighbours per layout marker")
+        indices("pdm_neighbours", n_layout)
+        shape("pdm_tangents", n_layout, 3, 2)
+        shape("pdm_mean", n_layout, 5)
+        shape("pdm_axes", n_layout, 5, 2)
+        shape("pdm_bounds", 2, n_layout, 2)
+        shape("pdm_coef", m, 3 if kind == "pdm-linear" else 6, 3)
+        shape("pdm_vertex_bounds", 2, m, 2)
+        for name in ("pdm_tangents", "pdm_mean", "pdm_axes", "pdm_coef"):
+            finite(name, low=-_REACH_MM, high=_REACH_MM)
+    _check_header(header, m, n_layout, labelled=labelled)
+
+
+def _check_header(header: dict, m: int, n_layout: int, *, labelled: bool) -> None:
+    """The header's labels (dense ``m``, layout ``n_layout``; required if ``labelled``), rigid set
+    and session identity."""
+    if not labelled and not any(k in header for k in ("labels", "layout_labels", "rigid_labels")):
+        return
+    def labels(key: str, n: int | None) -> list[str]:
+        value = header.get(key)
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise _BadModel(f"header {key} must be a list of marker labels")
+        if n is not None and len(value) != n:
+            raise _BadModel(f"header {key} lists {len(value)} markers, the arrays {n}")
+        if len(set(value)) != len(value):
+            raise _BadModel(f"header {key} names a marker twice")
+        return value
+
+    dense = set(labels("labels", m))
+    if not set(labels("layout_labels", n_layout)) <= dense:
+        raise _BadModel("header layout_labels must be among its labels")
+    if labelled and not isinstance(header.get("session"), dict):
+        raise _BadModel("header session must be an object")
+    rigid = labels("rigid_labels", None) if header.get("rigid_labels") is not None else []
+    if not set(rigid) <= dense:
+        raise _BadModel("header rigid_labels must be among its labels")
+    reference = header.get("rigid_reference")
+    if reference is not None:
+        try:
+            ref = np.asarray(reference, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise _BadModel("header rigid_reference must be rows of 3 numbers") from None
+        if ref.shape != (len(rigid), 3) or not (np.abs(ref) <= _REACH_MM).all():
+            raise _BadModel("header rigid_reference must be one row of 3 finite numbers per rigid label")

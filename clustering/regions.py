@@ -6,7 +6,6 @@ A region map is ``{region name: [marker labels]}`` with every label in at most o
 from __future__ import annotations
 
 import csv
-import json
 import os
 import re
 from collections.abc import Sequence
@@ -16,7 +15,8 @@ import numpy as np
 
 from mocaptk.acquisition.orientation import face_axes
 from mocaptk.acquisition.text_io import UTF16_PROBLEM, looks_utf16
-from mocaptk.errors import InputFileError
+from mocaptk.errors import InputFileError, quoted, shorten
+from mocaptk.jsonio import parse_json, read_input_bytes
 
 #: The six facial regions of the paper, top to bottom.
 FACIAL_REGIONS = ("forehead_brow", "eye", "nose", "cheek", "mouth", "chin")
@@ -32,49 +32,50 @@ def read_regions(path: str | os.PathLike[str], labels: Sequence[str]) -> dict[st
     are not markers of the session (``labels``).
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read regions file ({exc.strerror or exc})") from None
-    if looks_utf16(data[:8192]):
-        raise InputFileError(path, UTF16_PROBLEM)
+    data = read_input_bytes(path, what="a regions file",
+                            head_problem=lambda head: UTF16_PROBLEM if looks_utf16(head[:8192]) else None)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:  # e.g. a CSV saved by Excel in Latin-1 / Windows-1252
         raise InputFileError(path, f"not UTF-8 text (bad byte at offset {exc.start}): re-save it as UTF-8") from None
     regions: dict[str, list[str]] = {}
     if text.lstrip().startswith("{"):
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
-        for name, members in data.items():
+        for name, members in parse_json(text, path).items():
             if not isinstance(members, list) or not all(isinstance(m, str) for m in members):
-                raise InputFileError(path, f"region {name!r} must be a list of marker labels")
+                raise InputFileError(path, f"region {quoted(name)} must be a list of marker labels")
             if not members:
-                raise InputFileError(path, f"region {name!r} lists no markers (remove it, or list its labels)")
+                raise InputFileError(path, f"region {quoted(name)} lists no markers (remove it, or list its labels)")
             regions[str(name)] = list(members)
     else:
+        # any cell length: the whole file is in memory already (csv's default limit is 131,072)
+        csv.field_size_limit(max(csv.field_size_limit(), len(text) + 1))
         rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
         if rows and [c.strip().lower() for c in rows[0][:2]] == ["label", "region"]:
             rows = rows[1:]
         for number, row in enumerate(rows, start=1):
             if len(row) < 2 or not row[0].strip() or not row[1].strip():
-                raise InputFileError(path, f"row {number}: expected 'label,region', got {','.join(row)!r}")
+                raise InputFileError(path, f"row {number}: expected 'label,region', got {quoted(','.join(row))}")
             regions.setdefault(row[1].strip(), []).append(row[0].strip())
     if not regions:
         raise InputFileError(path, "no regions defined")
+    for name, members in regions.items():  # a line break would split every message naming it
+        odd = next((t for t in (name, *members)
+                    if any((ch.isspace() and ch != " ") or ord(ch) < 32 or 127 <= ord(ch) < 160 for ch in t)), None)
+        if odd is not None:
+            raise InputFileError(path, f"{quoted(odd)} holds a control character or a line break")
     seen: dict[str, str] = {}
     for name, members in regions.items():
         for label in members:
             if label in seen:
-                raise InputFileError(path, f"marker {label!r} is in two regions ({seen[label]!r}, {name!r})")
+                raise InputFileError(path, f"marker {quoted(label)} is in two regions ({quoted(seen[label])}, "
+                                     f"{quoted(name)})")
             seen[label] = name
     known = set(labels)
     unknown = [label for label in seen if label not in known]
     if unknown:
         raise InputFileError(path, f"{len(unknown)} labels are not markers of the session: "
-                             + ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else ""))
+                             + ", ".join(shorten(label, 40) for label in unknown[:5])
+                             + (" ..." if len(unknown) > 5 else ""))
     return regions
 
 

@@ -35,8 +35,40 @@ def _cannot_write(target: Path, exc: OSError, *, hint: str = "") -> OutputError:
     return OutputError(f"{target}: cannot write ({exc.strerror or exc}){hint}")
 
 
+#: Free space (bytes) below which a writer's own error is taken for a full disk.
+_NEARLY_FULL = 1 << 20
+
+
+def _disk_full(exc: BaseException, folder: Path) -> bool:
+    """True when ``exc`` comes from a full disk: ENOSPC, or a library's own error (USD's
+    ``Tf.ErrorException``...) raised while ``folder``'s filesystem has (nearly) no space left."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    if not isinstance(exc, Exception) or isinstance(exc, OutputError):
+        return False
+    try:
+        stat = os.statvfs(folder)
+    except OSError:
+        return False
+    return stat.f_bavail * stat.f_frsize < _NEARLY_FULL
+
+
+def reserve(path: str | os.PathLike[str], size: int) -> None:
+    """Allocate ``size`` bytes for the file ``path`` now, so that a full disk is an ``OSError``
+    (ENOSPC) here rather than a SIGBUS when a memory map of it is written."""
+    with open(path, "r+b") as handle:
+        try:
+            os.posix_fallocate(handle.fileno(), 0, size)
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL):  # filesystems without it
+                raise
+
+
 #: Outputs this process holds the lock of: absolute path -> open lock file descriptor.
 _claims: dict[Path, int] = {}
+#: Folders the locks' creation made (absolute path -> their new folders, deepest first): removed
+#: again if the command leaves them empty (a failed run leaves no empty output folder behind).
+_made: dict[Path, list[Path]] = {}
 
 
 def _lock_file(target: Path) -> Path:
@@ -49,6 +81,7 @@ def _lock(target: Path, *, hint: str = "") -> bool:
     if key in _claims:
         return False
     lock = _lock_file(key)
+    made = [p for p in (key.parent, *key.parent.parents) if not p.exists()]
     while True:
         try:
             key.parent.mkdir(parents=True, exist_ok=True)
@@ -59,13 +92,24 @@ def _lock(target: Path, *, hint: str = "") -> bool:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
+            _remove_empty(made)
             raise OutputError(f"{target}: is being written by another mocaptk process") from None
         # the previous holder removes the lock file when done: a lock on a removed file is no lock
         with contextlib.suppress(FileNotFoundError):
             if os.path.samestat(os.fstat(fd), os.stat(lock)):
                 _claims[key] = fd
+                _made[key] = made
                 return True
         os.close(fd)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) that are empty; a folder holding anything stays."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 def _unlock(target: Path) -> None:
@@ -75,12 +119,31 @@ def _unlock(target: Path) -> None:
         with contextlib.suppress(OSError):
             os.unlink(_lock_file(key))  # before closing: a waiting process then sees a removed file
         os.close(fd)
+        _remove_empty(_made.pop(key, []))
 
 
 def release_claims() -> None:
     """Release every output lock this process holds (the CLI does at the end of a command)."""
-    for key in list(_claims):
+    for key in reversed(list(_claims)):  # the last first: the folder an earlier claim made is empty then
         _unlock(key)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one step (Linux ``renameat2(RENAME_EXCHANGE)``): a
+    reader sees one or the other at every moment. False where the system or filesystem lacks it."""
+    import ctypes
+
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):  # not Linux / glibc < 2.28
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):  # e.g. a filesystem without it
+        return False
+    raise OSError(code, os.strerror(code), os.fspath(b))
 
 
 def _aside(out_dir: Path) -> Path:
@@ -136,12 +199,27 @@ def claim_output(path: str | os.PathLike[str], *, force: bool, folder: bool = Fa
     """
     target = Path(path)
     _lock(target, hint=hint)
-    _recover(target)
-    if folder:
-        _check_folder(target, force=force)
-    else:
-        check_writable(target, force=force)
+    try:
+        _recover(target)
+        if folder:
+            _check_folder(target, force=force)
+        else:
+            check_writable(target, force=force)
+        _probe(target, hint=hint)
+    except BaseException:
+        _unlock(target)
+        raise
     return target
+
+
+def _probe(target: Path, *, hint: str) -> None:
+    """Refuse, before any work, an output whose folder takes no new file (read-only, full)."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    except OSError as exc:
+        raise _cannot_write(target, exc, hint=hint) from None
+    os.close(fd)
+    os.unlink(name)
 
 
 def _check_folder(out_dir: Path, *, force: bool) -> None:
@@ -171,18 +249,20 @@ def staged_folder(out_dir: Path, *, force: bool) -> Iterator[Path]:
             raise _cannot_write(out_dir, exc) from None
         try:
             yield staging
-            if out_dir.is_dir():
+            if not out_dir.is_dir():
+                os.replace(staging, out_dir)
+            elif _exchange(staging, out_dir):  # the old folder now sits at the staging path
+                shutil.rmtree(staging, ignore_errors=True)  # a leftover is removed by the next run
+            else:  # two renames: a run killed between them is recovered by the next claim
                 aside = _aside(out_dir)
                 os.replace(out_dir, aside)
                 os.replace(staging, out_dir)
-                shutil.rmtree(aside, ignore_errors=True)  # a leftover is removed by the next run
-            else:
-                os.replace(staging, out_dir)
+                shutil.rmtree(aside, ignore_errors=True)
         except BaseException as exc:
             shutil.rmtree(staging, ignore_errors=True)
             _recover(out_dir)  # the old folder back, if the swap itself failed
-            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-                raise _cannot_write(out_dir, exc) from None
+            if _disk_full(exc, parent):
+                raise _cannot_write(out_dir, OSError(errno.ENOSPC, "no space")) from None
             if isinstance(exc, OutputError) and str(staging) in str(exc):  # name the real output
                 raise OutputError(str(exc).replace(str(staging), str(out_dir))) from None
             raise
@@ -228,8 +308,8 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb", *, force: bool =
     except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp_name)
-        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            raise _cannot_write(target, exc) from None
+        if _disk_full(exc, folder):
+            raise _cannot_write(target, OSError(errno.ENOSPC, "no space")) from None
         raise
 
 
@@ -258,8 +338,8 @@ def atomic_path(path: str | os.PathLike[str], *, force: bool = True) -> Iterator
     except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp_name)
-        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-            raise _cannot_write(target, exc) from None
+        if _disk_full(exc, folder):
+            raise _cannot_write(target, OSError(errno.ENOSPC, "no space")) from None
         raise
 
 

@@ -8,6 +8,28 @@ from __future__ import annotations
 
 import os
 
+#: Longest error line (characters after ``mocaptk: error:``): a quoted cell or row is cut.
+MAX_LINE = 300
+#: Longest file name in a message (a 5,000-character path is cut in its middle).
+MAX_PATH = 120
+
+
+def shorten(text: str, limit: int = MAX_LINE) -> str:
+    """``text`` on one line, at most ``limit`` characters: a longer one keeps its start (where)
+    and end (what), with " ... " for the cut middle."""
+    text = " ".join(str(text).split())
+    if len(text) <= limit:
+        return text
+    head = (limit - 5) * 2 // 3
+    return f"{text[:head]} ... {text[len(text) - (limit - 5 - head):]}"
+
+
+def quoted(value: object, limit: int = 60) -> str:
+    """``repr(value)`` for a message, cut to ``limit`` characters (a whole cell or row can be
+    200 kB)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 4] + " ..." + text[-1:]
+
 
 class MocaptkError(Exception):
     """A problem the user can fix (bad input, bad option); printed as one line."""
@@ -15,7 +37,7 @@ class MocaptkError(Exception):
     exit_code = 2
 
     def __init__(self, message: str) -> None:
-        super().__init__(" ".join(str(message).split()))
+        super().__init__(shorten(message))
 
 
 class InputFileError(MocaptkError):
@@ -27,7 +49,8 @@ class InputFileError(MocaptkError):
     def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
         self.path = os.fspath(path)
         self.problem = " ".join(str(problem).split())
-        super().__init__(f"{self.path}: {self.problem}")
+        name = shorten(self.path, MAX_PATH)
+        super().__init__(f"{name}: {shorten(self.problem, MAX_LINE - len(name) - 2)}")
 
 
 class OptionError(MocaptkError):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -122,15 +123,71 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, digits: int = 6,
     return write_text(path, dumps(obj, digits=digits), force=force)
 
 
-def read_json(path: str | os.PathLike[str]) -> Any:
-    """Parse a JSON input file; unreadable or invalid files raise :class:`InputFileError`."""
+#: Largest JSON / small text input read (a layout, takes, regions, camera rig, sidecar, rig.json).
+MAX_INPUT_BYTES = 256 << 20
+#: Deepest nesting of a JSON input (ours nest 5 levels; deeper only exhausts the stack).
+MAX_DEPTH = 64
+
+
+def read_input_bytes(path: str | os.PathLike[str], *, limit: int = MAX_INPUT_BYTES,
+                     what: str = "a JSON file", head_problem: Callable[[bytes], str | None] | None = None
+                     ) -> bytes:
+    """The bytes of a small text input (JSON or CSV), read in blocks: a file over ``limit`` bytes,
+    or holding NUL bytes (``/dev/zero``, a binary file), is refused before it fills memory.
+    ``head_problem(first block)``: a more precise problem to report first (e.g. UTF-16 text)."""
+    blocks, size = [], 0
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
+        with open(path, "rb") as handle:
+            while block := handle.read(min(1 << 20, limit + 1 - size)):
+                problem = head_problem(block) if head_problem is not None and not blocks else None
+                if problem:
+                    raise InputFileError(path, problem)
+                if b"\0" in block:
+                    raise InputFileError(path, f"binary content (NUL bytes): not {what}")
+                blocks.append(block)
+                size += len(block)
+                if size > limit:
+                    raise InputFileError(path, f"more than {limit >> 20} MB: larger than {what} "
+                                               "mocaptk reads")
     except OSError as exc:
         raise unreadable(path, exc) from None
-    except UnicodeDecodeError:
-        raise InputFileError(path, "not UTF-8 text: not a JSON file") from None
+    return b"".join(blocks)
+
+
+def parse_json(text: str, path: str | os.PathLike[str]) -> Any:
+    """``json.loads(text)``; invalid JSON, nesting deeper than :data:`MAX_DEPTH` and integers of
+    more than 4,300 digits raise :class:`InputFileError` naming ``path``."""
     try:
-        return json.loads(text)
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(path, f"invalid JSON: {exc.msg} (line {exc.lineno})") from None
+    except RecursionError:
+        raise InputFileError(path, f"invalid JSON: nested deeper than {MAX_DEPTH} levels") from None
+    except ValueError as exc:  # an integer beyond Python's digit limit (int_max_str_digits)
+        raise InputFileError(path, f"invalid JSON: a number too long ({str(exc).split(';')[0]})") from None
+    _check_depth(data, path)
+    return data
+
+
+def _check_depth(data: Any, path: str | os.PathLike[str]) -> None:
+    """Refuse nesting deeper than :data:`MAX_DEPTH` (iteratively: no recursion on deep input)."""
+    stack = [(data, 1)]
+    while stack:
+        value, depth = stack.pop()
+        items = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+        for item in items:
+            if isinstance(item, (dict, list)):
+                if depth >= MAX_DEPTH:
+                    raise InputFileError(path, f"invalid JSON: nested deeper than {MAX_DEPTH} levels")
+                stack.append((item, depth + 1))
+
+
+def read_json(path: str | os.PathLike[str], *, limit: int = MAX_INPUT_BYTES) -> Any:
+    """Parse a JSON input file; unreadable, oversized or invalid files raise
+    :class:`InputFileError`."""
+    data = read_input_bytes(path, limit=limit)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputFileError(path, "not UTF-8 text: not a JSON file") from None
+    return parse_json(text, path)

@@ -12,6 +12,11 @@ import numpy as np
 
 from .errors import MocaptkError
 
+#: Frame rates (Hz) a session may declare: beyond them a header is damaged (1e-45 Hz, 1e300 Hz).
+RATE_RANGE = (1e-3, 1e7)
+#: Control characters of a label become spaces.
+_CONTROL = {c: " " for c in (*range(32), *range(127, 160))}
+
 #: Metadata keys with a fixed meaning (others are free-form):
 #: ``source`` (str path), ``format`` (str), ``original_units`` (str),
 #: ``subjects`` (list of subject prefixes), ``takes`` (list of take dicts, see :class:`Take`).
@@ -85,7 +90,8 @@ class Trajectories:
         pos = np.asarray(self.positions, dtype=np.float64)
         if pos.ndim != 3 or pos.shape[2] != 3:
             raise MocaptkError(f"positions must have shape (frames, markers, 3), got {pos.shape}")
-        labels = tuple(str(label) for label in self.labels)
+        # control characters (a tab, a line break) would break CSV rows, messages and pictures
+        labels = tuple(str(label).translate(_CONTROL) for label in self.labels)
         if len(labels) != pos.shape[1]:
             raise MocaptkError(f"{len(labels)} labels for {pos.shape[1]} markers")
         duplicates = sorted(lab for lab, n in Counter(labels).items() if n > 1)  # O(n): 65,535 labels
@@ -94,6 +100,8 @@ class Trajectories:
         rate = float(self.rate)
         if not np.isfinite(rate) or rate <= 0:
             raise MocaptkError(f"frame rate must be a positive number, got {self.rate}")
+        if not RATE_RANGE[0] <= rate <= RATE_RANGE[1]:  # a damaged header: durations over- or underflow
+            raise MocaptkError(f"frame rate {rate:g} Hz is outside {RATE_RANGE[0]:g}..{RATE_RANGE[1]:g} Hz")
         object.__setattr__(self, "positions", pos)
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "rate", rate)

@@ -111,7 +111,7 @@ class FaceSolver:
 def load_solver(path: str | os.PathLike[str], *, session: Mapping[str, Any] | None = None) -> FaceSolver:
     """A solver saved by ``mocaptk solve`` (``model.npz``: the model, its header and the layout
     Gaussian); ``session`` as in :func:`~mocaptk.clustering.reconstruction_models.load_model`."""
-    model, header = load_model(path, session=session)
+    model, header = load_model(path, session=session, labelled=True)
     with np.load(path, allow_pickle=False) as data:  # readable: load_model just read it
         extra = {k: data[k] for k in data.files if k.startswith("solver_")}
     try:

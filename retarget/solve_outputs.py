@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from mocaptk.atomic import write_text
+from mocaptk.atomic import reserve, write_text
 from mocaptk.clustering.layout import Layout
 from mocaptk.clustering.reconstruction_models import save_model
 from mocaptk.errors import OptionError
@@ -122,6 +122,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     if "npz" in formats or "usd" in formats or "glb" in formats:
         frames_file = np.lib.format.open_memmap(staging / "mesh_frames.npy", mode="w+", dtype=np.float32,
                                                 shape=(n_frames, mesh.vertices.shape[0], 3))
+        reserve(staging / "mesh_frames.npy", frames_file.offset + frames_file.nbytes)  # full disk: no SIGBUS
     for part in solve_chunks(solver, x, poses, screen=screen, adaptation=adaptation, chunk=chunk):
         say(f"solving frames {part.start}-{part.start + len(part.positions)} of {n_frames}")
         rows = slice(part.start, part.start + len(part.positions))

@@ -71,7 +71,7 @@ def test_load_rig_rejects_bad_files(tmp_path):
     bad.write_text("not json")
     with pytest.raises(InputFileError):
         load_rig(bad)
-    with pytest.raises(InputFileError, match="cannot read"):
+    with pytest.raises(InputFileError, match="no such file"):
         load_rig(tmp_path / "missing.json")
     xml = tmp_path / "empty.qca.txt"
     xml.write_text("<calibration><cameras/></calibration>")

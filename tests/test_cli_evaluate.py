@@ -55,3 +55,14 @@ def test_mirrored_note_follows_a_successful_evaluation(run_cli, mirrored, tmp_pa
         f"mocaptk: note: {mirrored_count} mirrored layout markers are not in the session; evaluated the "
         f"{len(clusters) - mirrored_count} measured ones"]
     assert json.loads((tmp_path / "e.json").read_text())["count"] == len(clusters) - mirrored_count
+
+
+def test_out_is_a_folder_as_for_every_other_command(run_cli, mirrored, tmp_path):
+    """``--out DIR`` wrote a file named DIR; now DIR/evaluation.json and .html, both paths printed."""
+    session, takes, layout = mirrored
+    out = tmp_path / "results"
+    result = run_cli("evaluate", session, "--layout", layout, "--takes", takes, "--seeds", "1", "--folds", "2",
+                     "--out", out)
+    assert result.exit_code == 0, result.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["evaluation.html", "evaluation.json"]
+    assert f"wrote {out / 'evaluation.json'}" in result.stdout and f"wrote {out / 'evaluation.html'}" in result.stdout

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mocaptk.errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError, quoted
 
 #: suffix of a session's own options file and the name of a folder-wide one
 SIDECAR_SUFFIX = ".mocaptk.json"
@@ -188,16 +188,22 @@ def _sidecar_tokens(command: str, path: Path) -> list[str]:
             continue
         name = "--" + key.replace("_", "-")
         if name not in known:
-            raise InputFileError(path, f"unknown option {key!r} (no batch command has {name})")
+            raise InputFileError(path, f"unknown option {quoted(key)} (no batch command has {quoted(name)[1:-1]})")
         param = own.get(name)
         if param is None and name == LAYOUT_OPTION and COMMANDS[command].layout_argument:
-            tokens += [name, _absolute(str(value), path.parent)]
+            if not isinstance(value, str) or not value or "\0" in value:
+                raise InputFileError(path, f"'layout' must be a file name, got {quoted(value)}")
+            tokens += [name, _absolute(value, path.parent)]
             continue
         if param is None:
             continue
         if _controlled(param):
             raise InputFileError(path, f"{key!r} is set by batch for every session")
         tokens += _option_tokens(path, name, param, value)
+    try:  # a bad value names this file, not only the option
+        check_command_line(command, tokens)
+    except OptionError as exc:
+        raise InputFileError(path, str(exc)) from None
     return tokens
 
 
@@ -205,15 +211,18 @@ def _option_tokens(path: Path, name: str, param, value: Any) -> list[str]:
     """One sidecar entry as command-line tokens (flags from booleans, lists joined by commas)."""
     if param.is_flag:
         if not isinstance(value, bool):
-            raise InputFileError(path, f"{name[2:]!r} must be true or false, got {value!r}")
+            raise InputFileError(path, f"{name[2:]!r} must be true or false, got {quoted(value)}")
         if value:
             return [name]
         return list(param.secondary_opts[:1])
-    if isinstance(value, list):
+    if isinstance(value, list) and all(isinstance(v, (str, int, float)) and not isinstance(v, bool)
+                                       for v in value):
         value = ",".join(str(v) for v in value)
-    if isinstance(value, (dict, bool)) or value is None:
-        raise InputFileError(path, f"{name[2:]!r} must be a text, a number or a list, got {value!r}")
+    if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+        raise InputFileError(path, f"{name[2:]!r} must be a text, a number or a list of them, got {quoted(value)}")
     text = str(value)
+    if "\0" in text or not text:
+        raise InputFileError(path, f"{name[2:]!r} must not be empty or hold a NUL character")
     return [name, _absolute(text, path.parent) if _is_path(param) else text]
 
 
@@ -240,10 +249,18 @@ def session_timeout(session: Path, default: float | None) -> float | None:
     return timeout
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the system refuses (too long: a sidecar's value)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def sidecars(session: Path) -> list[Path]:
     """The options files that apply to ``session`` (folder-wide first, then its own)."""
     candidates = [session.parent / FOLDER_SIDECAR, session.with_name(session.stem + SIDECAR_SUFFIX)]
-    return [p for p in candidates if p.is_file()]
+    return [p for p in candidates if _is_file(p)]
 
 
 def session_argv(command: str, session: Path, out_dir: Path, options: list[str]) -> list[str]:
@@ -278,11 +295,11 @@ def input_files(command: str, argv: list[str], session: Path) -> list[Path]:
     """Files the run reads: the session, its sidecars and every existing path-valued option."""
     table = _option_table(click_command(command))
     files = [session, *sidecars(session)]
-    if COMMANDS[command].layout_argument and Path(argv[1]).is_file():
+    if COMMANDS[command].layout_argument and _is_file(Path(argv[1])):
         files.append(Path(argv[1]))
     for name, value in zip(argv, argv[1:]):
         param = table.get(name)
-        if param is not None and not _controlled(param) and _is_path(param) and Path(value).is_file():
+        if param is not None and not _controlled(param) and _is_path(param) and _is_file(Path(value)):
             files.append(Path(value))
     return list(dict.fromkeys(files))
 

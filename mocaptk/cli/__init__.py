@@ -79,7 +79,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(f"mocaptk: error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
     except typer.TyperException as exc:  # click's UsageError / BadParameter, raised while parsing
-        print(f"mocaptk: error: {usage_line(exc)}", file=sys.stderr)
+        from mocaptk.errors import shorten
+
+        print(f"mocaptk: error: {shorten(usage_line(exc))}", file=sys.stderr)
         sys.exit(2)
     except typer.Abort:
         print("mocaptk: error: aborted", file=sys.stderr)

@@ -27,8 +27,8 @@ def layout_head_frame(path: Path):
 
 @app.command()
 def clean(
-    source: Path = typer.Argument(..., help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
-    target: Path = typer.Argument(..., help="Output file: .c3d, .csv (Nexus style) or .trc."),
+    source: Path = typer.Argument(..., metavar="SOURCE", help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
+    target: Path = typer.Argument(..., metavar="TARGET", help="Output file: .c3d, .csv (Nexus style) or .trc."),
     stabilize: bool = typer.Option(True, "--stabilize/--no-stabilize",
                                    help="Remove rigid head motion (positions become head-relative)."),
     rigid: Rigid = None,

@@ -133,7 +133,7 @@ def write_cluster_pictures(result, folder: Path) -> list[Path]:
 
 @app.command()
 def cluster(
-    sessions: list[Path] = typer.Argument(..., metavar="SESSION...", help="Dense session file (C3D, "
+    sessions: list[Path] = typer.Argument(..., metavar="SESSION", help="Dense session file (C3D, "
                                           "Vicon CSV, TRC, generic CSV, npz); several: one actor each, "
                                           "one layout for all (registered to the first)."),
     factor: float = typer.Option(1.1, "--factor", help="Refinement factor (> 0): threshold = factor x "
@@ -141,7 +141,7 @@ def cluster(
     method: str = typer.Option("hybrid", "--method", help="Layout method choosing the measured markers: "
                                "hybrid (default, the best on held-out data), paper (the paper's "
                                "representatives: Will, De Martino & Bezerra as written), qr, greedy, "
-                               "kmeans, thin-shell, set-cover, farthest-point, random. The paper's rule "
+                               "kmeans, thin-shell, set-cover, robust, farthest-point, random. The paper's rule "
                                "at --factor sets the count and the influence regions (see mocaptk compare)."),
     rig: str = typer.Option(None, "--rig", help="Camera rig the layout is for: cara, room or a rig "
                             "file; the method then avoids markers the rig sees badly or triangulates "
@@ -161,7 +161,9 @@ def cluster(
     rigid: Rigid = None,
     rate: Rate = None,
     units: Units = None,
-    force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing, non-empty output folder as a "
+                               "whole: what else is in it goes too (e.g. evaluate's evaluation.json "
+                               "and .html beside layout.json; write those elsewhere with evaluate --out)."),
     quiet: Quiet = False,
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh for the rig (OBJ, PLY, glTF; "
                               "default: a surface through the dense markers)."),
@@ -187,17 +189,27 @@ def cluster(
     from mocaptk.clustering.takes import read_takes
     from mocaptk.background import beside
 
-    session = sessions[0]
-    out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
-                           hint=OUT_HINT)
-    console = Console(stderr=True, quiet=quiet)
+    from mocaptk.errors import OptionError
     from .rig import (animation_summary, check_summary, cluster_rig_outputs, parse_formats,
                       rig_options)
 
+    session = sessions[0]
+    if not factor > 0:  # options first: a bad value is reported, not the output folder
+        raise OptionError(f"--factor must be > 0, got {factor}")
+    if step < 1:
+        raise OptionError(f"--step must be >= 1, got {step}")
+    unknown_formats = [f for f in parse_formats(formats) if f not in ("json", "fbx", "glb", "none")]
+    if unknown_formats:
+        raise OptionError(f"--formats: unknown rig format(s) {', '.join(unknown_formats[:5])} (choose from json, fbx, glb, none)")
+    given_rigid = rigid_labels(rigid) if not no_stabilize else None
+    if given_rigid is not None and len(set(given_rigid)) < 3:
+        raise OptionError(f"--rigid: stabilization needs at least 3 distinct rigid markers, got {len(set(given_rigid))}")
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
     check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
+    out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
+                           hint=OUT_HINT)
+    console = Console(stderr=True, quiet=quiet)
     if len(sessions) > 1:
-        from mocaptk.errors import OptionError
         if rig is not None:
             raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
         from mocaptk.clustering.multi_actor import load_actors
@@ -206,6 +218,10 @@ def cluster(
         traj, source = actors[0], {k: actor_sources[0][k] for k in ("path", "sha256")}
     else:
         traj, source = load_session(session, rate=rate, units=units, layout_folder=out_dir)
+        unknown = [label for label in given_rigid or () if label not in set(traj.labels)]
+        if unknown:  # named here: from a batch sidecar the option is not on the user's command line
+            raise OptionError(f"--rigid: {len(unknown)} labels are not markers of {session.name}: "
+                              + ", ".join(unknown[:5]))
     # how the file was read, for evaluate, solve and rig to read it alike
     source = {**source, "reading": session_reading(traj, rate=rate, units=units)}
     neutral = None
@@ -247,7 +263,7 @@ def cluster(
                                   check_summary(build.report),
                                   animation_summary(build.report["animation"])]) + "\n"
         report = write_cluster_report(result, build, folder / "report.html", summary=summary)
-    if not quiet:
-        typer.echo(summary, nl=False)
+    if not quiet:  # the warnings were printed as they came (stderr): summary.txt keeps them, not stdout
+        typer.echo("".join(line for line in summary.splitlines(True) if not line.startswith("warning: ")), nl=False)
         typer.echo(report)
         typer.echo(f"wrote {out_dir}/ ({len(result.layout.clusters)} layout markers)")

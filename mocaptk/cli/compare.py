@@ -26,7 +26,7 @@ def parse_counts(text: str) -> list[int]:
 
 @app.command()
 def compare(
-    sessions: list[Path] = typer.Argument(..., metavar="SESSION...", help="Dense session file (C3D, "
+    sessions: list[Path] = typer.Argument(..., metavar="SESSION", help="Dense session file (C3D, "
                                           "Vicon CSV, TRC, generic CSV, npz); several: one actor each, "
                                           "one shared layout (registered to the first)."),
     tests: list[Path] = typer.Option(None, "--test", help="Held-out performance (same markers): every "

@@ -12,8 +12,8 @@ from .options import Quiet, Rate, Units
 
 @app.command()
 def convert(
-    source: Path = typer.Argument(..., help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
-    target: Path = typer.Argument(..., help="Output file: .c3d, .csv (Nexus style) or .trc."),
+    source: Path = typer.Argument(..., metavar="SOURCE", help="Input marker file (C3D, Vicon CSV, TRC, column CSV, .npz)."),
+    target: Path = typer.Argument(..., metavar="TARGET", help="Output file: .c3d, .csv (Nexus style) or .trc."),
     force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists."),
     units: Units = None,
     rate: Rate = None,

@@ -71,7 +71,7 @@ def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, 
 
 @app.command()
 def evaluate(
-    session: Path = typer.Argument(..., help="Dense session the layout was computed from."),
+    session: Path = typer.Argument(..., metavar="SESSION", help="Dense session the layout was computed from."),
     layout: Path = typer.Option(..., "--layout", help="layout.json written by mocaptk cluster."),
     test: Path = typer.Option(None, "--test", help="Separate performance file (same markers) to test on; "
                               "default: held-out parts of the session."),
@@ -83,8 +83,9 @@ def evaluate(
     folds: int = typer.Option(5, "--folds", help="Folds for --split blocks."),
     seeds: int = typer.Option(10, "--seeds", help="Random layouts to average (mean ± sd)."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength, relative to the mean input variance."),
-    out: Path = typer.Option(None, "--out", help="JSON result (default: evaluation.json beside the layout); "
-                             "the HTML report goes beside it (evaluation.html)."),
+    out: Path = typer.Option(None, "--out", help="Output folder for evaluation.json and evaluation.html "
+                             "(as every other --out; default: beside the layout), or a .json file name "
+                             "(the HTML report goes beside it)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing JSON result."),
@@ -101,8 +102,14 @@ def evaluate(
 
     if seeds < 1:
         raise OptionError(f"--seeds must be >= 1, got {seeds}")
+    if split not in ("blocks", "takes"):  # options before outputs; what remains is the data's
+        raise OptionError(f"unknown split {split!r} (use 'blocks' or 'takes')")
+    if folds < 2:
+        raise OptionError(f"need at least 2 folds, got {folds}")
     from .cluster import OUT_HINT
 
+    if out is not None and out.suffix.lower() != ".json":  # a folder, as every other command's --out
+        out = out / "evaluation.json"
     out_path = claim_output(out or layout.with_name("evaluation.json"), force=force, hint=OUT_HINT)
     claim_output(out_path.with_suffix(".html"), force=force, hint=OUT_HINT)
     lay = read_layout(layout)
@@ -116,6 +123,14 @@ def evaluate(
     regions = {r.name: [index[m] for m in r.markers if m in index] for r in lay.regions}
     name = str(lay.parameters.get("method", "layout"))
     take_list = read_takes(takes, traj.n_frames) if takes else traj.takes
+    if test is None:  # held-out folds of these takes, checked now so that a failure names the file
+        from mocaptk.clustering.evaluation import holdout_splits
+        from mocaptk.errors import source_error
+
+        try:
+            holdout_splits(traj.n_frames, take_list, split=split, folds=folds)
+        except OptionError as exc:
+            raise source_error(takes or session, f"{exc} (held-out blocks follow its takes)") from None
     with Console(stderr=True, quiet=quiet).status(f"evaluating {len(measured)}-marker layouts"):
         result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
                                  test=test_positions, regions=regions, name=name, split=split, folds=folds,
@@ -134,4 +149,4 @@ def evaluate(
               f"evaluated the {len(measured)} measured ones", file=sys.stderr)
     if not quiet:
         typer.echo(evaluation_table(result), nl=False)
-        typer.echo(f"wrote {out_path}\nwrote {report}")
+        typer.echo(f"wrote {out_path}\nwrote {out_path.parent}/{report}")  # the report line starts with its name

@@ -77,7 +77,7 @@ def _human(info: dict[str, Any]) -> str:
 
 @app.command()
 def info(
-    files: list[Path] = typer.Argument(..., help="Marker files: C3D, Vicon CSV, TRC, column CSV, .npz."),
+    files: list[Path] = typer.Argument(..., metavar="FILE", help="Marker files: C3D, Vicon CSV, TRC, column CSV, .npz."),
     as_json: bool = typer.Option(False, "--json", help="Print one deterministic JSON document instead of text."),
     units: Units = None,
     rate: Rate = None,

@@ -25,7 +25,7 @@ def default_session(layout_path: Path, layout) -> Path:
 
 @app.command()
 def plan(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
     rig: str = typer.Option(..., "--rig", help="Camera rig: cara (head-mounted, 4 cameras), room "
                             "(10-camera ring), or a rig file (mocaptk JSON or Qualisys .qca.txt, "
                             "calibrated in the session's coordinates)."),

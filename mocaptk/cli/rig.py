@@ -78,7 +78,7 @@ def animation_captures(layout, session, relative, performances, *, no_stabilize:
 
 @app.command()
 def rig(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
     session: Path = typer.Option(..., "--session", help="The dense session the layout was made "
                                  "from (its neutral pose places the mesh and the joints)."),
     mesh: Path = typer.Option(None, "--mesh", help="Character face mesh (OBJ, PLY, glTF/GLB, STL, "
@@ -113,16 +113,20 @@ def rig(
     """Build a skinned face rig and a printable marker guide from a layout."""
     from rich.console import Console
 
-    from mocaptk.clustering.layout import read_layout
+    from mocaptk.atomic import claim_output
+    from mocaptk.clustering.layout import check_members, read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.build import write_rig_outputs
     from mocaptk.clustering.layout import layout_rigid_set
 
     options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions, surface)
     chosen = parse_formats(formats)
+    # refused (read-only, exists) and locked before any work; rig_report.json: written by every run
+    claim_output((out or layout.parent) / "rig_report.json", force=force)
     lay = read_layout(layout)
     session_rate, session_units = recorded_reading(lay, session, rate=rate, units=units)
     traj, source = load_session(session, rate=session_rate, units=session_units)
+    check_members(lay, traj.labels, layout_path=layout, session_name=session.name)
     raw = traj
     expected = lay.source.get("sha256")
     if expected and expected != source["sha256"]:
@@ -171,7 +175,7 @@ def region_summary(check: dict, what: str) -> str:
     """Per-region RMSE lines and where the largest error is (which marker, which frame)."""
     regions = check["regions"]
     lines = [f"  {region:<16} RMSE {r['rmse_mm']:.2f} mm, max {r['max_mm']:.2f} mm "
-             f"({r['markers']} markers)" for region, r in regions.items()]
+             f"({r['markers']} marker{'' if r['markers'] == 1 else 's'})" for region, r in regions.items()]
     others = [r["rmse_mm"] for name, r in regions.items() if name != "mouth"]
     if "mouth" in regions and sum(others) > 0:  # the weak region of a face rig (issue 11)
         lines.append(f"  mouth / mean of the other regions: "

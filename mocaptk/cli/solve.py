@@ -91,8 +91,8 @@ def summary_text(summary: dict) -> str:
 
 @app.command()
 def solve(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
-    capture: Path = typer.Argument(..., help="Production capture holding the layout's markers "
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
+    capture: Path = typer.Argument(..., metavar="CAPTURE", help="Production capture holding the layout's markers "
                                    "(C3D, CSV, TRC); other markers are ignored."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     session: Path = typer.Option(None, "--session", help="Dense session to train on (default: the "
@@ -133,7 +133,8 @@ def solve(
     """Solve every dense marker and an animated face mesh from a capture of the layout's markers."""
     from rich.console import Console
 
-    from mocaptk.clustering.layout import read_layout
+    from mocaptk.atomic import claim_output
+    from mocaptk.clustering.layout import check_members, read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, MODEL_KINDS
     from mocaptk.jsonio import write_json
@@ -152,6 +153,7 @@ def solve(
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
     rest = parse_frame_range(neutral, "--neutral")
     check_surface(surface)
+    claim_output(out, force=force, folder=True)  # refused (read-only, exists) and locked before any work
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
@@ -178,6 +180,8 @@ def solve(
             say(f"training the {model_kind or DEFAULT_KIND} model")
             solver = train_solver(lay, dense, source, kind=model_kind or DEFAULT_KIND, ridge=ridge,
                                   rigid_labels=rigid or ())
+        check_members(lay, solver.labels, layout_path=layout, session_name="the model's session"
+                      if model is not None else path.name)
         uncaptured = [label for label in lay.labels if label not in set(solver.layout_labels)]
         notes = [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"

@@ -42,7 +42,7 @@ def parse_factors(text: str) -> list[float]:
 
 @app.command()
 def sweep(
-    session: Path = typer.Argument(..., help="Dense session file."),
+    session: Path = typer.Argument(..., metavar="SESSION", help="Dense session file."),
     factors: str = typer.Option("0.8:1.3:0.05", "--factors", help="START:STOP:STEP (stop included) or "
                                 "a comma list of refinement factors."),
     regions: Path = typer.Option(None, "--regions", help="Regions file (JSON or CSV label,region)."),
