@@ -289,7 +289,8 @@ def measured_indices(layout: Layout, labels: Sequence[str], *, layout_path: str 
 def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | os.PathLike[str] | None,
                   session_name: str) -> None:
     """InputFileError naming the layout file when a cluster member is neither a marker of the
-    session ``session_name`` (``labels``) nor the mirror image of one (a half-face layout's twin)."""
+    session ``session_name`` (``labels``) nor the mirror image of one (a half-face layout's twin),
+    or a stabilization marker is not one of the session's."""
     from .symmetry import mirror_label
 
     known = set(labels)
@@ -298,3 +299,7 @@ def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | o
     if unknown:
         raise InputFileError(layout_path, f"{len(unknown)} layout members are not markers of {session_name} "
                              "(nor mirror twins of them): " + ", ".join(shorten(m, 40) for m in unknown[:5]))
+    rigid = [m for m in layout_rigid_set(layout) or () if m not in known]
+    if rigid:
+        raise InputFileError(layout_path, f"{len(rigid)} stabilization markers are not markers of "
+                             f"{session_name}: " + ", ".join(shorten(m, 40) for m in rigid[:5]))

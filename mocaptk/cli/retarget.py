@@ -9,7 +9,7 @@ import typer
 from mocaptk.errors import InputFileError, OptionError
 
 from .app import app
-from .options import Quiet, Rate, Units
+from .options import Quiet, Rate, Units, recorded_reading
 
 
 def summary_text(summary: dict) -> str:
@@ -93,10 +93,11 @@ def retarget(
         traj, capture_source = load_session(str(capture), rate=rate, units=units)
         path = session_path(layout, lay.source, session)
         say(f"reading the session {path.name}")
-        dense, source = load_session(str(path))
+        session_rate, session_units = recorded_reading(lay, path, rate=None, units=None)
+        dense, source = load_session(str(path), rate=session_rate, units=session_units)  # as cluster read it
         if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
             raise InputFileError(path, f"is not the session {layout.name} was made from (sha256 differs)")
-        if rigid:
+        if rigid and lay.parameters.get("stabilized"):  # else the session is its own head frame
             dense, _ = stabilize(dense, rigid=rigid)
         solver = train_solver(lay, dense, source, kind="ridge", rigid_labels=rigid or ())
         if calibration is not None:

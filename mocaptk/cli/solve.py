@@ -175,7 +175,8 @@ def solve(
             dense, source = load_session(str(path), rate=session_rate, units=session_units)
             if lay.source.get("sha256") and source["sha256"] != lay.source["sha256"]:
                 raise InputFileError(path, f"is not the session {layout.name} was made from (sha256 differs)")
-            if rigid:
+            check_members(lay, dense.labels, layout_path=layout, session_name=path.name)
+            if rigid and lay.parameters.get("stabilized"):  # else the session is its own head frame
                 dense, _ = stabilize(dense, rigid=rigid)
             say(f"training the {model_kind or DEFAULT_KIND} model")
             solver = train_solver(lay, dense, source, kind=model_kind or DEFAULT_KIND, ridge=ridge,
