@@ -175,6 +175,7 @@ def write_board_views(folder, rig: CameraRig, board: Board, *, n_views: int, see
     from pathlib import Path
 
     from mocaptk.atomic import write_bytes
+    from mocaptk.npz import npz_bytes
 
     folder = Path(folder)
     poses = board_poses(rig, board, n_views, seed=seed, max_tilt_deg=max_tilt_deg)
@@ -185,8 +186,7 @@ def write_board_views(folder, rig: CameraRig, board: Board, *, n_views: int, see
         for v, image in enumerate(render_views(camera, board, poses, px_per_mm=resolution, seed=seed + c)):
             write_bytes(folder / camera.name / f"view_{v:03d}.png",
                         cv2.imencode(".png", plain if image is None else image)[1].tobytes())
-    with open(folder / "board_truth.npz", "wb") as handle:
-        np.savez_compressed(handle, poses=poses, corners=np.array(board.corners),
-                            square=board.square, marker=board.marker,
-                            dictionary=np.array(board.dictionary))
+    write_bytes(folder / "board_truth.npz", npz_bytes({
+        "poses": poses, "corners": np.array(board.corners), "square": np.array(board.square),
+        "marker": np.array(board.marker), "dictionary": np.array(board.dictionary)}))
     return poses

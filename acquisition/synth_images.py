@@ -112,6 +112,7 @@ def write_marker_images(folder, rig: CameraRig, points: np.ndarray,
     import cv2
 
     from mocaptk.atomic import write_bytes
+    from mocaptk.npz import npz_bytes
 
     from .cameras import save_rig
 
@@ -132,10 +133,9 @@ def write_marker_images(folder, rig: CameraRig, points: np.ndarray,
     for c, row in enumerate(glints):
         for f, g in enumerate(row):
             padded[c, f, :len(g)] = g
-    with open(folder / "markers_truth.npz", "wb") as handle:
-        np.savez_compressed(handle, points2d=truth.pixels, merged=truth.merged, radius=truth.radius,
-                            glints=padded, points3d=points, labels=np.array(labels),
-                            camera_names=np.array(rig.names))
+    write_bytes(folder / "markers_truth.npz", npz_bytes({
+        "points2d": truth.pixels, "merged": truth.merged, "radius": truth.radius, "glints": padded,
+        "points3d": points, "labels": np.array(labels), "camera_names": np.array(rig.names)}))
     save_rig(rig, folder / "rig.json")
     return truth
 

@@ -225,8 +225,10 @@ def _check_extras(data: dict) -> None:
             values = _list(plane, key, "sagittal_plane")
             if len(values) != 3 or not np.all(np.isfinite([_number(v, f"sagittal_plane.{key}") for v in values])):
                 raise _Malformed(f"sagittal_plane.{key} must be 3 finite numbers")
-        if not any(plane["normal"]):
-            raise _Malformed("sagittal_plane.normal must not be zero")
+        if max(abs(v) for v in plane["point"]) > _PLANE_REACH_MM:
+            raise _Malformed(f"sagittal_plane.point is more than {_PLANE_REACH_MM:g} mm away")
+        if not _NORMAL_LENGTH[0] <= math.hypot(*plane["normal"]) <= _NORMAL_LENGTH[1]:
+            raise _Malformed("sagittal_plane.normal must be a direction (length about 1, not zero)")
     if data.get("orientation") is not None:
         orientation = _field(data, "orientation", dict, "an object")
         rows = _list(orientation, "frame", "orientation")
@@ -235,10 +237,6 @@ def _check_extras(data: dict) -> None:
             raise _Malformed("orientation.frame must be 3 rows of 3 finite numbers")
         if orientation.get("labels") not in ("agree", "contradict", "decided", "none"):
             raise _Malformed("orientation.labels must be agree, contradict, decided or none")
-        if max(abs(v) for v in plane["point"]) > _PLANE_REACH_MM:
-            raise _Malformed(f"sagittal_plane.point is more than {_PLANE_REACH_MM:g} mm away")
-        if not _NORMAL_LENGTH[0] <= math.hypot(*plane["normal"]) <= _NORMAL_LENGTH[1]:
-            raise _Malformed("sagittal_plane.normal must be a direction (length about 1, not zero)")
     if data.get("stabilization") is not None:
         stabilization = _field(data, "stabilization", dict, "an object")
         if stabilization.get("rigid_labels") is not None:

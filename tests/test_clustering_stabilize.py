@@ -68,7 +68,7 @@ def test_cli_stabilizes_on_the_given_rigid_markers(still_and_moving, run_cli, tm
     assert layout["stabilization"]["applied"] is True
     evaluated = run_cli("evaluate", session, "--layout", tmp_path / "L" / "layout.json", "--seeds", "2", "--quiet")
     assert evaluated.exit_code == 0, evaluated.stderr
-    for args, needle in [(("--rigid", "NOPE," + ",".join(rigid[:2])), "not in the session: NOPE"),
+    for args, needle in [(("--rigid", "NOPE," + ",".join(rigid[:2])), "are not markers of moving.npz: NOPE"),
                          (("--rigid", ",".join(rigid[:2])), "at least 3"),
                          (("--rigid", ",".join(rigid), "--no-stabilize"), "--no-stabilize")]:
         bad = run_cli("cluster", session, *args, "--out", tmp_path / "bad", "--formats", "none")

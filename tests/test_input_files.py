@@ -127,7 +127,7 @@ def test_layout_fields_that_crashed_later_commands_are_checked(tmp_path, layout_
 
 
 def test_stabilized_layout_without_a_stabilization_record_has_no_rigid_set(tmp_path, layout_doc):
-    from mocaptk.cli.evaluate import layout_rigid_set
+    from mocaptk.clustering.layout import layout_rigid_set
 
     doc = json.loads(json.dumps(layout_doc))
     doc["parameters"]["stabilized"] = True

@@ -28,7 +28,7 @@ def parse_corners(text: str) -> tuple[int, int]:
 
 @app.command()
 def calibrate(
-    sources: list[Path] = typer.Argument(..., metavar="CAMERA...",
+    sources: list[Path] = typer.Argument(..., metavar="CAMERA",
                                          help="One folder of photos or one video per camera, in order."),
     out: Path = typer.Option(..., "--out", metavar="RIG.json", help="Output rig JSON."),
     board_kind: str = typer.Option("checkerboard", "--board", metavar="checkerboard|charuco",

@@ -18,7 +18,7 @@ from .options import Quiet
 
 @app.command()
 def detect(
-    images: list[Path] = typer.Argument(..., metavar="IMAGES...",
+    images: list[Path] = typer.Argument(..., metavar="IMAGES",
                                         help="A folder / video per camera, or one folder of camera folders."),
     out: Path = typer.Option(..., "--out", metavar="DETECTIONS.npz", help="Output detections."),
     min_area: int = typer.Option(6, "--min-area", metavar="PX", help="Smallest blob kept (px)."),

@@ -64,7 +64,7 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
 
 @app.command()
 def label(
-    capture: Path = typer.Argument(..., help="Unlabelled capture (fragments or per-frame clouds), or a "
+    capture: Path = typer.Argument(..., metavar="CAPTURE", help="Unlabelled capture (fragments or per-frame clouds), or a "
                                              "labelled one with --check."),
     template: Path = typer.Option(..., "--template", "-t", metavar="T",
                                   help="Labelled session of the same face and markers (C3D, CSV, TRC), "

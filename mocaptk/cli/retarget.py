@@ -27,8 +27,8 @@ def summary_text(summary: dict) -> str:
 
 @app.command()
 def retarget(
-    layout: Path = typer.Argument(..., help="layout.json written by mocaptk cluster."),
-    capture: Path = typer.Argument(..., help="Production capture holding the layout's markers "
+    layout: Path = typer.Argument(..., metavar="LAYOUT", help="layout.json written by mocaptk cluster."),
+    capture: Path = typer.Argument(..., metavar="CAPTURE", help="Production capture holding the layout's markers "
                                    "(C3D, CSV, TRC); other markers are ignored."),
     character: str = typer.Option(..., "--character", help="arkit (the bundled generic ARKit-52 "
                                   "face), or a .glb/.gltf with morph targets, a binary .fbx "
