@@ -993,6 +993,7 @@ class _BadModel(ValueError):
 _KIND_ARRAYS = {"ridge": ("mean", "cov", "frames", "ridge"),
                 "local-ridge": ("mean", "cov", "frames", "ridge", "neighbours"),
                 "tapered-ridge": ("mean", "cov", "frames", "ridge", "taper_mm", "cv_lengths_mm", "cv_rmse_mm"),
+                "ridge-cv": ("mean", "cov", "frames", "ridge", "cv_ridges", "cv_rmse_mm"),
                 "thin-shell": ("faces",)}
 _PDM_ARRAYS = ("faces", "pdm_neighbours", "pdm_neighbour_counts", "pdm_tangents", "pdm_mean", "pdm_axes",
                "pdm_bounds", "pdm_coef", "pdm_vertex_bounds")

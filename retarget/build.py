@@ -715,8 +715,9 @@ def guide_rows(build: RigBuild) -> list[GuideMarker]:
     members = influence_members(clusters)
     nose, _ = guide_reference(build.cloud.neutral)
     stabilization = build.layout.extra.get("stabilization") or {}
+    reference = stabilization.get("reference")
     heads = [(label, side_tag(label) or "C", np.asarray(pos, float)) for label, pos in
-             zip(stabilization.get("rigid_labels") or (), stabilization.get("reference") or ())]
+             zip(stabilization.get("rigid_labels") or (), () if reference is None else reference)]
     return guide_markers([c.representative for c in clusters], [c.region for c in clusters],
                          [c.side for c in clusters],
                          np.asarray(build.rig.joint_positions)[build.marker_joints],
