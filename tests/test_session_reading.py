@@ -44,7 +44,7 @@ def test_cluster_records_the_reading(csv_layout):
 def test_solve_evaluate_and_rig_read_the_csv_session_without_repeating(csv_layout, run_cli):
     lay = csv_layout / "layout" / "layout.json"
     solved = run_cli("solve", lay, csv_layout / "Subject_02.csv", "--out", csv_layout / "solved",
-                     "--formats", "npz", "--quiet")
+                     "--formats", "npz", "--surface", "markers", "--quiet")  # the markers' own size
     assert solved.exit_code == 0, solved.stderr
     capture = json.loads((csv_layout / "solved" / "solve.json").read_text())["capture"]
     assert capture["frames"] == 1692 and capture["rate"] == 25.0  # read as the layout's session was
