@@ -71,7 +71,8 @@ def character_fbx_bytes(character: Character, weights: np.ndarray, rate: float) 
                 Node("KeyAttrRefCount", [np.array([len(times)], dtype=np.int32)])], block=True)]
         links += [("OO", channel, _BLEND_ID), ("OO", shape, channel), ("OO", node, _LAYER_ID),
                   ("OP", node, channel, "DeformPercent"), ("OP", curve, node, "d|DeformPercent")]
-    timing = SimpleNamespace(rate=float(rate), frame_count=max(n_frames, 1))
+    timing = SimpleNamespace(rate=float(rate), frame_count=max(n_frames, 1),  # one clip from frame 0
+                             takes=[SimpleNamespace(start=0, end=max(n_frames, 1))])
     return encode_fbx([
         _header_extension(), Node("FileId", [FILE_ID]), Node("CreationTime", [CREATION_TIME]),
         Node("Creator", [_creator()]), _global_settings(timing), _documents(TAKE_NAME),

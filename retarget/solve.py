@@ -33,8 +33,8 @@ from mocaptk.errors import InputFileError, OptionError
 from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import Adaptation
-from .consistency import LayoutGaussian, Screen, screen_frames, training_consistency
-from .head_pose import HeadPoses, least_moving_markers, robust_head_poses
+from .consistency import LayoutGaussian, Screen, capture_screen, screen_frames, training_consistency
+from .head_pose import HeadPoses, least_moving_markers, refine_poses, robust_head_poses
 from .mesh_map import MeshMap
 
 __all__ = ["FaceSolver", "MeshMap", "SolvedChunk", "head_poses", "layout_frames", "solve_chunks",
@@ -177,6 +177,8 @@ def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
     elif solver.fallback_reference is not None and all(label in known for label in solver.fallback_labels):
         poses = robust_head_poses(solver.fallback_reference, capture, solver.fallback_labels,
                                   source=POSE_FROM_LAYOUT)
+        if solver.gaussian is not None and all(label in known for label in solver.layout_labels):
+            poses = _refined(solver, poses, capture.positions[:, capture.index(solver.layout_labels)])
     else:
         return None
     if poses.motion_rms_mm < HEAD_RELATIVE_RMS_MM:  # skin sliding on the pose markers is not head motion
@@ -241,6 +243,21 @@ def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray, poses: HeadPo
         solved = np.isfinite(positions).all(axis=2).any(axis=1)
         error = np.where(solved, result.expected_error_mm, np.nan)
         yield SolvedChunk(start, positions, error, result.missing, solved, flagged, consistency)
+
+
+def _refined(solver: FaceSolver, poses: HeadPoses, x: np.ndarray) -> HeadPoses:
+    """Few-marker poses refined on every layout marker (ghosts screened out first): a brow raise
+    tilts a head posed from a few forehead markers. ``motion_rms_mm`` becomes the RMS distance the
+    poses move the layout's neutral (a still capture's expressions no longer count as motion)."""
+    head = to_head_frame(x, poses)
+    flagged, _ = screen_frames(solver.gaussian, capture_screen(
+        solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
+    poses = refine_poses(poses, solver.gaussian, np.where(flagged[..., None], np.nan, x))
+    neutral = solver.model.neutral[solver.model.layout]
+    moved = np.einsum("fij,lj->fli", poses.rotations, neutral) + poses.translations[:, None] - neutral
+    sq = np.sum(moved ** 2, axis=2)
+    sq = sq[np.isfinite(sq)]
+    return replace(poses, motion_rms_mm=float(np.sqrt(sq.mean())) if sq.size else float("nan"))
 
 
 def _motion_p95(frames: np.ndarray, neutral: np.ndarray) -> np.ndarray:

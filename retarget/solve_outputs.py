@@ -26,8 +26,8 @@ from mocaptk.jsonio import write_json
 from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
-from .consistency import capture_screen, screen_frames
-from .head_pose import HeadPoses, refine_poses
+from .consistency import capture_screen
+from .head_pose import HeadPoses
 from .build import check_surface
 from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
                     solve_chunks, to_head_frame)
@@ -63,25 +63,18 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     x = layout_frames(solver, capture, path)
     notes = list(notes)
     poses = head_poses(solver, capture) if stabilize else None
-    if poses is not None and poses.still:
-        notes.append(f"the capture is already in the session's head frame (its {poses.source} "
-                     f"{', '.join(poses.labels)} sit {poses.motion_rms_mm:.2f} mm RMS from their "
-                     "session positions): head motion not removed")
-        poses = None
-    elif stabilize and poses is None:
+    if stabilize and poses is None:
         notes.append("head motion not removed: the capture has neither the layout's stabilization "
                      "markers nor its least-moving layout markers")
-    elif poses is not None and poses.source != POSE_FROM_RIGID:
+    if poses is not None and poses.source != POSE_FROM_RIGID:
         notes.append(f"warning: the capture lacks the layout's stabilization markers "
                      f"({', '.join(solver.rigid_labels) or 'none recorded'}): head motion taken from the "
-                     f"least-moving layout markers {', '.join(poses.labels)}; expression on them "
-                     "shows as head motion (see pose_residual_mm in solve_frames.csv)")
-    if poses is not None and poses.source != POSE_FROM_RIGID and solver.gaussian is not None:
-        # a few moving markers tilt the head with every brow raise: refine on all of them, ghosts out
-        head = to_head_frame(x, poses)
-        flagged, _ = screen_frames(solver.gaussian, capture_screen(
-            solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
-        poses = refine_poses(poses, solver.gaussian, np.where(flagged[..., None], np.nan, x))
+                     f"least-moving layout markers {', '.join(poses.labels)}, refined on all of them "
+                     "(see pose_residual_mm in solve_frames.csv)")
+    if poses is not None and poses.still:
+        notes.append(f"the capture is already in the session's head frame (its {poses.source} "
+                     f"{', '.join(poses.labels)} move {poses.motion_rms_mm:.2f} mm RMS): head motion "
+                     "not removed")
     head = to_head_frame(x, poses)
     screen = adaptation = None
     mismatch = None
@@ -259,10 +252,10 @@ def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any
              mismatch: NeutralMismatch | None, adapted: bool, mesh: dict[str, Any],
              outputs: list[str], notes: list[str]) -> dict[str, Any]:
     lost_rate = missing.mean(axis=0) if len(missing) else np.zeros(missing.shape[1])
-    head: dict[str, Any] = {"removed_and_restored": poses is not None,
+    head: dict[str, Any] = {"removed_and_restored": poses is not None and not poses.still,
                             "rigid_labels": list(solver.rigid_labels)}
     if poses is not None:
-        head.update(pose_from=poses.source, pose_labels=list(poses.labels),
+        head.update(pose_from=poses.source, pose_labels=list(poses.labels), still=poses.still,
                     pose_residual_mm=_stats(poses.residual_mm),
                     frames_without_pose=int((~np.isfinite(poses.rotations[:, 0, 0])).sum()),
                     pose_markers_dropped=int(poses.dropped.sum()))
