@@ -225,6 +225,8 @@ def _check_extras(data: dict) -> None:
             values = _list(plane, key, "sagittal_plane")
             if len(values) != 3 or not np.all(np.isfinite([_number(v, f"sagittal_plane.{key}") for v in values])):
                 raise _Malformed(f"sagittal_plane.{key} must be 3 finite numbers")
+        if not any(plane["normal"]):
+            raise _Malformed("sagittal_plane.normal must not be zero")
         if max(abs(v) for v in plane["point"]) > _PLANE_REACH_MM:
             raise _Malformed(f"sagittal_plane.point is more than {_PLANE_REACH_MM:g} mm away")
         if not _NORMAL_LENGTH[0] <= math.hypot(*plane["normal"]) <= _NORMAL_LENGTH[1]:
