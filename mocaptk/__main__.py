@@ -1,5 +1,5 @@
 """``python -m mocaptk`` — same as the ``mocaptk`` command."""
 
-from .cli import main
+from .cli import entry
 
-main()
+entry()

@@ -83,7 +83,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
         print(f"mocaptk: error: {shorten(usage_line(exc))}", file=sys.stderr)
         sys.exit(2)
-    except typer.Abort:
+    except typer.Abort as exc:
+        if isinstance(exc.__cause__, KeyboardInterrupt):  # Ctrl-C before a command's own handling
+            print("mocaptk: interrupted", file=sys.stderr)
+            sys.exit(130)
         print("mocaptk: error: aborted", file=sys.stderr)
         sys.exit(1)
     except MemoryError as exc:  # input or options too large for this machine: no traceback
@@ -104,3 +107,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         release_claims()
     if code:
         sys.exit(code)
+
+
+def entry() -> None:
+    """The ``mocaptk`` program (console script and ``python -m mocaptk``): :func:`main`, then the
+    process ignores Ctrl-C / SIGTERM while it exits (the command is over: a late signal during the
+    interpreter's teardown would otherwise end it as killed, exit code -2, not the command's own)."""
+    import signal
+
+    try:
+        main()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
