@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocaptk.clustering.reconstruction_models import DEFAULT_RIDGE, check_frames
+from mocaptk.errors import OptionError
 
 __all__ = ["LayoutGaussian", "Screen", "screen_frames"]
 
@@ -59,7 +60,8 @@ class LayoutGaussian:
         flat = np.asarray(layout_frames, dtype=np.float64).reshape(len(layout_frames), -1)
         data = flat[np.isfinite(flat).all(axis=1)]
         if len(data) < 2:
-            raise ValueError("the layout Gaussian needs at least 2 training frames without gaps")
+            raise OptionError("the session needs at least 2 frames with every layout marker seen "
+                              "(the layout markers' consistency is learnt from them)")
         mean = data.mean(axis=0)
         cov = np.cov(data, rowvar=False, bias=True)
         cov[np.diag_indices_from(cov)] += ridge * float(np.trace(cov)) / cov.shape[0] + noise_mm ** 2
