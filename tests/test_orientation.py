@@ -16,10 +16,10 @@ from mocaptk.acquisition.orientation import UNDECIDED_SCORE, infer_orientation, 
 from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.trajectories import Trajectories
 
-from conftest import shared_path
+from conftest import SHARED_DATA
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
-BLENDERFACE = shared_path("facial_mocap", "blenderface")
+BLENDERFACE = SHARED_DATA / "facial_mocap" / "blenderface"  # each test skips where it is absent
 
 
 @pytest.fixture(scope="module")

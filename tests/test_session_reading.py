@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import shared_path
+from conftest import SHARED_DATA
 from mocaptk.clustering.layout import Layout, read_layout
 from mocaptk.cli.options import recorded_reading
 from mocaptk.errors import InputFileError
 
-BLENDERFACE = shared_path("facial_mocap", "blenderface")
+BLENDERFACE = SHARED_DATA / "facial_mocap" / "blenderface"  # each test skips where it is absent
 
 
 @pytest.fixture(scope="module")
