@@ -39,12 +39,11 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
     from mocaptk.acquisition.labelling.template import build_template
     from mocaptk.errors import InputFileError
 
-    markers = None
+    layout = layout_path = None
     if path.suffix.lower() == ".json":
         from mocaptk.clustering.layout import read_layout
 
-        layout = read_layout(path)
-        markers = [c.representative for c in layout.clusters]
+        layout, layout_path = read_layout(path), path
         session = path.parent / str(layout.source.get("path", ""))
         if not session.is_file():
             raise InputFileError(path, f"its session {session.name!r} is not beside it: give the session "
@@ -54,12 +53,43 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
     if all(is_unnamed(label) for label in traj.labels):
         raise InputFileError(path, "the template has no marker labels (unlabelled points only): label it "
                                    "first, or give a labelled session")
-    if markers is not None:  # mirrored twins of a half-face layout are not in its session
-        present = [m for m in markers if m in set(traj.labels)]
-        if len(present) < 4:
-            raise InputFileError(path, f"only {len(present)} of the layout's markers are in its session")
-        traj = traj.select(present)
-    return build_template(traj)
+    return layout_template(layout, traj, layout_path=layout_path) if layout else build_template(traj)
+
+
+def layout_template(layout, session, *, layout_path: Path):
+    """The template of a layout: its markers and stabilization markers, from its ``session``
+    (mirrored twins of a half-face layout are not in the session: left out)."""
+    from mocaptk.acquisition.labelling.template import build_template
+    from mocaptk.clustering.layout import layout_rigid_set
+    from mocaptk.errors import InputFileError
+
+    wanted = dict.fromkeys([*layout.labels, *(layout_rigid_set(layout) or ())])
+    present = [m for m in wanted if m in set(session.labels)]
+    if len(present) < 4:
+        raise InputFileError(layout_path, f"only {len(present)} of the layout's markers are in its session")
+    return build_template(session.select(present))
+
+
+def label_for_layout(layout, layout_path: Path, capture, *, session=None, given: Path | None = None):
+    """``--label`` of solve and retarget: ``(capture labelled with the layout's template, summary
+    line)``. ``session``: the layout's session when the caller has read it, else it is read here
+    (``given`` or where layout.json records it). The capture's column names are ignored."""
+    from mocaptk.acquisition.labelling import capture as lc
+    from mocaptk.acquisition.labelling.report import label_report, summary_line
+    from mocaptk.clustering.pipeline import load_session
+
+    from .options import recorded_reading
+    from .solve import session_path
+
+    if session is None:
+        path = session_path(layout_path, layout.source, given)
+        rate, units = recorded_reading(layout, path, rate=None, units=None)
+        session, _ = load_session(str(path), rate=rate, units=units)
+    template = layout_template(layout, session, layout_path=layout_path)
+    result = lc.label_capture(template, capture)
+    lc.check_match(capture, result)
+    line = summary_line(label_report(template, result, first_frame=capture.first_frame))
+    return lc.labelled_trajectories(template, capture, result, keep_unlabelled=False), line
 
 
 @app.command()
