@@ -238,6 +238,11 @@ def test_solve_label_is_within_5_percent_of_solving_the_truly_labelled_capture(r
     assert "note: labelled" in done.stdout  # the labelling's summary is a note of the solve
     print(f"dense RMSE: solve --label {errors['label']:.4f} mm, truly labelled {errors['truth']:.4f} mm")
     assert errors["label"] <= 1.05 * errors["truth"], errors
+    # mocaptk label with the layout as template: the layout's and stabilization markers, named
+    named = run_cli("label", root / "raw.c3d", "--template", root / "layout" / "layout.json", "--out",
+                    root / "labelled.c3d", "--drop-unlabelled")
+    assert named.exit_code == 0, named.stderr
+    assert set(read_trajectories(root / "labelled.c3d").labels) == set(raw.labels)  # (no mirrored twins)
     # without --label the raw capture's *N columns are not the layout's markers: refused
     plain = run_cli("solve", root / "layout" / "layout.json", root / "raw.c3d", "--out", root / "plain",
                     "--formats", "none")

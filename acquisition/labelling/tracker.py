@@ -119,8 +119,8 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
         pts = positions[f, cols[:n]]
         lab[:n] = -1
         if tracked or not have_pose:  # the baseline keeps the previous frame's pose
-            r, t, inliers = find_pose(template, pts)
-            rot[:], trans[:] = r, t
+            found_rot, found_trans, inliers = find_pose(template, pts)
+            rot[:], trans[:] = found_rot, found_trans
             have_pose = inliers >= 3
             offset[:] = 0.0
         if not have_pose:
@@ -128,13 +128,13 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
             continue
         start_pred = template.mean
         wide = GATE_NEAREST * template.nearest  # a start-over: the face may differ from the template's
-        for r in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
-            if r:
+        for round_ in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
+            if round_:
                 keep = lab[:n] >= 0
                 if keep.sum() >= 3:
-                    r_, t_, coeffs = fit_frame(template, lab[:n][keep], pts[keep], rot, trans, offset,
-                                               expression=tracked)
-                    rot[:], trans[:] = r_, t_
+                    fit_rot, fit_trans, coeffs = fit_frame(template, lab[:n][keep], pts[keep], rot, trans,
+                                                           offset, expression=tracked)
+                    rot[:], trans[:] = fit_rot, fit_trans
                     start_pred = model_shape(template, coeffs) + offset
                 lab[:n] = -1
             head[:n] = (pts - trans) @ rot

@@ -34,7 +34,7 @@ def _check_text_options(units: str | None, rate: float | None, paths: list[Path]
 
 def load_template(path: Path, *, units: str | None, rate: float | None):
     """The labelling template of a labelled session, or of a ``layout.json`` (its markers, from its
-    session found beside it)."""
+    session, found as solve finds it)."""
     from mocaptk.acquisition.labelling import is_unnamed
     from mocaptk.acquisition.labelling.template import build_template
     from mocaptk.errors import InputFileError
@@ -43,12 +43,12 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
     if path.suffix.lower() == ".json":
         from mocaptk.clustering.layout import read_layout
 
+        from .options import recorded_reading
+        from .solve import session_path
+
         layout, layout_path = read_layout(path), path
-        session = path.parent / str(layout.source.get("path", ""))
-        if not session.is_file():
-            raise InputFileError(path, f"its session {session.name!r} is not beside it: give the session "
-                                       "as --template instead")
-        path = session
+        path = session_path(layout_path, layout.source, None)  # where solve finds it
+        rate, units = recorded_reading(layout, path, rate=rate, units=units)  # read as cluster read it
     traj = read_input(path, units=units, rate=rate)
     if all(is_unnamed(label) for label in traj.labels):
         raise InputFileError(path, "the template has no marker labels (unlabelled points only): label it "
@@ -98,7 +98,7 @@ def label(
                                              "labelled one with --check."),
     template: Path = typer.Option(..., "--template", "-t", metavar="T",
                                   help="Labelled session of the same face and markers (C3D, CSV, TRC), "
-                                       "or a layout.json (its markers, from the session beside it)."),
+                                       "or a layout.json (its markers, from its session, found as solve finds it)."),
     out: Path = typer.Option(None, "--out", "-o", metavar="LABELLED",
                              help="Output capture: .c3d, .csv or .trc (needed unless --check alone)."),
     report: Path = typer.Option(None, "--report", metavar="JSON",
