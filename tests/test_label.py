@@ -287,6 +287,8 @@ def test_batch_do_label_matches_the_single_command(run_cli, tmp_path, sample):
     records = {r["session"]: r for r in json.loads((out / "batch.json").read_text())["sessions"]}
     by_stem = {Path(name).stem: r for name, r in records.items()}
     assert by_stem["take0"]["status"] == "done" and by_stem["take1"]["status"] == "failed"
+    metrics = by_stem["take0"]["metrics"]
+    assert metrics["markers"] == 139 and metrics["labelled_points"] > 0.97 * metrics["points"], metrics
     assert "--template" in by_stem["take1"]["error"]
     single = run_cli("label", folder / "take0.c3d", "--template", SESSION, "--out", tmp_path / "one" / "labelled.c3d")
     assert single.exit_code == 0, single.stderr
