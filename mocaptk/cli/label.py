@@ -118,6 +118,8 @@ def label(
     quiet: Quiet = False,
 ) -> None:
     """Label an unlabelled capture with a template session's marker names (or check its labels)."""
+    from rich.console import Console
+
     from mocaptk.acquisition.formats import output_format, write_trajectories
     from mocaptk.acquisition.labelling import capture as lc
     from mocaptk.acquisition.labelling.report import label_report, summary_line
@@ -139,11 +141,16 @@ def label(
     if report is not None:
         claim_output(report, force=force)
     _check_text_options(units, rate, [capture, template])
-    tpl = load_template(template, units=units, rate=rate)
-    raw = read_input(capture, units=units, rate=rate)
-    lc.check_scale(tpl, raw)
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("reading the template and building its motion model"):
+        tpl = load_template(template, units=units, rate=rate)
+        raw = read_input(capture, units=units, rate=rate)
+        lc.check_scale(tpl, raw)
+    # the labeller's kernel compiles on its first use in an installation (~20 CPU-s), then is cached
+    labelling = console.status("labelling (the first run of an installation compiles the labeller)")
     if check:
-        runs, found = lc.check_labels(tpl, raw)
+        with labelling:
+            runs, found = lc.check_labels(tpl, raw)
         for run in runs:
             typer.echo(f"{run.label}: frames {raw.first_frame + run.start}–{raw.first_frame + run.end - 1} "
                        f"are {run.found}" + (" (swapped)" if run.swap else ""))
@@ -159,7 +166,8 @@ def label(
             typer.echo(f"{len(runs)} mislabelled runs ({sum(r.swap for r in runs)} in swaps)"
                        + (f"; fixed in {out}" if fix else ""))
         return
-    result = lc.label_capture(tpl, raw, clouds=None if mode == "auto" else mode == "clouds")
+    with labelling:
+        result = lc.label_capture(tpl, raw, clouds=None if mode == "auto" else mode == "clouds")
     lc.check_match(raw, result)
     data = label_report(tpl, result, first_frame=raw.first_frame)
     labelled = lc.labelled_trajectories(tpl, raw, result, keep_unlabelled=not drop_unlabelled)
