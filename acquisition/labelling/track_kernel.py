@@ -33,12 +33,14 @@ def _rodrigues(rx, ry, rz):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def gauss_newton(mean, basis, mode_std, sigma, offset, idx, points, rot, trans, k,
+def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, trans, k,
                  rounds):  # pragma: no cover - compiled
-    """``(rot, trans, coeffs)``: see :func:`.pose.fit_frame` (``k`` expression modes used)."""
+    """``(rot, trans, coeffs)``: see :func:`.pose.fit_frame` (``k`` expression modes used;
+    ``gram (M, K, K)``: :func:`mode_gram`). The normal equations are accumulated block by block,
+    skipping the pose rows' zeros (about half the work of the dense outer products)."""
     n, p = len(idx), 6 + k
     coeffs = np.zeros(basis.shape[0])
-    row = np.empty(p)
+    row = np.empty(6)
     for _ in range(rounds):
         lhs = np.zeros((p, p))
         rhs = np.zeros(p)
@@ -59,14 +61,21 @@ def gauss_newton(mean, basis, mode_std, sigma, offset, idx, points, rot, trans, 
                     row[0], row[1], row[2], resid = h1, -h0, 0.0, h2
                 row[3], row[4], row[5] = 0.0, 0.0, 0.0
                 row[3 + c] = 1.0
-                for j in range(k):
-                    row[6 + j] = basis[j, m, c]
                 resid -= mean[m, c] + offset[m, c]
-                for a in range(p):
+                for a in range(6):  # the pose block
                     wa = w * row[a]
+                    if wa == 0.0:
+                        continue
                     rhs[a] += wa * resid
-                    for b in range(a, p):
+                    for b in range(a, 6):
                         lhs[a, b] += wa * row[b]
+                    for j in range(k):  # pose x expression
+                        lhs[a, 6 + j] += wa * basis[j, m, c]
+                for j in range(k):
+                    rhs[6 + j] += w * basis[j, m, c] * resid
+            for a in range(k):  # expression x expression: the marker's mode Gram matrix
+                for b in range(a, k):
+                    lhs[6 + a, 6 + b] += w * gram[m, a, b]
         for a in range(p):
             for b in range(a):
                 lhs[a, b] = lhs[b, a]
@@ -80,6 +89,19 @@ def gauss_newton(mean, basis, mode_std, sigma, offset, idx, points, rot, trans, 
         trans = trans + rot @ x[3:6]
         rot = rot @ _rodrigues(x[0], x[1], x[2])
     return rot, trans, coeffs
+
+
+@numba.njit(cache=True, nogil=True)
+def mode_gram(basis):  # pragma: no cover - compiled
+    """``(M, K, K)``: per marker, the sum over x, y, z of its mode vectors' outer products."""
+    n_modes, n_markers = basis.shape[0], basis.shape[1]
+    gram = np.zeros((n_markers, n_modes, n_modes))
+    for m in range(n_markers):
+        for a in range(n_modes):
+            for b in range(n_modes):
+                gram[m, a, b] = basis[a, m, 0] * basis[b, m, 0] + basis[a, m, 1] * basis[b, m, 1] \
+                    + basis[a, m, 2] * basis[b, m, 2]
+    return gram
 
 
 @numba.njit(cache=True, nogil=True)
@@ -143,6 +165,7 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
     hits = np.zeros(n_markers, dtype=np.int64)
     choice = np.empty(n_cols, dtype=np.int64)
     idx = np.empty(n_cols, dtype=np.int64)
+    gram = mode_gram(basis)
     pts = np.empty((n_cols, 3))
     while f < n_frames:
         n = 0
@@ -167,7 +190,7 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
                     idx[a] = lab[i]
                     pts[a] = positions[f, cols[i]]
                     a += 1
-            r, t, coeffs = gauss_newton(mean, basis, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
+            r, t, coeffs = gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
                                         k, rounds)
             rot[:, :] = r
             trans[:] = t
