@@ -159,8 +159,12 @@ def layout_frames(solver: FaceSolver, capture: Trajectories, path: str) -> np.nd
     known = set(capture.labels)
     missing = [label for label in solver.layout_labels if label not in known]
     if missing:
+        from mocaptk.acquisition.labelling import is_unnamed
+
+        hint = ("; its points are unlabelled (*N): give --label" if all(map(is_unnamed, capture.labels))
+                else "")
         raise InputFileError(path, f"lacks {len(missing)} of the layout's {len(solver.layout_labels)} "
-                             f"markers: {', '.join(missing[:5])}" + (" ..." if len(missing) > 5 else ""))
+                             f"markers: {', '.join(missing[:5])}" + (" ..." if len(missing) > 5 else "") + hint)
     return capture.positions[:, capture.index(solver.layout_labels)]
 
 

@@ -111,6 +111,13 @@ def f(tmp_path_factory) -> dict[str, Path]:
     np.savez(d / "obs_labels.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)), labels=np.array(["a", "a", "b"]))
     np.savez(d / "obs_rate.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)), rate=-1.0)
     (d / "cam_other.json").write_text(json.dumps({"format": "nope"}))
+    # for label: a template without labels, 2 points a frame, the session in metres, another "face"
+    write_trajectories(small.replace(labels=["*0", "*1", "*2", "*3"]), d / "unlabelled.c3d")
+    write_trajectories(session.select(list(session.labels[:2])).replace(residuals=None), d / "two_points.c3d")
+    write_trajectories(session.replace(positions=session.positions / 1000, residuals=None), d / "session_metres.c3d")
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(-18, 18, (1, session.n_markers, 3)) + rng.normal(0, 0.3, (60, session.n_markers, 3))
+    write_trajectories(Trajectories(cloud, [f"*{k}" for k in range(session.n_markers)], 100.0), d / "other_face.c3d")
     (d / "existing.trc").write_text("keep")
     (d / "full").mkdir()
     (d / "full" / "keep.txt").write_text("keep")
@@ -357,6 +364,23 @@ CATALOGUE = [
                                       f["binary.dat"]], "binary.dat: not a mocaptk model file"),
     ("E-SOLVE-MODEL-SESSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s5", "--model",
                                          f["other_model.npz"]], "the model was trained on another session"),
+    ("E-SOLVE-UNLABELLED", lambda f: ["solve", f["layout.json"], f["unlabelled.c3d"], "--out", f["dir"] / "s6"],
+     "its points are unlabelled (*N): give --label"),
+    # -- label
+    ("E-LABEL-MODE", lambda f: ["label", S(f), "--template", S(f), "--out", f["dir"] / "l.c3d", "--mode", "x"],
+     "--mode must be auto, fragments or clouds"),
+    ("E-LABEL-FIX", lambda f: ["label", S(f), "--template", S(f), "--fix", "--out", f["dir"] / "l.c3d"],
+     "--fix needs --check"),
+    ("E-LABEL-TEMPLATE-UNLABELLED", lambda f: ["label", S(f), "--template", f["unlabelled.c3d"], "--out",
+                                               f["dir"] / "l.c3d"], "unlabelled.c3d: the template has no marker labels"),
+    ("E-LABEL-FEW-POINTS", lambda f: ["label", f["two_points.c3d"], "--template", S(f), "--out", f["dir"] / "l.c3d"],
+     "{file}: fewer than 3 points in every frame"),
+    ("E-LABEL-SPACING", lambda f: ["label", f["session_metres.c3d"], "--template", S(f), "--out",
+                                   f["dir"] / "l.c3d"], "times as far apart as the template's markers"),
+    ("E-LABEL-NO-MATCH", lambda f: ["label", f["other_face.c3d"], "--template", S(f), "--out", f["dir"] / "l.c3d"],
+     "{file}: only 0.0% of its points match the template"),
+    ("E-LABEL-CHECK-UNLABELLED", lambda f: ["label", f["unlabelled.c3d"], "--template", S(f), "--check"],
+     "{file}: only 0 of its labels are template markers"),
 ]
 
 

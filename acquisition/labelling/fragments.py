@@ -9,8 +9,8 @@ nearest neighbours, well inside the marker spacing and clearly nearer than any o
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 #: Link clouds only within this fraction of the template's median marker spacing ...
 LINK_SPACING = 0.35
@@ -38,27 +38,56 @@ def looks_untracked(positions: np.ndarray, spacing_mm: float) -> bool:
 
 def link_clouds(positions: np.ndarray, spacing_mm: float) -> np.ndarray:
     """(F, N) fragment ids linking untracked clouds frame to frame (see module doc)."""
-    n_frames, n_cols = positions.shape[:2]
-    ids = np.full((n_frames, n_cols), -1, dtype=np.int32)
-    radius = LINK_SPACING * spacing_mm
-    next_id = 0
-    prev_cols = np.empty(0, dtype=np.int64)
-    prev_tree = None
-    for f in range(n_frames):
-        cols = np.flatnonzero(~np.isnan(positions[f]).any(axis=1))
-        pts = positions[f, cols]
-        if len(cols) and prev_tree is not None and len(prev_cols) >= 2:
-            dist, near = prev_tree.query(pts, k=2)
-            tree = cKDTree(pts)
-            back_d, back = tree.query(positions[f - 1, prev_cols], k=min(2, len(cols)))
-            back = back if back.ndim == 1 else back[:, 0]
-            mutual = back[near[:, 0]] == np.arange(len(cols))
-            ok = mutual & (dist[:, 0] <= radius) & (dist[:, 1] >= LINK_RATIO * dist[:, 0])
-            ids[f, cols[ok]] = ids[f - 1, prev_cols[near[ok, 0]]]
-        else:
-            tree = cKDTree(pts) if len(cols) else None
-        fresh = cols[ids[f, cols] < 0]
-        ids[f, fresh] = np.arange(next_id, next_id + len(fresh))
-        next_id += len(fresh)
-        prev_cols, prev_tree = cols, tree
+    ids = np.full(positions.shape[:2], -1, dtype=np.int32)
+    _link(np.ascontiguousarray(positions, dtype=np.float64), LINK_SPACING * spacing_mm, LINK_RATIO, ids)
     return ids
+
+
+@numba.njit(cache=True, nogil=True)
+def _link(positions, radius, ratio, ids):  # pragma: no cover - compiled
+    """Fill ``ids``: brute-force nearest neighbours (a face's 40-200 points a frame: cheaper than a
+    tree per frame, and no Python per frame)."""
+    n_frames, n_cols = ids.shape
+    prev = np.empty(n_cols, dtype=np.int64)
+    cur = np.empty(n_cols, dtype=np.int64)
+    back = np.empty(n_cols, dtype=np.int64)
+    n_prev, next_id = 0, 0
+    for f in range(n_frames):
+        n = 0
+        for c in range(n_cols):
+            if not (np.isnan(positions[f, c, 0]) or np.isnan(positions[f, c, 1]) or np.isnan(positions[f, c, 2])):
+                cur[n] = c
+                n += 1
+        if n and n_prev >= 2:
+            for j in range(n_prev):  # each previous point's nearest current point
+                best, back[j] = np.inf, -1
+                for i in range(n):
+                    d = _d2(positions, f - 1, prev[j], f, cur[i])
+                    if d < best:
+                        best, back[j] = d, i
+            for i in range(n):  # each current point's nearest and second-nearest previous points
+                d0, d1, near = np.inf, np.inf, -1
+                for j in range(n_prev):
+                    d = _d2(positions, f, cur[i], f - 1, prev[j])
+                    if d < d0:
+                        d0, d1, near = d, d0, j
+                    elif d < d1:
+                        d1 = d
+                d0, d1 = np.sqrt(d0), np.sqrt(d1)
+                if back[near] == i and d0 <= radius and d1 >= ratio * d0:
+                    ids[f, cur[i]] = ids[f - 1, prev[near]]
+        for i in range(n):
+            if ids[f, cur[i]] < 0:
+                ids[f, cur[i]] = next_id
+                next_id += 1
+        prev[:n] = cur[:n]
+        n_prev = n
+    return ids
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _d2(positions, f, c, g, e):  # pragma: no cover - compiled
+    x = positions[f, c, 0] - positions[g, e, 0]
+    y = positions[f, c, 1] - positions[g, e, 1]
+    z = positions[f, c, 2] - positions[g, e, 2]
+    return x * x + y * y + z * z

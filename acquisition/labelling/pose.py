@@ -6,7 +6,6 @@ Pose convention as in :mod:`..stabilize`: ``x_capture = R @ x_head + t``.
 
 from __future__ import annotations
 
-import math
 from itertools import combinations
 
 import numpy as np
@@ -14,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from ..stabilize import kabsch
 from .template import LabelTemplate
+from .track_kernel import gauss_newton, mode_gram
 
 #: Triangles of pose markers tried by :func:`find_pose` (the largest ones: the best-conditioned).
 TRIANGLES = 6
@@ -23,7 +23,6 @@ MAX_CANDIDATES = 20000
 FINALISTS = 20
 #: Side lengths match when within this fraction (or 3 mm): the capture's face may differ a little.
 SIDE_TOLERANCE = 0.12
-_IDENTITY = np.eye(3)
 
 
 def model_shape(template: LabelTemplate, coeffs: np.ndarray) -> np.ndarray:
@@ -44,43 +43,10 @@ def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot:
     (MAP); without ``expression`` a rigid fit only.
     """
     k = len(template.mode_std) if expression else 0
-    n = len(idx)
-    base = template.mean[idx] + offset[idx]
-    w = np.repeat(1.0 / template.sigma[idx] ** 2, 3)
-    reg = np.zeros(6 + k)
-    reg[:6] = 1e-6  # keeps the pose defined with fewer than 3 points
-    reg[6:] = 1.0 / np.maximum(template.mode_std[:k], 1e-6) ** 2
-    diagonal = np.arange(6 + k)
-    coeffs = np.zeros(len(template.mode_std))
-    a = np.zeros((n, 3, 6 + k))
-    a[:, [0, 1, 2], [3, 4, 5]] = 1.0
-    if k:
-        a[:, :, 6:] = np.moveaxis(template.basis[:k, idx], 0, -1)  # (a, 3, k)
-    for _ in range(rounds):
-        head = (points - trans) @ rot  # R^T (p - t)
-        # d(head)/d(rotation vector) of the update R <- R exp([w]): -[q]x
-        a[:, 0, 1], a[:, 0, 2] = head[:, 2], -head[:, 1]
-        a[:, 1, 0], a[:, 1, 2] = -head[:, 2], head[:, 0]
-        a[:, 2, 0], a[:, 2, 1] = head[:, 1], -head[:, 0]
-        flat = a.reshape(3 * n, 6 + k)
-        lhs = flat.T @ (flat * w[:, None])
-        lhs[diagonal, diagonal] += reg
-        rhs = flat.T @ (w * (head - base).ravel())
-        x = np.linalg.solve(lhs, rhs)
-        coeffs[:k] = x[6:]
-        trans = trans + rot @ x[3:6]
-        rot = rot @ _rotation(x[:3])
-    return rot, trans, coeffs
-
-
-def _rotation(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation matrix of a rotation vector (rad)."""
-    angle = math.sqrt(float(rotvec @ rotvec))
-    if angle < 1e-12:
-        return _IDENTITY
-    kx, ky, kz = (float(v) / angle for v in rotvec)
-    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return _IDENTITY + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
+    return gauss_newton(template.mean, template.basis, mode_gram(template.basis), template.mode_std,
+                        template.sigma, offset,
+                        np.asarray(idx, dtype=np.int64), np.ascontiguousarray(points, dtype=np.float64),
+                        np.asarray(rot, dtype=np.float64), np.asarray(trans, dtype=np.float64), k, rounds)
 
 
 def find_pose(template: LabelTemplate, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

@@ -12,6 +12,9 @@ assignment and refit rounds.
 Each label's prediction is the model fitted to this frame's assigned markers plus the marker's own
 offset from the model when it was last seen, so a fragment broken at random is picked up where it
 stopped and a face that differs from the template's is followed.
+
+The tracked frames run in the compiled kernel (:mod:`.track_kernel`); Python sees only the
+frames that start over or need a real matching (a few per capture).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .pose import find_pose, fit_frame, model_shape
 from .template import LabelTemplate
+from .track_kernel import DONE, MATCH, finish_frame, track
 
 #: A point may be at most this fraction of its label's nearest-neighbour distance from the
 #: prediction (beyond half, it is nearer another marker's place) ...
@@ -79,60 +83,65 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
     frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
     offset = np.zeros_like(template.mean)
     rot, trans, have_pose = np.eye(3), np.zeros(3), False
-    for f in range(n_frames):
-        cols = np.flatnonzero(fragments[f] >= 0)
-        if len(cols) == 0:
-            continue
-        pts = positions[f, cols]
-        frag = fragments[f, cols]
-        lab = frag_label[frag] if tracked else np.full(len(cols), -1)
-        carried = lab >= 0
-        if carried.sum() >= 3:
-            rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
-                                           rounds=TRACK_ROUNDS)
-            pred = model_shape(template, coeffs) + offset
-            head = (pts - trans) @ rot
-            drop = np.zeros(len(cols), dtype=bool)
-            drop[carried] = np.linalg.norm(head[carried] - pred[lab[carried]], axis=1) > gate[lab[carried]]
-            if drop.any():
-                released[f, cols[drop]] = True
-                lab[drop] = -1
-                carried &= ~drop
-                rot, trans, coeffs = fit_frame(template, lab[carried], pts[carried], rot, trans, offset,
-                                               rounds=TRACK_ROUNDS)
-                pred = model_shape(template, coeffs) + offset
-                head = (pts - trans) @ rot
-            _assign(template, pred, new_gate, head, lab, ~carried)
-        else:
-            lab[:] = -1
-            if tracked or not have_pose:  # the baseline keeps the previous frame's pose
-                rot, trans, inliers = find_pose(template, pts)
-                have_pose = inliers >= 3
-                offset[:] = 0.0
-            if not have_pose:
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    fragments = np.ascontiguousarray(fragments, dtype=np.int32)
+    cols = np.empty(n_cols, dtype=np.int64)
+    lab = np.empty(n_cols, dtype=np.int64)
+    carried = np.empty(n_cols, dtype=bool)
+    head = np.empty((n_cols, 3))
+    pred = np.empty_like(template.mean)
+    tpl = (template.mean, template.basis, template.mode_std, template.sigma)
+
+    def store(f: int, n: int, pred: np.ndarray) -> None:
+        finish_frame(f, n, cols, lab, head, pred, template.sigma, fragments, label, conf, frag_label,
+                     offset, OFFSET_RATE, tracked)
+
+    f = 0
+    while f < n_frames:
+        if tracked:  # the compiled kernel runs until a frame needs a start-over or a matching
+            f, code, n = track(f, positions, fragments, frag_label, offset, rot, trans, *tpl, gate,
+                               new_gate, TRACK_ROUNDS, OFFSET_RATE, label, conf, released, cols, lab,
+                               carried, head, pred)
+            if code == DONE:
+                break
+            if code == MATCH:
+                _assign(template, pred, new_gate, head[:n], lab[:n], ~carried[:n])
+                store(f, n, pred)
+                f += 1
                 continue
-            pred = template.mean
-            wide = GATE_NEAREST * template.nearest  # a start-over: the face may differ from the template's
-            for r in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
-                if r:
-                    keep = lab >= 0
-                    if keep.sum() >= 3:
-                        rot, trans, coeffs = fit_frame(template, lab[keep], pts[keep], rot, trans, offset,
-                                                       expression=tracked)
-                        pred = model_shape(template, coeffs) + offset
-                    lab[:] = -1
-                head = (pts - trans) @ rot
-                _assign(template, pred, wide, head, lab, np.ones(len(cols), dtype=bool))
-            if tracked and (lab >= 0).sum() < INIT_MATCH * len(cols):
-                continue  # a wrong pose or a frame of ghosts: search again in the next frame
-        keep = lab >= 0
-        resid = head[keep] - pred[lab[keep]]
-        z2 = (resid ** 2).sum(axis=1) / template.sigma[lab[keep]] ** 2
-        label[f, cols[keep]] = lab[keep]
-        conf[f, cols[keep]] = np.exp(-0.5 * z2)
-        if tracked:
-            offset[lab[keep]] += OFFSET_RATE * resid
-            frag_label[frag] = lab
+        else:
+            n = int(np.count_nonzero(fragments[f] >= 0))
+            cols[:n] = np.flatnonzero(fragments[f] >= 0)
+            if not n:
+                f += 1
+                continue
+        # a start-over (the baseline: every frame)
+        pts = positions[f, cols[:n]]
+        lab[:n] = -1
+        if tracked or not have_pose:  # the baseline keeps the previous frame's pose
+            found_rot, found_trans, inliers = find_pose(template, pts)
+            rot[:], trans[:] = found_rot, found_trans
+            have_pose = inliers >= 3
+            offset[:] = 0.0
+        if not have_pose:
+            f += 1
+            continue
+        start_pred = template.mean
+        wide = GATE_NEAREST * template.nearest  # a start-over: the face may differ from the template's
+        for round_ in range(INIT_ROUNDS if tracked else BASELINE_ROUNDS):
+            if round_:
+                keep = lab[:n] >= 0
+                if keep.sum() >= 3:
+                    fit_rot, fit_trans, coeffs = fit_frame(template, lab[:n][keep], pts[keep], rot, trans,
+                                                           offset, expression=tracked)
+                    rot[:], trans[:] = fit_rot, fit_trans
+                    start_pred = model_shape(template, coeffs) + offset
+                lab[:n] = -1
+            head[:n] = (pts - trans) @ rot
+            _assign(template, start_pred, wide, head[:n], lab[:n], np.ones(n, dtype=bool))
+        if not tracked or (lab[:n] >= 0).sum() >= INIT_MATCH * n:  # else a wrong pose or a frame of ghosts
+            store(f, n, np.ascontiguousarray(start_pred))
+        f += 1
     return PointLabels(label, conf, released)
 
 

@@ -31,7 +31,8 @@ class BatchCommand:
     ``out_file``: the command's ``--out`` is this file in the session folder (None: the folder);
     ``stdout_file``: the command prints its result (``--json``) and batch saves it under this name;
     ``layout_argument``: the command's first argument is a layout (``solve LAYOUT CAPTURE``): the
-    matched files are its captures and the layout comes from ``--layout`` (batch line or sidecar).
+    matched files are its captures and the layout comes from ``--layout`` (batch line or sidecar);
+    ``per_session``: required options a session's sidecar may give instead of the batch line.
     """
 
     name: str
@@ -39,6 +40,7 @@ class BatchCommand:
     stdout_file: str | None = None
     fixed: tuple[str, ...] = ("--quiet",)
     layout_argument: bool = False
+    per_session: tuple[str, ...] = ()
 
 
 COMMANDS: dict[str, BatchCommand] = {
@@ -47,6 +49,7 @@ COMMANDS: dict[str, BatchCommand] = {
     "compare": BatchCommand("compare"),
     "info": BatchCommand("info", stdout_file="info.json", fixed=("--json",)),
     "solve": BatchCommand("solve", layout_argument=True),
+    "label": BatchCommand("label", out_file="labelled.c3d", per_session=("--template",)),
 }
 #: batch's own option naming a ``layout_argument`` command's layout (a sidecar's "layout" key)
 LAYOUT_OPTION = "--layout"
@@ -152,6 +155,9 @@ def check_command_line(command: str, options: list[str]) -> None:
 
     if COMMANDS[command].layout_argument and LAYOUT_OPTION not in options:
         options = [*options, LAYOUT_OPTION, "layout.json"]  # a sidecar may give each session's
+    for name in COMMANDS[command].per_session:
+        if name not in options:
+            options = [*options, name, "given-by-a-sidecar"]
     argv = _command_argv(command, Path("session"), Path("out"), options)
     try:
         click_command(command).make_context(command, argv[1:])

@@ -34,7 +34,8 @@ LOCK_NAME = ".batch.json.lock"
 
 
 def session_metrics(folder: Path, *, layout_file: Path | None = None) -> dict[str, Any]:
-    """Marker counts and held-out RMSE (mm) from the result files in a session's output folder.
+    """Marker counts and held-out RMSE (mm) from the result files in a session's output folder
+    (a labelling's points and labelled points too).
 
     ``layout_markers`` is always the layout file's own count (``layout_file``: the layout a solve
     used); ``solve_markers`` the ones a solve could use (those the session captured).
@@ -57,6 +58,10 @@ def session_metrics(folder: Path, *, layout_file: Path | None = None) -> dict[st
         name, scores = next(iter(evaluation["methods"].items()), (None, {}))
         if isinstance(scores, dict) and scores.get("rmse_mm") is not None:
             metrics |= {"rmse_mm": scores["rmse_mm"], "rmse_of": f"evaluate: {name}, {scores.get('count')} markers"}
+    labelled = _read(folder / "label_report.json")
+    if isinstance(labelled, dict) and labelled.get("format") == "mocaptk.label-report":
+        metrics |= {"markers": labelled.get("markers"), "points": labelled.get("points"),
+                    "labelled_points": labelled.get("labelled_points")}
     compare = _read(folder / "compare.json")
     if "rmse_mm" not in metrics and isinstance(compare, dict) and isinstance(compare.get("rows"), list):
         paper = [r for r in compare["rows"] if r.get("method") == "paper" and r.get("rmse_mm") is not None]

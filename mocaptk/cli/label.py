@@ -34,32 +34,62 @@ def _check_text_options(units: str | None, rate: float | None, paths: list[Path]
 
 def load_template(path: Path, *, units: str | None, rate: float | None):
     """The labelling template of a labelled session, or of a ``layout.json`` (its markers, from its
-    session found beside it)."""
+    session, found as solve finds it)."""
     from mocaptk.acquisition.labelling import is_unnamed
     from mocaptk.acquisition.labelling.template import build_template
     from mocaptk.errors import InputFileError
 
-    markers = None
+    layout = layout_path = None
     if path.suffix.lower() == ".json":
         from mocaptk.clustering.layout import read_layout
 
-        layout = read_layout(path)
-        markers = [c.representative for c in layout.clusters]
-        session = path.parent / str(layout.source.get("path", ""))
-        if not session.is_file():
-            raise InputFileError(path, f"its session {session.name!r} is not beside it: give the session "
-                                       "as --template instead")
-        path = session
+        from .options import recorded_reading
+        from .solve import session_path
+
+        layout, layout_path = read_layout(path), path
+        path = session_path(layout_path, layout.source, None)  # where solve finds it
+        rate, units = recorded_reading(layout, path, rate=rate, units=units)  # read as cluster read it
     traj = read_input(path, units=units, rate=rate)
     if all(is_unnamed(label) for label in traj.labels):
         raise InputFileError(path, "the template has no marker labels (unlabelled points only): label it "
                                    "first, or give a labelled session")
-    if markers is not None:  # mirrored twins of a half-face layout are not in its session
-        present = [m for m in markers if m in set(traj.labels)]
-        if len(present) < 4:
-            raise InputFileError(path, f"only {len(present)} of the layout's markers are in its session")
-        traj = traj.select(present)
-    return build_template(traj)
+    return layout_template(layout, traj, layout_path=layout_path) if layout else build_template(traj)
+
+
+def layout_template(layout, session, *, layout_path: Path):
+    """The template of a layout: its markers and stabilization markers, from its ``session``
+    (mirrored twins of a half-face layout are not in the session: left out)."""
+    from mocaptk.acquisition.labelling.template import build_template
+    from mocaptk.clustering.layout import layout_rigid_set
+    from mocaptk.errors import InputFileError
+
+    wanted = dict.fromkeys([*layout.labels, *(layout_rigid_set(layout) or ())])
+    present = [m for m in wanted if m in set(session.labels)]
+    if len(present) < 4:
+        raise InputFileError(layout_path, f"only {len(present)} of the layout's markers are in its session")
+    return build_template(session.select(present))
+
+
+def label_for_layout(layout, layout_path: Path, capture, *, session=None, given: Path | None = None):
+    """``--label`` of solve and retarget: ``(capture labelled with the layout's template, summary
+    line)``. ``session``: the layout's session when the caller has read it, else it is read here
+    (``given`` or where layout.json records it). The capture's column names are ignored."""
+    from mocaptk.acquisition.labelling import capture as lc
+    from mocaptk.acquisition.labelling.report import label_report, summary_line
+    from mocaptk.clustering.pipeline import load_session
+
+    from .options import recorded_reading
+    from .solve import session_path
+
+    if session is None:
+        path = session_path(layout_path, layout.source, given)
+        rate, units = recorded_reading(layout, path, rate=None, units=None)
+        session, _ = load_session(str(path), rate=rate, units=units)
+    template = layout_template(layout, session, layout_path=layout_path)
+    result = lc.label_capture(template, capture)
+    lc.check_match(capture, result)
+    line = summary_line(label_report(template, result, first_frame=capture.first_frame))
+    return lc.labelled_trajectories(template, capture, result, keep_unlabelled=False), line
 
 
 @app.command()
@@ -68,7 +98,7 @@ def label(
                                              "labelled one with --check."),
     template: Path = typer.Option(..., "--template", "-t", metavar="T",
                                   help="Labelled session of the same face and markers (C3D, CSV, TRC), "
-                                       "or a layout.json (its markers, from the session beside it)."),
+                                       "or a layout.json (its markers, from its session, found as solve finds it)."),
     out: Path = typer.Option(None, "--out", "-o", metavar="LABELLED",
                              help="Output capture: .c3d, .csv or .trc (needed unless --check alone)."),
     report: Path = typer.Option(None, "--report", metavar="JSON",
@@ -88,6 +118,8 @@ def label(
     quiet: Quiet = False,
 ) -> None:
     """Label an unlabelled capture with a template session's marker names (or check its labels)."""
+    from rich.console import Console
+
     from mocaptk.acquisition.formats import output_format, write_trajectories
     from mocaptk.acquisition.labelling import capture as lc
     from mocaptk.acquisition.labelling.report import label_report, summary_line
@@ -109,11 +141,16 @@ def label(
     if report is not None:
         claim_output(report, force=force)
     _check_text_options(units, rate, [capture, template])
-    tpl = load_template(template, units=units, rate=rate)
-    raw = read_input(capture, units=units, rate=rate)
-    lc.check_scale(tpl, raw)
+    console = Console(stderr=True, quiet=quiet)
+    with console.status("reading the template and building its motion model"):
+        tpl = load_template(template, units=units, rate=rate)
+        raw = read_input(capture, units=units, rate=rate)
+        lc.check_scale(tpl, raw)
+    # the labeller's kernel compiles on its first use in an installation (~20 CPU-s), then is cached
+    labelling = console.status("labelling (the first run of an installation compiles the labeller)")
     if check:
-        runs, found = lc.check_labels(tpl, raw)
+        with labelling:
+            runs, found = lc.check_labels(tpl, raw)
         for run in runs:
             typer.echo(f"{run.label}: frames {raw.first_frame + run.start}–{raw.first_frame + run.end - 1} "
                        f"are {run.found}" + (" (swapped)" if run.swap else ""))
@@ -129,7 +166,8 @@ def label(
             typer.echo(f"{len(runs)} mislabelled runs ({sum(r.swap for r in runs)} in swaps)"
                        + (f"; fixed in {out}" if fix else ""))
         return
-    result = lc.label_capture(tpl, raw, clouds=None if mode == "auto" else mode == "clouds")
+    with labelling:
+        result = lc.label_capture(tpl, raw, clouds=None if mode == "auto" else mode == "clouds")
     lc.check_match(raw, result)
     data = label_report(tpl, result, first_frame=raw.first_frame)
     labelled = lc.labelled_trajectories(tpl, raw, result, keep_unlabelled=not drop_unlabelled)

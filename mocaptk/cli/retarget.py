@@ -50,6 +50,7 @@ def retarget(
                                  "correspondence.png."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion even "
                                       "if the layout was made on stabilized data."),
+    label: bool = typer.Option(False, "--label", help="CAPTURE is unlabelled: label it first (as solve --label)."),
     rate: Rate = None,
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
@@ -100,6 +101,11 @@ def retarget(
         if rigid and lay.parameters.get("stabilized"):  # else the session is its own head frame
             dense, _ = stabilize(dense, rigid=rigid)
         solver = train_solver(lay, dense, source, kind="ridge", rigid_labels=rigid or ())
+        if label:
+            from .label import label_for_layout
+
+            traj, line = label_for_layout(lay, layout, traj, session=dense)
+            console.print(f"note: {line}", markup=False, highlight=False)
         if calibration is not None:
             retargeter = load_calibration(calibration, char, dense.labels)
         else:

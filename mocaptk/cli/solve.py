@@ -122,6 +122,9 @@ def solve(
     neutral: str = typer.Option(None, "--neutral", metavar="FIRST:LAST", help="Capture frames at "
                                 "rest (0-based, LAST excluded) giving the capture's neutral; implies "
                                 "--adapt-neutral."),
+    label: bool = typer.Option(False, "--label", help="CAPTURE is unlabelled (or its labels are not "
+                               "trusted): label it first against the layout's markers in its session "
+                               "(as mocaptk label --template layout.json)."),
     rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
                              "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
                              "'mocaptk rig --animate' writes them; needs the session)."),
@@ -183,8 +186,16 @@ def solve(
                                   rigid_labels=rigid or ())
         check_members(lay, solver.labels, layout_path=layout, session_name="the model's session"
                       if model is not None else path.name)
+        notes = []
+        if label:
+            from .label import label_for_layout
+
+            say("labelling the capture")
+            traj, line = label_for_layout(lay, layout, traj, session=dense if model is None else None,
+                                          given=session)
+            notes.append(line)
         uncaptured = [label for label in lay.labels if label not in set(solver.layout_labels)]
-        notes = [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
+        notes += [f"{len(uncaptured)} layout markers the session never captured (mirrored twins of a "
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
                  + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
         if rig and model is not None:
