@@ -72,6 +72,9 @@ class RigAnimation:
         The joints that rotate (default: the root, as :func:`bake_animation` bakes).
     parents : tuple of int, length J, optional
         Each joint's parent (-1 for the root); default every joint under joint 0.
+    first_frames : tuple of int, one per take
+        The capture's frame number of each take's first frame (an excerpt keeps its own);
+        default: the take's start.
     """
 
     joint_names: tuple[str, ...]
@@ -83,6 +86,11 @@ class RigAnimation:
     name: str = "take"
     rotated: tuple[int, ...] = (0,)
     parents: tuple[int, ...] | None = None
+    first_frames: tuple[int, ...] = ()
+
+    def first_frame(self, take: int) -> int:
+        """The capture's frame number of take ``take``'s first frame."""
+        return self.first_frames[take] if self.first_frames else self.takes[take].start
 
     @property
     def frame_count(self) -> int:
@@ -140,7 +148,8 @@ class RigAnimation:
         """JSON-ready summary: frames, rate, takes and every filled gap."""
         return {"name": self.name, "frames": self.frame_count, "rate_hz": self.rate,
                 "joints": len(self.joint_names),
-                "takes": [t.as_dict() for t in self.takes],
+                "takes": [{**t.as_dict(), "first_frame": self.first_frame(k)}
+                          for k, t in enumerate(self.takes)],
                 "filled_marker_frames": self.filled_frames(),
                 "head_pose_frames_held": sum(g.length for g in self.gaps if g.marker == HEAD_POSE),
                 "gaps": [g.as_dict() for g in self.gaps]}
@@ -150,7 +159,7 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
                    head_rotations: np.ndarray | None = None,
                    head_translations: np.ndarray | None = None,
                    takes: Sequence[Take] = (), name: str = "take",
-                   max_gap: int = FILL_MAX_GAP) -> RigAnimation:
+                   max_gap: int = FILL_MAX_GAP, first_frame: int = 0) -> RigAnimation:
     """Bake marker-joint positions (and the head pose) into joint tracks.
 
     Parameters
@@ -171,6 +180,8 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
         Clip name of the default take.
     max_gap : int
         Longest gap filled by spline (longer interior gaps: neighbour regression).
+    first_frame : int
+        The capture's number of frame 0 (C3D ``first_frame``: an excerpt's clips keep it).
 
     Raises
     ------
@@ -225,7 +236,7 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
     gaps.sort(key=lambda g: (g.marker != HEAD_POSE, g.marker, g.start))
     return RigAnimation(tuple(rig.joint_names), float(rate), local,
                         continuous(rotation_to_quaternion(rotations))[:, None], clips, tuple(gaps),
-                        name)
+                        name, first_frames=tuple(int(first_frame) + t.start for t in clips))
 
 
 def concatenate_animations(animations: Sequence[RigAnimation]) -> RigAnimation:
@@ -241,12 +252,14 @@ def concatenate_animations(animations: Sequence[RigAnimation]) -> RigAnimation:
                              f"{first.rate:g} Hz: bake them into separate files")
     takes: list[Take] = []
     gaps: list[GapRecord] = []
+    firsts: list[int] = []
     offset = 0
     for animation in animations:
         names = {t.name for t in takes}
-        for take in animation.takes:
+        for k, take in enumerate(animation.takes):
             name = take.name if take.name not in names else f"{animation.name}_{take.name}"
             takes.append(Take(name, take.start + offset, take.end + offset, take.region))
+            firsts.append(animation.first_frame(k))
         gaps += [GapRecord(g.marker, g.start + offset, g.end + offset, g.position, g.method,
                            g.note) for g in animation.gaps]
         offset += animation.frame_count
@@ -254,7 +267,7 @@ def concatenate_animations(animations: Sequence[RigAnimation]) -> RigAnimation:
                         np.concatenate([a.translations for a in animations]),
                         continuous(np.concatenate([a.rotations for a in animations])),
                         tuple(takes), tuple(gaps), "+".join(a.name for a in animations),
-                        first.rotated, first.parents)
+                        first.rotated, first.parents, tuple(firsts))
 
 
 def head_pose_between(raw: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

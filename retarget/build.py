@@ -217,7 +217,7 @@ def bake_capture(build: RigBuild, capture: Capture) -> RigAnimation:
     positions = bind + build.joint_displacements(positions @ rotation.T - bind[:positions.shape[1]])
     return bake_animation(build.rig, positions, rate=relative.rate,
                           head_rotations=head_rot, head_translations=head_trans,
-                          takes=relative.takes, name=capture.name)
+                          takes=relative.takes, name=capture.name, first_frame=relative.first_frame)
 
 
 def file_hierarchy(build: RigBuild) -> RigHierarchy:

@@ -8,7 +8,8 @@ joint node carries its marker label, side and region in ``extras``. An animation
 samplers on every joint's translation and on the rotating joints' rotation, times in seconds from the
 take's first frame (every clip starts at 0, as in the FBX; glTF has no frame rate: it is in the
 scene's ``extras``; set Blender's scene rate before importing, or its importer maps the seconds
-to 24 fps frames).
+to 24 fps frames); each animation's ``extras.first_frame`` is the capture's frame number of its
+time 0 (an excerpt from frame 700 says 700).
 """
 
 from __future__ import annotations
@@ -115,7 +116,7 @@ def _animations(builder: _BufferBuilder, animation: RigAnimation) -> list[dict]:
     out = []
     translations = (animation.translations * MM_TO_M).astype(np.float32)
     rotations = animation.rotations.astype(np.float32)
-    for take in animation.takes:
+    for k, take in enumerate(animation.takes):
         frames = slice(take.start, take.end)
         times = builder.add((np.arange(take.end - take.start) / animation.rate).astype(np.float32),
                             bounds=True)  # the clip's own time, from 0
@@ -133,7 +134,8 @@ def _animations(builder: _BufferBuilder, animation: RigAnimation) -> list[dict]:
             samplers.append(pygltflib.AnimationSampler(
                 input=times, output=builder.add(np.ascontiguousarray(values)),
                 interpolation="LINEAR"))
-        out.append({"name": take.name, "samplers": samplers, "channels": channels})
+        out.append({"name": take.name, "samplers": samplers, "channels": channels,
+                    "extras": {"first_frame": animation.first_frame(k)}})  # the capture's frame
     return out
 
 

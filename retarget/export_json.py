@@ -78,13 +78,16 @@ def rig_animation_bytes(animation: RigAnimation) -> bytes:
     Arrays: ``translations`` (F, J, 3) float32 mm (local, rig frame), ``rotations`` (F, R, 4)
     float32 local quaternions (x, y, z, w) of the joints ``rotated_joints`` (R,) int64,
     ``joint_parents`` (J,) int64 (-1: the root), ``joint_names`` (J,), ``rate`` (),
-    ``take_names`` (T,), ``take_frames`` (T, 2) int64 ``[start, end)``.
+    ``take_names`` (T,), ``take_frames`` (T, 2) int64 ``[start, end)``, ``take_first_frames``
+    (T,) int64 the capture's frame number of each take's first frame.
     """
     arrays = {"joint_names": np.array(animation.joint_names),
               "joint_parents": np.array(animation.joint_parents, dtype=np.int64),
               "rate": np.array(animation.rate),
               "rotated_joints": np.array(animation.rotated, dtype=np.int64),
               "rotations": animation.rotations.astype(np.float32),
+              "take_first_frames": np.array([animation.first_frame(k)
+                                             for k in range(len(animation.takes))], dtype=np.int64),
               "take_frames": np.array([[t.start, t.end] for t in animation.takes], dtype=np.int64),
               "take_names": np.array([t.name for t in animation.takes]),
               "translations": animation.translations.astype(np.float32)}
@@ -108,7 +111,8 @@ def read_rig_animation(path: str | os.PathLike[str]) -> RigAnimation:
                                 data["translations"].astype(np.float64),
                                 data["rotations"].astype(np.float64), takes, (),
                                 rotated=tuple(int(j) for j in data["rotated_joints"]),
-                                parents=tuple(int(p) for p in data["joint_parents"]))
+                                parents=tuple(int(p) for p in data["joint_parents"]),
+                                first_frames=tuple(int(f) for f in data["take_first_frames"]))
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputFileError(path, f"not a rig animation ({exc})") from None
 

@@ -214,4 +214,5 @@ def hierarchical_animation(hierarchy: RigHierarchy, flat: RigAnimation) -> RigAn
                                 np.repeat(inverse[:, None], len(hierarchy.lower), axis=1)], axis=1)
     return RigAnimation(rig.joint_names, flat.rate, local, rotations, flat.takes, flat.gaps,
                         flat.name, rotated=(1, 2, *(int(j) for j in hierarchy.lower)),
-                        parents=tuple(int(p) for p in rig.joint_parents))
+                        parents=tuple(int(p) for p in rig.joint_parents),
+                        first_frames=flat.first_frames)
