@@ -112,7 +112,7 @@ def read_rig_animation(path: str | os.PathLike[str]) -> RigAnimation:
                                 data["rotations"].astype(np.float64), takes, (),
                                 rotated=tuple(int(j) for j in data["rotated_joints"]),
                                 parents=tuple(int(p) for p in data["joint_parents"]),
-                                first_frames=tuple(int(f) for f in data["take_first_frames"]))
+                                first_frames=tuple(int(f) for f in data.get("take_first_frames", ())))
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputFileError(path, f"not a rig animation ({exc})") from None
 
