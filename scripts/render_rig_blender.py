@@ -37,7 +37,8 @@ def main(fbx: str, rig_json: str, out: str) -> None:
     local_bind = bind - np.array([bind[p] if p >= 0 else np.zeros(3) for p in parents])
     translations, rotations = tracks["translations"], tracks["rotations"]
     rotated = [int(j) for j in tracks["rotated_joints"]]
-    jaw = np.array([Quaternion((q[3], *q[:3])).angle for q in rotations[:, rotated.index(names.index("jaw"))]])
+    jaw_track = rotations[:, rotated.index(names.index("jaw"))]
+    jaw = np.array([Quaternion((q[3], *q[:3])).angle for q in jaw_track])
     markers = [i for i, j in enumerate(rig["joints"]) if j["marker"] and j["region"] != "stabilization"]
     lids = [i for i, n in enumerate(names) if n.startswith("upperLid")]
     still = np.linalg.norm(translations[:, markers] - local_bind[markers], axis=2).mean(axis=1)
