@@ -295,3 +295,6 @@ def test_rig_files_have_the_head_jaw_hierarchy_and_the_stabilization_locators(mo
     assert "jaw" in [gltf.nodes[c].name for c in nodes["head"].children]
     assert {gltf.nodes[c].name for c in nodes["jaw"].children} == set(report["jaw"]["children"])
     assert nodes["stabilization_H1"].extras["marker"] == rigid[0]
+    report = installed.run_validator(out / "rig.glb")["issues"]  # the hierarchy and its clips
+    assert (report["numErrors"], report["numWarnings"], report["numInfos"]) == (0, 0, 0), \
+        report["messages"][:5]
