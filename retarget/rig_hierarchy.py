@@ -38,12 +38,11 @@ HEAD, JAW = "head", "jaw"
 #: session's largest fix the pivot (the open-jaw frames; small rotations carry no pivot).
 PIVOT_FRAMES_FRACTION = 0.5
 #: A fitted pivot is kept when it lies this far behind the chin (mm, rig Z) at least, at most
-#: :data:`PIVOT_MAX_MM` from it, and above it; else :data:`DEFAULT_PIVOT` is used.
+#: :data:`PIVOT_MAX_MM` from it, and above it; else the default pivot is used.
 PIVOT_MIN_BEHIND_MM, PIVOT_MAX_MM = 30.0, 180.0
 #: Default pivot when no opening is seen, from the jaw joints' box (height h): on the midline,
 #: ``DEFAULT_UP`` h above its top and ``DEFAULT_BACK`` h behind its front - about the condyles.
 DEFAULT_UP, DEFAULT_BACK = 0.5, 1.5
-DEFAULT_PIVOT = "midline, 0.5 x the jaw joints' height above them, 1.5 x behind their front"
 #: Least jaw rotation (degrees) over the session for a pivot to be fitted.
 MIN_OPENING_DEG = 3.0
 
@@ -93,7 +92,8 @@ def fit_jaw_pivot(bind: np.ndarray, frames: np.ndarray, *, midline_x: float) -> 
     has ``t = (I - R) P``, solved in least squares over the frames with the larger openings,
     ``P``'s X held on the midline (the hinge axis is left-right, so X is not observed). A pivot
     in front of the chin, below it or implausibly far (:data:`PIVOT_MAX_MM`), or a session
-    without an opening of :data:`MIN_OPENING_DEG`, gives :data:`DEFAULT_PIVOT`."""
+    without an opening of :data:`MIN_OPENING_DEG`, gives the default (:data:`DEFAULT_UP`,
+    :data:`DEFAULT_BACK`)."""
     bind = np.asarray(bind, dtype=float)
     seen = np.isfinite(frames).all(axis=(1, 2))
     moved = np.asarray(frames, dtype=float)[seen]
@@ -141,14 +141,6 @@ class RigHierarchy:
     joint_of: np.ndarray
     lower: np.ndarray
     pivot: JawPivot
-
-    @property
-    def head(self) -> int:
-        return 1
-
-    @property
-    def jaw(self) -> int:
-        return 2
 
     def report(self) -> dict[str, object]:
         """JSON-ready summary for rig_report.json."""
