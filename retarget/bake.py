@@ -36,7 +36,7 @@ from mocaptk.trajectories import Take, Trajectories
 
 from .rig import Rig
 
-__all__ = ["HEAD_POSE", "RigAnimation", "bake_animation", "concatenate_animations",
+__all__ = ["HEAD_POSE", "RigAnimation", "bake_animation", "concatenate_animations", "continuous",
            "head_pose_between", "rotation_to_quaternion"]
 
 #: ``GapRecord.marker`` of the gaps in the head pose.
@@ -57,9 +57,9 @@ class RigAnimation:
         Frames per second of the capture.
     translations : (F, J, 3) float64
         Local translation of each joint (parent space), mm, rig frame; never NaN.
-    root_rotations : (F, 4) float64
-        Unit quaternions ``(x, y, z, w)`` of the root joint (the others never rotate), sign
-        chosen continuous from frame to frame.
+    rotations : (F, R, 4) float64
+        Local rotations of the joints ``rotated`` as unit quaternions ``(x, y, z, w)``, sign
+        chosen continuous from frame to frame; the other joints never rotate.
     takes : tuple of Take
         Non-overlapping frame ranges covering the animation, one animation clip each
         (FBX AnimationStack, glTF animation); frames are 0-based in this animation.
@@ -68,25 +68,68 @@ class RigAnimation:
         :data:`HEAD_POSE`), ``method`` how it was filled.
     name : str
         What was captured (file stem), for clip names.
+    rotated : tuple of int, length R
+        The joints that rotate (default: the root, as :func:`bake_animation` bakes).
+    parents : tuple of int, length J, optional
+        Each joint's parent (-1 for the root); default every joint under joint 0.
+    first_frames : tuple of int, one per take
+        The capture's frame number of each take's first frame (an excerpt keeps its own);
+        default: the take's start.
     """
 
     joint_names: tuple[str, ...]
     rate: float
     translations: np.ndarray
-    root_rotations: np.ndarray
+    rotations: np.ndarray
     takes: tuple[Take, ...]
     gaps: tuple[GapRecord, ...]
     name: str = "take"
+    rotated: tuple[int, ...] = (0,)
+    parents: tuple[int, ...] | None = None
+    first_frames: tuple[int, ...] = ()
+
+    def first_frame(self, take: int) -> int:
+        """The capture's frame number of take ``take``'s first frame."""
+        return self.first_frames[take] if self.first_frames else self.takes[take].start
 
     @property
     def frame_count(self) -> int:
         return int(self.translations.shape[0])
 
-    def rotation_matrices(self) -> np.ndarray:
-        """The root's rotations as (F, 3, 3) matrices."""
+    @property
+    def joint_parents(self) -> tuple[int, ...]:
+        """Each joint's parent (-1 for the root)."""
+        return self.parents or (-1, *([0] * (len(self.joint_names) - 1)))
+
+    @property
+    def root_rotations(self) -> np.ndarray:
+        """The root's rotations (F, 4) ``(x, y, z, w)`` (identity when it does not rotate)."""
+        if 0 in self.rotated:
+            return self.rotations[:, self.rotated.index(0)]
+        return np.tile([0.0, 0.0, 0.0, 1.0], (self.frame_count, 1))
+
+    def world_transforms(self, frames: np.ndarray | slice = slice(None)
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (n, J, 3, 3) and positions (n, J, 3) mm of every joint at ``frames``
+        (forward kinematics over :attr:`joint_parents`)."""
         from scipy.spatial.transform import Rotation
 
-        return Rotation.from_quat(self.root_rotations).as_matrix()
+        local_t = self.translations[frames]
+        n = local_t.shape[0]
+        rotations = np.empty((n, len(self.joint_names), 3, 3))
+        positions = np.empty((n, len(self.joint_names), 3))
+        quats = self.rotations[frames]
+        for joint, parent in enumerate(self.joint_parents):
+            local_r = (Rotation.from_quat(quats[:, self.rotated.index(joint)]).as_matrix()
+                       if joint in self.rotated else np.eye(3))
+            if parent < 0:
+                rotations[:, joint] = local_r
+                positions[:, joint] = local_t[:, joint]
+                continue
+            rotations[:, joint] = rotations[:, parent] @ local_r
+            positions[:, joint] = (np.einsum("fij,fj->fi", rotations[:, parent], local_t[:, joint])
+                                   + positions[:, parent])
+        return rotations, positions
 
     def check_rig(self, rig) -> None:
         """Raise ValueError unless this animation was baked for ``rig`` (same joint names)."""
@@ -94,11 +137,8 @@ class RigAnimation:
             raise ValueError("the animation was baked for another rig (joint names differ)")
 
     def world_positions(self) -> np.ndarray:
-        """World position (F, J, 3) mm of every joint (root rotation applied to its children)."""
-        root = self.translations[:, :1]
-        world = np.einsum("fij,fkj->fki", self.rotation_matrices(), self.translations) + root
-        world[:, 0] = root[:, 0]
-        return world
+        """World position (F, J, 3) mm of every joint."""
+        return self.world_transforms()[1]
 
     def filled_frames(self) -> int:
         """Marker-frames filled before keying (head-pose gaps not counted)."""
@@ -108,7 +148,8 @@ class RigAnimation:
         """JSON-ready summary: frames, rate, takes and every filled gap."""
         return {"name": self.name, "frames": self.frame_count, "rate_hz": self.rate,
                 "joints": len(self.joint_names),
-                "takes": [t.as_dict() for t in self.takes],
+                "takes": [{**t.as_dict(), "first_frame": self.first_frame(k)}
+                          for k, t in enumerate(self.takes)],
                 "filled_marker_frames": self.filled_frames(),
                 "head_pose_frames_held": sum(g.length for g in self.gaps if g.marker == HEAD_POSE),
                 "gaps": [g.as_dict() for g in self.gaps]}
@@ -118,7 +159,7 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
                    head_rotations: np.ndarray | None = None,
                    head_translations: np.ndarray | None = None,
                    takes: Sequence[Take] = (), name: str = "take",
-                   max_gap: int = FILL_MAX_GAP) -> RigAnimation:
+                   max_gap: int = FILL_MAX_GAP, first_frame: int = 0) -> RigAnimation:
     """Bake marker-joint positions (and the head pose) into joint tracks.
 
     Parameters
@@ -139,6 +180,8 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
         Clip name of the default take.
     max_gap : int
         Longest gap filled by spline (longer interior gaps: neighbour regression).
+    first_frame : int
+        The capture's number of frame 0 (C3D ``first_frame``: an excerpt's clips keep it).
 
     Raises
     ------
@@ -192,7 +235,8 @@ def bake_animation(rig: Rig, joint_positions: np.ndarray, *, rate: float,
     local[:, 1:] = positions - root_bind
     gaps.sort(key=lambda g: (g.marker != HEAD_POSE, g.marker, g.start))
     return RigAnimation(tuple(rig.joint_names), float(rate), local,
-                        _continuous(rotation_to_quaternion(rotations)), clips, tuple(gaps), name)
+                        continuous(rotation_to_quaternion(rotations))[:, None], clips, tuple(gaps),
+                        name, first_frames=tuple(int(first_frame) + t.start for t in clips))
 
 
 def concatenate_animations(animations: Sequence[RigAnimation]) -> RigAnimation:
@@ -200,26 +244,30 @@ def concatenate_animations(animations: Sequence[RigAnimation]) -> RigAnimation:
     gaps are shifted to the combined frame numbers, clip names made unique."""
     first = animations[0]
     for other in animations[1:]:
-        if other.joint_names != first.joint_names:
+        if (other.joint_names, other.rotated, other.parents) != (first.joint_names, first.rotated,
+                                                                 first.parents):
             raise ValueError("animations of different rigs cannot be concatenated")
         if other.rate != first.rate:
             raise ValueError(f"{other.name} is at {other.rate:g} Hz, {first.name} at "
                              f"{first.rate:g} Hz: bake them into separate files")
     takes: list[Take] = []
     gaps: list[GapRecord] = []
+    firsts: list[int] = []
     offset = 0
     for animation in animations:
         names = {t.name for t in takes}
-        for take in animation.takes:
+        for k, take in enumerate(animation.takes):
             name = take.name if take.name not in names else f"{animation.name}_{take.name}"
             takes.append(Take(name, take.start + offset, take.end + offset, take.region))
+            firsts.append(animation.first_frame(k))
         gaps += [GapRecord(g.marker, g.start + offset, g.end + offset, g.position, g.method,
                            g.note) for g in animation.gaps]
         offset += animation.frame_count
     return RigAnimation(first.joint_names, first.rate,
                         np.concatenate([a.translations for a in animations]),
-                        _continuous(np.concatenate([a.root_rotations for a in animations])),
-                        tuple(takes), tuple(gaps), "+".join(a.name for a in animations))
+                        continuous(np.concatenate([a.rotations for a in animations])),
+                        tuple(takes), tuple(gaps), "+".join(a.name for a in animations),
+                        first.rotated, first.parents, tuple(firsts))
 
 
 def head_pose_between(raw: np.ndarray, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -242,14 +290,14 @@ def rotation_to_quaternion(rotations: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(rotations, dtype=np.float64)).as_quat()
 
 
-def _continuous(quaternions: np.ndarray) -> np.ndarray:
-    """Flip quaternion signs so consecutive keys lie in the same hemisphere (no 360° spins
-    under linear interpolation); the first key has ``w >= 0``."""
+def continuous(quaternions: np.ndarray) -> np.ndarray:
+    """Flip quaternion signs (F, ..., 4) so consecutive keys lie in the same hemisphere (no 360°
+    spins under linear interpolation); the first key has ``w >= 0``."""
     q = np.array(quaternions, dtype=np.float64)
-    if len(q) and q[0, 3] < 0:
-        q[0] = -q[0]
-    flips = np.cumsum(np.einsum("fi,fi->f", q[1:], q[:-1]) < 0) % 2  # relative to the first key
-    q[1:][flips == 1] *= -1
+    if len(q):
+        q[0] = np.where(q[0, ..., 3:] < 0, -q[0], q[0])
+    flips = np.cumsum(np.einsum("f...i,f...i->f...", q[1:], q[:-1]) < 0, axis=0) % 2
+    q[1:] = np.where(flips[..., None] == 1, -q[1:], q[1:])  # relative to the first key
     return q
 
 

@@ -47,11 +47,12 @@ from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .rig import Rig
+from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
 from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, symmetric_weights,
                       thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
-           "check_surface",
+           "check_surface", "file_hierarchy",
            "dense_cloud", "ground_truth_error", "guide_reference",
            "guide_rows", "influence_members", "marker_driven_error", "mesh_ground_truth_error",
            "rig_frame_rotation", "with_check", "write_rig_outputs"]
@@ -216,7 +217,31 @@ def bake_capture(build: RigBuild, capture: Capture) -> RigAnimation:
     positions = bind + build.joint_displacements(positions @ rotation.T - bind[:positions.shape[1]])
     return bake_animation(build.rig, positions, rate=relative.rate,
                           head_rotations=head_rot, head_translations=head_trans,
-                          takes=relative.takes, name=capture.name)
+                          takes=relative.takes, name=capture.name, first_frame=relative.first_frame)
+
+
+def file_hierarchy(build: RigBuild) -> RigHierarchy:
+    """The joint hierarchy written to the rig files (:mod:`~mocaptk.retarget.rig_hierarchy`): the
+    jaw's joints and its pivot fitted on the session's own motion, the layout's stabilization
+    markers (layout.json ``stabilization``) as locators under the head."""
+    rig, layout, cloud = build.rig, build.layout, build.cloud
+    clusters = len(layout.clusters)
+    bind = rig.joint_positions[build.marker_joints]
+    lower = np.zeros(rig.joint_count - 1, bool)  # the lid joints ride the head
+    lower[:clusters] = jaw_members([c.region for c in layout.clusters], bind)
+    plane = layout.extra.get("sagittal_plane")
+    midline = (float((cloud.rotation @ np.asarray(plane["point"], float))[0])
+               if isinstance(plane, dict) else float(np.mean(bind[:, 0])))
+    reps = cloud.index([c.representative for c in layout.clusters])
+    jaw = np.flatnonzero(lower[:clusters])
+    pivot = fit_jaw_pivot(bind[jaw], np.take(cloud.trajectories, reps[jaw], axis=1),
+                          midline_x=midline)
+    stabilization = layout.extra.get("stabilization") or {}
+    reference = stabilization.get("reference")
+    locators = [(label, side_tag(label) or "C", np.asarray(position, float) @ cloud.rotation.T)
+                for label, position in zip(stabilization.get("rigid_labels") or (),
+                                           () if reference is None else reference)]
+    return rig_hierarchy(rig, lower=lower, pivot=pivot, stabilization=locators)
 
 
 def jaw_open_frame(build: RigBuild, animation: RigAnimation, *, start: int = 0) -> int:
@@ -774,11 +799,14 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
             held_out = [held_out_check(build, c) for c in captures[1:]]
             build.report["held_out"] = [h for h in held_out if h is not None]
     build = with_check(build, *checked.value)
+    hierarchy = file_hierarchy(build)
+    build.report["hierarchy"] = hierarchy.report()
+    keyed = None if animation is None else hierarchical_animation(hierarchy, animation)
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
 
     def write_rig_files() -> None:
         for fmt in formats:
-            writers[fmt](build.rig, names[fmt], animation=animation, force=True)
+            writers[fmt](hierarchy.rig, names[fmt], animation=keyed, force=True)
 
     say(f"writing {', '.join(f'rig.{fmt}' for fmt in formats)} and rendering the guide")
     with beside(write_rig_files if formats else None, what="the rig files"):  # a process each

@@ -6,7 +6,7 @@ axis; geometry written in place with identity object transforms; joints at their
 with identity rotation; one Skin deformer with one Cluster per joint; each joint's marker label,
 side and region as user properties (``marker``/``side``/``region``). An animation
 (:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one AnimationStack per take with one
-layer, linear keys on every joint's ``Lcl Translation`` and on ``face_root``'s ``Lcl Rotation``
+layer, linear keys on every joint's ``Lcl Translation`` and on the rotating joints' ``Lcl Rotation``
 (Euler XYZ degrees, unwrapped), at the capture's frame rate (``TimeMode``: the standard rate
 when there is one, else custom with ``CustomFrameRate``). Every take starts at time 0, as in
 the glTF; the scene's time span is the longest take's.
@@ -331,7 +331,7 @@ def _takes(anim: _Animation | None) -> Node:
 class _Animation:
     """The FBX objects and connections of a :class:`RigAnimation`: per take an AnimationStack
     with one AnimationLayer, per joint a ``T`` curve node (3 curves, cm), and an ``R`` curve
-    node (Euler XYZ degrees) on the root."""
+    node (Euler XYZ degrees) on each rotating joint."""
 
     def __init__(self, rig: Rig, animation: RigAnimation) -> None:
         from scipy.spatial.transform import Rotation
@@ -345,9 +345,9 @@ class _Animation:
         self._next_id = _ANIMATION_BASE
         translation = animation.translations * MM_TO_CM
         # 'xyz' (extrinsic) = FBX eEulerXYZ: X applied first; unwrapped so keys never jump 360°
-        euler = np.degrees(np.unwrap(Rotation.from_quat(animation.root_rotations).as_euler("xyz"),
-                                     axis=0))
-        root = rig.root
+        euler = {joint: np.degrees(np.unwrap(Rotation.from_quat(
+                     animation.rotations[:, k]).as_euler("xyz"), axis=0))
+                 for k, joint in enumerate(animation.rotated)}
         for take in animation.takes:
             times = ktime(np.arange(take.end - take.start), animation.rate)  # the clip's own time
             name = _safe_take_name(take.name, self.stack_names)
@@ -363,9 +363,9 @@ class _Animation:
                 model = _JOINT_MODEL_BASE + joint
                 self._curve_node(layer, model, "T", "Lcl Translation", times,
                                  translation[take.start:take.end, joint])
-                if joint == root:
+                if joint in euler:
                     self._curve_node(layer, model, "R", "Lcl Rotation", times,
-                                     euler[take.start:take.end])
+                                     euler[joint][take.start:take.end])
 
     def _add(self, kind: str, name: str, fbx_class: str, children: list[Node]) -> int:
         object_id = self._next_id

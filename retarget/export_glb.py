@@ -5,10 +5,11 @@ root with no transform; joints are nodes with translation-only local transforms;
 per ``JOINTS_n``/``WEIGHTS_n`` pair (a second pair when the rig has 5-8 influences); each
 joint node carries its marker label, side and region in ``extras``. An animation
 (:class:`~mocaptk.retarget.bake.RigAnimation`) becomes one glTF animation per take: LINEAR
-samplers on every joint's translation and on the root's rotation, times in seconds from the
+samplers on every joint's translation and on the rotating joints' rotation, times in seconds from the
 take's first frame (every clip starts at 0, as in the FBX; glTF has no frame rate: it is in the
 scene's ``extras``; set Blender's scene rate before importing, or its importer maps the seconds
-to 24 fps frames).
+to 24 fps frames); each animation's ``extras.first_frame`` is the capture's frame number of its
+time 0 (an excerpt from frame 700 says 700).
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
                                         ("marker", rig.joint_markers[joint]),
                                         ("side", rig.joint_sides[joint]),
                                         ("region", rig.joint_regions[joint])) if v}))
-    animations = [] if animation is None else _animations(builder, animation, rig.root)
+    animations = [] if animation is None else _animations(builder, animation)
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator=f"mocaptk {__version__}"),
         scene=0,
@@ -108,21 +109,24 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
     return b"".join(gltf.save_to_bytes())
 
 
-def _animations(builder: _BufferBuilder, animation: RigAnimation, root: int) -> list[dict]:
+def _animations(builder: _BufferBuilder, animation: RigAnimation) -> list[dict]:
     """pygltflib.Animation keyword arguments, one per take (node i + 1 = joint i)."""
     import pygltflib
 
     out = []
     translations = (animation.translations * MM_TO_M).astype(np.float32)
-    rotations = animation.root_rotations.astype(np.float32)
-    for take in animation.takes:
+    rotations = animation.rotations.astype(np.float32)
+    for k, take in enumerate(animation.takes):
         frames = slice(take.start, take.end)
         times = builder.add((np.arange(take.end - take.start) / animation.rate).astype(np.float32),
                             bounds=True)  # the clip's own time, from 0
         samplers, channels = [], []
-        tracks = [(joint, "translation", translations[frames, joint])
-                  for joint in range(len(animation.joint_names))]
-        tracks.insert(root + 1, (root, "rotation", rotations[frames]))
+        tracks = []
+        for joint in range(len(animation.joint_names)):
+            tracks.append((joint, "translation", translations[frames, joint]))
+            if joint in animation.rotated:
+                tracks.append((joint, "rotation",
+                               rotations[frames, animation.rotated.index(joint)]))
         for joint, path, values in tracks:
             channels.append(pygltflib.AnimationChannel(
                 sampler=len(samplers), target=pygltflib.AnimationChannelTarget(node=1 + joint,
@@ -130,7 +134,8 @@ def _animations(builder: _BufferBuilder, animation: RigAnimation, root: int) -> 
             samplers.append(pygltflib.AnimationSampler(
                 input=times, output=builder.add(np.ascontiguousarray(values)),
                 interpolation="LINEAR"))
-        out.append({"name": take.name, "samplers": samplers, "channels": channels})
+        out.append({"name": take.name, "samplers": samplers, "channels": channels,
+                    "extras": {"first_frame": animation.first_frame(k)}})  # the capture's frame
     return out
 
 

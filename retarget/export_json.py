@@ -75,13 +75,19 @@ def write_rig_json(rig: Rig, path: str | os.PathLike[str], *, animation: RigAnim
 def rig_animation_bytes(animation: RigAnimation) -> bytes:
     """The ``.npz`` of an animation (deterministic: fixed zip dates, stored uncompressed).
 
-    Arrays: ``translations`` (F, J, 3) float32 mm (local, rig frame), ``root_rotations`` (F, 4)
-    float32 quaternions (x, y, z, w), ``joint_names`` (J,), ``rate`` (), ``take_names`` (T,),
-    ``take_frames`` (T, 2) int64 ``[start, end)``.
+    Arrays: ``translations`` (F, J, 3) float32 mm (local, rig frame), ``rotations`` (F, R, 4)
+    float32 local quaternions (x, y, z, w) of the joints ``rotated_joints`` (R,) int64,
+    ``joint_parents`` (J,) int64 (-1: the root), ``joint_names`` (J,), ``rate`` (),
+    ``take_names`` (T,), ``take_frames`` (T, 2) int64 ``[start, end)``, ``take_first_frames``
+    (T,) int64 the capture's frame number of each take's first frame.
     """
     arrays = {"joint_names": np.array(animation.joint_names),
+              "joint_parents": np.array(animation.joint_parents, dtype=np.int64),
               "rate": np.array(animation.rate),
-              "root_rotations": animation.root_rotations.astype(np.float32),
+              "rotated_joints": np.array(animation.rotated, dtype=np.int64),
+              "rotations": animation.rotations.astype(np.float32),
+              "take_first_frames": np.array([animation.first_frame(k)
+                                             for k in range(len(animation.takes))], dtype=np.int64),
               "take_frames": np.array([[t.start, t.end] for t in animation.takes], dtype=np.int64),
               "take_names": np.array([t.name for t in animation.takes]),
               "translations": animation.translations.astype(np.float32)}
@@ -103,7 +109,10 @@ def read_rig_animation(path: str | os.PathLike[str]) -> RigAnimation:
                           for n, (a, b) in zip(data["take_names"], data["take_frames"]))
             return RigAnimation(tuple(str(n) for n in data["joint_names"]), float(data["rate"]),
                                 data["translations"].astype(np.float64),
-                                data["root_rotations"].astype(np.float64), takes, ())
+                                data["rotations"].astype(np.float64), takes, (),
+                                rotated=tuple(int(j) for j in data["rotated_joints"]),
+                                parents=tuple(int(p) for p in data["joint_parents"]),
+                                first_frames=tuple(int(f) for f in data.get("take_first_frames", ())))
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputFileError(path, f"not a rig animation ({exc})") from None
 

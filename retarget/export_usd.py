@@ -1,7 +1,8 @@
 """Write an animated face mesh as USD (usd-core): one ``UsdGeomMesh`` with time-sampled points.
 
-Conventions: millimetres (``metersPerUnit`` 0.001), Y up, time codes = capture frames
-(``timeCodesPerSecond`` = ``framesPerSecond`` = the capture rate, frame 0 at time code 0);
+Conventions: millimetres (``metersPerUnit`` 0.001), Y up, time codes = the capture's frame
+numbers (``timeCodesPerSecond`` = ``framesPerSecond`` = the capture rate; an excerpt starting
+at capture frame 700 starts at time code 700; the takes in the layer's ``customLayerData``);
 triangles counter-clockwise (``orientation`` rightHanded), a ``primvars:displayColor``, vertex
 normals of the rest pose, ``primvars:st`` texture coordinates when the mesh has them, and one
 ``UsdPreviewSurface`` material (a skin tone) bound to the mesh.
@@ -13,12 +14,13 @@ until the file is saved (about ``frames × vertices × 12`` bytes).
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from mocaptk.atomic import atomic_path
+from mocaptk.trajectories import Take
 
 __all__ = ["new_stage", "write_mesh_usd"]
 
@@ -27,7 +29,8 @@ MESH_PATH = "/Face/face_mesh"
 
 def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.ndarray,
                    frames: Iterable[np.ndarray], n_frames: int, rate: float,
-                   uv: np.ndarray | None = None, force: bool = True) -> Path:
+                   uv: np.ndarray | None = None, first_frame: int = 0,
+                   takes: Sequence[Take] = (), force: bool = True) -> Path:
     """Write the mesh animation to ``path`` (``.usd``/``.usdc``; ``.usda`` for text).
 
     Parameters
@@ -37,6 +40,9 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     frames : chunks (f, V, 3) mm, in order, ``n_frames`` frames in all (NaN rows: rest pose)
     rate : capture rate, Hz
     uv : (V, 2) texture coordinates in [0, 1] (V up), optional
+    first_frame : the capture's number of the first frame (its time code)
+    takes : the capture's takes (frames from 0): ``customLayerData["takes"][name]`` holds each
+        one's ``startTimeCode`` and ``endTimeCode``
     """
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt  # ~0.3 s to import: only when writing USD
 
@@ -47,7 +53,12 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     rest = np.asarray(rest, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     with atomic_path(path, force=force) as tmp:
-        layer, stage = new_stage(tmp, Path(path), rate=rate, n_frames=n_frames)
+        layer, stage = new_stage(tmp, Path(path), rate=rate, n_frames=n_frames,
+                                 first_frame=first_frame)
+        if takes:
+            layer.customLayerData = {"takes": {
+                t.name: {"startTimeCode": float(first_frame + t.start),
+                         "endTimeCode": float(first_frame + t.end - 1)} for t in takes}}
         root = UsdGeom.Xform.Define(stage, "/Face")
         stage.SetDefaultPrim(root.GetPrim())
         mesh = UsdGeom.Mesh.Define(stage, MESH_PATH)
@@ -78,7 +89,8 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
             chunk = np.asarray(chunk, dtype=np.float32)
             for i, frame in enumerate(chunk):
                 frame = np.where(np.isfinite(frame).all(axis=1, keepdims=True), frame, rest)
-                points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(frame)), written + i)
+                points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(frame)),
+                           first_frame + written + i)
             finite = chunk[np.isfinite(chunk).all(axis=2)]
             if finite.size:
                 low, high = np.minimum(low, finite.min(axis=0)), np.maximum(high, finite.max(axis=0))
@@ -88,9 +100,10 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     return Path(path)
 
 
-def new_stage(tmp: Path, path: Path, *, rate: float, n_frames: int):
+def new_stage(tmp: Path, path: Path, *, rate: float, n_frames: int, first_frame: int = 0):
     """A new layer at ``tmp`` (format from ``path``'s suffix) and its stage: Y up, mm, time codes
-    = frames 0 .. ``n_frames`` - 1 at ``rate``. Returns ``(layer, stage)``."""
+    = frames ``first_frame`` .. ``first_frame + n_frames - 1`` at ``rate``. Returns
+    ``(layer, stage)``."""
     from pxr import Sdf, Usd, UsdGeom
 
     layer = Sdf.Layer.CreateNew(str(tmp), args={"format": _format(path)})
@@ -99,8 +112,8 @@ def new_stage(tmp: Path, path: Path, *, rate: float, n_frames: int):
     UsdGeom.SetStageMetersPerUnit(stage, 0.001)
     stage.SetTimeCodesPerSecond(float(rate))
     stage.SetFramesPerSecond(float(rate))
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(max(n_frames - 1, 0))
+    stage.SetStartTimeCode(first_frame)
+    stage.SetEndTimeCode(first_frame + max(n_frames - 1, 0))
     return layer, stage
 
 

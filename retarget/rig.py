@@ -20,6 +20,9 @@ from mocaptk.surface_mesh import vertex_normals
 SIDES = ("L", "R", "C")
 #: Name of the joint that parents every marker joint.
 ROOT_NAME = "face_root"
+#: Region of the stabilization locators (``stabilization_H1``...): like the structural joints
+#: (``head``, ``jaw``: no marker) their names carry no side tag (a rigid set, not mirror pairs).
+STABILIZATION_REGION = "stabilization"
 #: Decimals (of a millimetre) kept for vertex positions in the mesh hash and in rig.json.
 MESH_DIGITS = 6
 #: Tolerance on each weight row summing to 1.
@@ -108,7 +111,7 @@ class Rig:
         if count == 0:
             raise RigError("rig has no joints")
         _check_hierarchy(parents)
-        _check_names(names, sides, parents)
+        _check_names(names, sides, parents, regions, markers)
         if index.shape[1] == 0:
             raise RigError("weight_index has no influence columns")
         if index.min() < 0 or index.max() >= count:
@@ -318,7 +321,8 @@ def _check_hierarchy(parents: np.ndarray) -> None:
         raise RigError("every joint's parent must come before it (parent index < joint index)")
 
 
-def _check_names(names: tuple[str, ...], sides: tuple[str, ...], parents: np.ndarray) -> None:
+def _check_names(names: tuple[str, ...], sides: tuple[str, ...], parents: np.ndarray,
+                 regions: tuple[str, ...], markers: tuple[str, ...]) -> None:
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise RigError(f"joint names are not unique: {', '.join(dup[:5])}")
@@ -327,6 +331,8 @@ def _check_names(names: tuple[str, ...], sides: tuple[str, ...], parents: np.nda
             raise RigError(f"joint name {name!r} has characters outside [A-Za-z0-9_]")
         if side not in SIDES:
             raise RigError(f"joint {name!r}: side must be one of {SIDES}, got {side!r}")
-    for name, side, parent in zip(names, sides, parents):
-        if parent >= 0 and not name.endswith(f"_{side}"):
+    for name, side, parent, region, marker in zip(names, sides, parents, regions, markers):
+        # structural joints (head, jaw: no marker) and locators carry no mirror-paired side tag
+        untagged = not marker or region == STABILIZATION_REGION
+        if parent >= 0 and not untagged and not name.endswith(f"_{side}"):
             raise RigError(f"joint {name!r} must end with its side tag _{side}")

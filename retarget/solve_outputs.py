@@ -4,7 +4,8 @@
 = the frame's expected error, mm), ``solve_frames.csv`` (per frame: solved, expected error, the
 layout markers lost), ``solve.json`` (summary), ``model.npz`` (when trained here), and the mesh:
 ``mesh_neutral.obj``, ``mesh_frames.npy`` ((F, V, 3) float32 mm, NaN = unsolved; streamed to disk
-chunk by chunk), ``mesh.usd``, ``mesh.glb`` (morph targets; clips up to ``GLB_FRAME_CAP`` frames).
+chunk by chunk), ``mesh.usd`` (time codes = the capture's frame numbers), ``mesh.glb`` (a morph basis keyed per
+frame and the head pose on one joint; any length; one clip per take from time 0).
 Everything is written into a staging folder and moved into place at the end.
 """
 
@@ -151,19 +152,18 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
 
         write_mesh_usd(staging / "mesh.usd", rest=mesh.vertices, faces=mesh.faces, n_frames=n_frames,
                        frames=(frames_file[s:s + chunk] for s in range(0, n_frames, chunk)),
-                       rate=capture.rate, uv=mesh.uv)
+                       rate=capture.rate, uv=mesh.uv, first_frame=capture.first_frame,
+                       takes=capture.takes)
         written.append("mesh.usd")
     if "glb" in formats:
-        from .export_morph_glb import GLB_FRAME_CAP, write_morph_glb
+        say("writing mesh.glb")
+        from .export_morph_glb import write_morph_glb
 
-        if n_frames <= GLB_FRAME_CAP:
-            say("writing mesh.glb")
-            write_morph_glb(staging / "mesh.glb", rest=mesh.vertices, faces=mesh.faces,
-                            frames=frames_file, rate=capture.rate, uv=mesh.uv)
-            written.append("mesh.glb")
-        else:
-            notes.append(f"mesh.glb not written: {n_frames} frames > the morph-target cap of "
-                         f"{GLB_FRAME_CAP} (use mesh.usd or mesh_frames.npy)")
+        _, mesh_info["glb"] = write_morph_glb(
+            staging / "mesh.glb", rest=mesh.vertices, faces=mesh.faces, frames=frames_file,
+            rate=capture.rate, uv=mesh.uv, takes=capture.takes, first_frame=capture.first_frame,
+            head=None if poses is None else (poses.rotations, poses.translations))
+        written.append("mesh.glb")
     if frames_file is not None:
         del frames_file
         if "npz" not in formats:

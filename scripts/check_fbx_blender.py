@@ -11,8 +11,9 @@ and hierarchy, bone heads (bind positions), vertex positions, per-vertex weights
 the rest-pose skinned mesh equals the mesh (bind matrices consistent), and moving one joint moves
 each vertex by its weight times the joint's displacement. When rig.json names an animation
 (rig_animation.npz): one action per take spanning frames 0 .. its length - 1 (every take its
-own clip from 0), the scene at the capture's frame rate, and at 5 frames the armature-deformed mesh against the rig's own skinning
-of the baked tracks; the world joint positions at those frames are reported (``joint_world_mm``)
+own clip from 0), the scene at the capture's frame rate, and at 5 frames and the widest jaw
+opening the armature-deformed mesh against the rig's own skinning of the baked tracks (forward
+kinematics over the hierarchy, linear blend skinning), with the ``jaw`` bone's rotation there; the world joint positions at those frames are reported (``joint_world_mm``)
 for the caller to compare with the raw capture, and the bones whose ``bpy.utils.flip_name``
 names no bone (``flip_name_unmatched``: empty when Blender's mirror tools pair every bone).
 """
@@ -85,8 +86,8 @@ def check(fbx_path: str, rig: dict) -> dict:
     heads = np.array([list(arm_obj.matrix_world @ bones[n].head_local) if n in bones
                       else list(arm_obj.matrix_world.translation) if n == root_object
                       else [np.nan] * 3 for n in names]) @ BLENDER_TO_RIG.T * to_mm
-    bone_length_mm = max((arm_obj.matrix_world.to_scale()[0] * b.length * to_mm for b in bones),
-                         default=0.0)
+    lengths = {b.name: arm_obj.matrix_world.to_scale()[0] * b.length * to_mm for b in bones}
+    bone_length_mm = max(lengths.values(), default=0.0)
     bind = np.array([j["bind_position"] for j in rig["joints"]])
     head_error = float(np.nanmax(np.abs(heads - bind))) if not missing else float("inf")
 
@@ -137,6 +138,9 @@ def check(fbx_path: str, rig: dict) -> dict:
         "max_rest_pose_skinning_error_mm": rest_error,
         "moved_joint": names[leaf], "max_moved_joint_error_mm": pose_error,
         "max_bone_length_mm": bone_length_mm, "root_is_armature_object": root_object is not None,
+        "bone_length_mm": {n: lengths[n] for n in ("head", "jaw") if n in lengths},
+        "max_leaf_bone_length_mm": max((lengths[b.name] for b in bones if not b.children),
+                                       default=0.0),
         # Blender's mirror tools pair bones by flip_name: imported names with no partner
         "flip_name_unmatched": [b.name for b in bones
                                 if bpy.utils.flip_name(b.name) not in bones],
@@ -190,10 +194,16 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
     vertices = np.array(rig["mesh"]["vertices"])
     bind = np.array([j["bind_position"] for j in rig["joints"]])
     translations = tracks["translations"].astype(float)
-    quaternions = tracks["root_rotations"].astype(float)
+    quaternions = tracks["rotations"].astype(float)
+    rotated = [int(j) for j in tracks["rotated_joints"]]
+    parents = [int(p) for p in tracks["joint_parents"]]
     total = len(translations)
-    frames = np.unique(np.linspace(0, total - 1, FRAMES_CHECKED).round().astype(int))
-    mesh_errors, joints_world = [], []
+    jaw = rotated.index(names.index("jaw")) if "jaw" in names else None
+    jaw_track = (np.array([Quaternion((q[3], *q[:3])).angle for q in quaternions[:, jaw]])
+                 if jaw is not None else np.zeros(total))
+    frames = np.unique(np.append(np.linspace(0, total - 1, FRAMES_CHECKED).round().astype(int),
+                                 int(np.argmax(np.degrees(jaw_track)))))  # + the widest jaw
+    mesh_errors, joints_world, jaw_deg = [], [], []
     for frame in frames:
         take = next(t for t in takes if t[1] <= frame < t[2])
         action = action_of(take[0])
@@ -209,14 +219,17 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
         scene.frame_set(int(round(frame - take[1] + offset)))  # the clip's own frame
         bpy.context.view_layer.update()
         got = _world_vertices(mesh_obj, evaluated=True) * to_mm
-        x, y, z, w = quaternions[frame]
-        rotation = np.array(Quaternion((w, x, y, z)).to_matrix())
-        local = translations[frame]
-        offsets = local[1:] - (bind[1:] - bind[0])  # each joint's displacement from its bind
-        moved = vertices - bind[0] + weights[:, 1:] @ offsets
-        want = moved @ rotation.T + local[0]
+        rotations, positions = _forward_kinematics(translations[frame], quaternions[frame],
+                                                   rotated, parents)
+        want = np.zeros_like(vertices)
+        for joint in np.flatnonzero(weights.any(axis=0)):  # linear blend skinning, bind = identity
+            want += weights[:, [joint]] * ((vertices - bind[joint]) @ rotations[joint].T
+                                           + positions[joint])
         mesh_errors.append(float(np.abs(got - want).max()) if got.shape == want.shape
                            else float("inf"))
+        if "jaw" in arm_obj.pose.bones:
+            jaw_deg.append(float(np.degrees(arm_obj.pose.bones["jaw"].matrix_basis
+                                            .to_quaternion().angle)))
         world = []
         for name in names:
             if name in arm_obj.pose.bones:
@@ -230,7 +243,27 @@ def _check_animation(rig: dict, tracks: dict, mesh_obj, arm_obj, names: list[str
           and max(mesh_errors) <= ANIMATION_TOL_MM)
     return {"animation_ok": bool(ok), "actions": sorted(actions), "action_frame_ranges": ranges,
             "scene_fps": fps, "frames_checked": [int(f) for f in frames],
-            "max_animated_mesh_error_mm": max(mesh_errors), "joint_world_mm": joints_world}
+            "max_animated_mesh_error_mm": max(mesh_errors), "joint_world_mm": joints_world,
+            "jaw_rotation_deg": jaw_deg,
+            "jaw_track_deg": [float(np.degrees(jaw_track[f])) for f in frames]}
+
+
+def _forward_kinematics(local: np.ndarray, quaternions: np.ndarray, rotated: list[int],
+                        parents: list[int]) -> tuple[list[np.ndarray], np.ndarray]:
+    """World rotations (3x3 each) and positions (J, 3) mm of the joints from one frame's local
+    translations (J, 3), the rotating joints' quaternions (R, 4) (x, y, z, w) and the parents."""
+    rotations, positions = [], np.zeros_like(local)
+    for joint, parent in enumerate(parents):
+        own = (np.array(Quaternion((quaternions[rotated.index(joint)][3],
+                                    *quaternions[rotated.index(joint)][:3])).to_matrix())
+               if joint in rotated else np.eye(3))
+        if parent < 0:
+            rotations.append(own)
+            positions[joint] = local[joint]
+        else:
+            rotations.append(rotations[parent] @ own)
+            positions[joint] = rotations[parent] @ local[joint] + positions[parent]
+    return rotations, positions
 
 
 def _world_vertices(obj: bpy.types.Object, *, evaluated: bool) -> np.ndarray:

@@ -51,7 +51,14 @@ def moving(tmp_path_factory):
     return folder, out, raw, list(perf.labels), motion
 
 
-def test_cluster_bakes_the_head_motion_onto_face_root(moving):
+def _joint_of_marker(out) -> dict[str, int]:
+    """rig.json joint index of each layout marker (the locators and structural joints apart)."""
+    joints = json.loads((out / "rig.json").read_text())["joints"]
+    return {j["marker"]: i for i, j in enumerate(joints)
+            if j["marker"] and j["region"] != "stabilization"}
+
+
+def test_cluster_bakes_the_head_motion_onto_the_head_joint(moving):
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.export_json import read_rig_animation
 
@@ -66,8 +73,10 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
     tracks = read_rig_animation(out / "rig_animation.npz")
     world = tracks.world_positions()
     rotation = np.array(report["frame_rotation"])
+    joint_of = _joint_of_marker(out)
     errors = []
-    for joint, cluster in enumerate(layout.clusters, start=1):
+    for cluster in layout.clusters:
+        joint = joint_of[cluster.representative]
         if cluster.mirrored_from is not None:
             continue  # no raw marker: it moves as its source's mirror image
         captured = raw[:, labels.index(cluster.representative)] @ rotation.T
@@ -76,9 +85,10 @@ def test_cluster_bakes_the_head_motion_onto_face_root(moving):
             errors.append(np.linalg.norm(world[take, joint][seen] - captured[seen], axis=1).max())
     print(f"world joints vs raw markers: max {max(errors):.2g} mm")
     assert max(errors) < 0.1
-    # the root carries the applied head motion (not removed), to within the head-pose estimate's
-    # error (stabilization: rotation p99 ~0.4 deg, about 1 mm at the root's lever arm)
-    root_raw = world[:, 0] @ rotation  # back to the capture's frame
+    # the head joint carries the applied head motion (not removed), to within the head-pose
+    # estimate's error (stabilization: rotation p99 ~0.4 deg, about 1 mm at the head's lever arm)
+    assert np.ptp(world[:, 0], axis=0).max() == 0.0  # face_root stays
+    root_raw = world[:, 1] @ rotation  # the head, back to the capture's frame
     for take in (slice(0, FRAMES), slice(FRAMES, 2 * FRAMES)):
         expected = (np.einsum("fij,j->fi", head_rotation, root_raw[take][0] - centre) + centre
                     + head_shift)
@@ -108,8 +118,34 @@ def test_rig_on_the_written_layout_reports_the_same_numbers(moving):
     assert ours == theirs
 
 
+@pytest.fixture(scope="module")
+def blender(moving):
+    """Blender's check of rig.fbx and rig.glb: ``{name: (exit code, report)}`` (run once each)."""
+    python = installed.blender_python()
+    script = installed.REPO / "scripts" / "check_fbx_blender.py"
+    out = moving[1]
+    reports = {}
+    for name in ("rig.fbx", "rig.glb"):
+        done = subprocess.run([str(python), str(script), str(out / name), str(out / "rig.json")],
+                              capture_output=True, text=True, timeout=600)
+        reports[name] = (done.returncode, json.loads(done.stdout[done.stdout.index("{"):]))
+    return reports
+
+
+def test_fbx_and_gltf_play_the_same_frames(blender):
+    """Clip frame k is the same pose in Blender from the FBX and from the glTF (issue 30: they
+    differed by one): joints and jaw agree at every checked frame."""
+    fbx, glb = blender["rig.fbx"][1], blender["rig.glb"][1]
+    assert fbx["frames_checked"] == glb["frames_checked"]
+    assert fbx["action_frame_ranges"] == glb["action_frame_ranges"]
+    gap = np.abs(np.array(fbx["joint_world_mm"]) - np.array(glb["joint_world_mm"])).max()
+    print(f"FBX vs glTF in Blender: world joints differ by at most {gap:.2g} mm")
+    assert gap < 1e-3
+    np.testing.assert_allclose(fbx["jaw_rotation_deg"], glb["jaw_rotation_deg"], atol=1e-3)
+
+
 @pytest.mark.parametrize("name", ["rig.fbx", "rig.glb"])
-def test_blender_plays_the_baked_animation(moving, name):
+def test_blender_plays_the_baked_animation(moving, blender, name):
     """Blender imports FBX and GLB: one action per take at 60 fps, each its own clip from frame 0
     (FBX and glTF alike; issue 30: they started at the take's place in the whole animation, and
     differed by one), the deformed mesh at 5 frames equals the rig's own skinning (< 0.01 mm),
@@ -117,26 +153,34 @@ def test_blender_plays_the_baked_animation(moving, name):
     from mocaptk.clustering.layout import read_layout
 
     _, out, raw, labels, _ = moving
-    python = installed.blender_python()
-    script = installed.REPO / "scripts" / "check_fbx_blender.py"
-    done = subprocess.run([str(python), str(script), str(out / name), str(out / "rig.json")],
-                          capture_output=True, text=True, timeout=600)
-    report = json.loads(done.stdout[done.stdout.index("{"):])
+    returncode, report = blender[name]
+    report = dict(report)
     world = np.array(report.pop("joint_world_mm"))
     print("Blender:", json.dumps(report, sort_keys=True))
-    assert done.returncode == 0 and report["ok"], report
+    assert returncode == 0 and report["ok"], report
     assert report["scene_fps"] == 60.0 and report["max_animated_mesh_error_mm"] < 0.01
     takes = json.loads((out / "rig_report.json").read_text())["animation"]["takes"]
     assert report["action_frame_ranges"] == {t["name"]: [0.0, t["end"] - t["start"] - 1.0]
                                              for t in takes}
     assert report["flip_name_unmatched"] == []  # Blender's mirror tools pair every bone
-    if name == "rig.fbx":
-        assert report["max_bone_length_mm"] <= 10.0 + 1e-3
+    if name == "rig.fbx":  # Blender: a bone as long as the mean distance to its children, a
+        # marker bone (no children) as long as its parent (docs/rig-format.md)
+        rig = json.loads((out / "rig.json").read_text())
+        bind = {j["name"]: np.array(j["bind_position"]) for j in rig["joints"]}
+        for bone in ("head", "jaw"):
+            children = [j["name"] for j in rig["joints"] if j["parent"] == bone]
+            mean = np.mean([np.linalg.norm(bind[c] - bind[bone]) for c in children])
+            assert report["bone_length_mm"][bone] == pytest.approx(mean, abs=1e-3)
+        assert report["max_leaf_bone_length_mm"] <= max(report["bone_length_mm"].values()) + 1e-3
+    # the jaw bone rotates: at the widest opening as keyed (issue 30)
+    assert max(report["jaw_rotation_deg"]) > 10.0
+    np.testing.assert_allclose(report["jaw_rotation_deg"], report["jaw_track_deg"], atol=0.01)
     layout = read_layout(out / "layout.json")
     rotation = np.array(json.loads((out / "rig_report.json").read_text())["frame_rotation"])
     errors = []
     for row, frame in enumerate(report["frames_checked"]):
-        for joint, cluster in enumerate(layout.clusters, start=1):
+        for cluster in layout.clusters:
+            joint = _joint_of_marker(out)[cluster.representative]
             if cluster.mirrored_from is None:
                 captured = raw[frame % FRAMES, labels.index(cluster.representative)] @ rotation.T
                 if np.isfinite(captured).all():
@@ -208,3 +252,49 @@ def test_mediapipe_canonical_face_as_the_rig_mesh(moving):
     build = build_rig(layout, session, mesh=mesh)
     assert len(set(build.joint_vertices.tolist())) == len(layout.clusters)
     assert build.check.rmse_mm < 1.5
+
+
+def test_rig_files_have_the_head_jaw_hierarchy_and_the_stabilization_locators(moving):
+    """rig.json, rig.fbx and rig.glb: face_root -> head -> jaw -> chin and lower-lip joints, the
+    upper face and one unweighted locator per layout stabilization marker under head (issues 27
+    and 30); the jaw's pivot fitted behind the chin from the session's opening."""
+    import pygltflib
+
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.export_json import read_rig_json
+
+    _, out, *_ = moving
+    rig = read_rig_json(out / "rig.json")
+    names, parents = rig.joint_names, rig.joint_parents
+    parent = {n: (names[p] if p >= 0 else None) for n, p in zip(names, parents)}
+    assert names[:3] == ("face_root", "head", "jaw")
+    assert parent["head"] == "face_root" and parent["jaw"] == "head"
+    by_region = {}
+    for name, region in zip(names[3:], rig.joint_regions[3:]):
+        by_region.setdefault(region, set()).add(parent[name])
+    assert by_region["chin"] == {"jaw"} and by_region["forehead_brow"] == {"head"}
+    assert by_region["eye"] == {"head"} and by_region["nose"] == {"head"}
+    assert by_region["mouth"] == {"head", "jaw"}  # upper lip on the head, lower lip on the jaw
+    layout = read_layout(out / "layout.json")
+    rigid = layout.extra["stabilization"]["rigid_labels"]
+    locators = [n for n, r in zip(names, rig.joint_regions) if r == "stabilization"]
+    assert locators == [f"stabilization_H{k + 1}" for k in range(len(rigid))] and len(rigid) >= 3
+    assert [rig.joint_markers[names.index(n)] for n in locators] == rigid
+    assert {parent[n] for n in locators} == {"head"}
+    weighted = set(np.unique(rig.weight_index[rig.weight_value > 0]))
+    assert not weighted & {names.index(n) for n in ("face_root", "head", "jaw", *locators)}
+    report = json.loads((out / "rig_report.json").read_text())["hierarchy"]
+    pivot, chin = np.array(report["jaw"]["pivot_mm"]), rig.joint_positions[names.index("jaw")]
+    np.testing.assert_allclose(pivot, chin)
+    lowest = rig.joint_positions[[names.index(n) for n in report["jaw"]["children"]]]
+    assert report["jaw"]["method"] == "fitted"
+    assert pivot[2] < lowest[:, 2].max() - 30.0 and pivot[1] > lowest[:, 1].min()
+    gltf = pygltflib.GLTF2().load(str(out / "rig.glb"))
+    nodes = {n.name: n for n in gltf.nodes}
+    assert [gltf.nodes[c].name for c in nodes["face_root"].children] == ["head"]
+    assert "jaw" in [gltf.nodes[c].name for c in nodes["head"].children]
+    assert {gltf.nodes[c].name for c in nodes["jaw"].children} == set(report["jaw"]["children"])
+    assert nodes["stabilization_H1"].extras["marker"] == rigid[0]
+    report = installed.run_validator(out / "rig.glb")["issues"]  # the hierarchy and its clips
+    assert (report["numErrors"], report["numWarnings"], report["numInfos"]) == (0, 0, 0), \
+        report["messages"][:5]

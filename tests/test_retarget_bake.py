@@ -189,3 +189,24 @@ def test_bad_shapes_are_refused():
         bake_animation(rig, np.zeros((5, 2, 3)), rate=60.0)
     with pytest.raises(ValueError, match="rate must be > 0"):
         bake_animation(rig, np.zeros((5, rig.joint_count - 1, 3)), rate=0.0)
+
+
+def test_an_excerpt_keeps_its_first_frame_in_every_clip(baked, tmp_path):
+    """A capture cut at frame 700: its clips still play from 0, and rig.json, the .npz and each
+    glTF animation's extras name the capture frame each clip starts at (issue 30)."""
+    import json
+
+    import pygltflib
+
+    rig, _, relative, rotations, translations = baked
+    takes = (Take("neutral", 0, 40), Take("smile", 40, FRAMES))
+    anim = bake_animation(rig, relative, rate=60.0, takes=takes, first_frame=700)
+    both = concatenate_animations([anim, bake_animation(rig, relative, rate=60.0)])
+    assert [both.first_frame(k) for k in range(3)] == [700, 740, 0]
+    write_rig_json(rig, tmp_path / "rig.json", animation=both)
+    doc = json.loads((tmp_path / "rig.json").read_text())
+    assert [t["first_frame"] for t in doc["animation"]["takes"]] == [700, 740, 0]
+    assert read_rig_animation(tmp_path / "rig_animation.npz").first_frames == (700, 740, 0)
+    gltf = pygltflib.GLTF2().load(str(write_rig_glb(rig, tmp_path / "rig.glb", animation=both)))
+    assert [a.extras["first_frame"] for a in gltf.animations] == [700, 740, 0]
+    assert [gltf.accessors[a.samplers[0].input].min for a in gltf.animations] == [[0.0]] * 3

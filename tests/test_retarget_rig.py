@@ -150,7 +150,9 @@ def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
         assert (out / name).stat().st_size > 0
     assert not (out / "rig.fbx").exists()
     rig = read_rig_json(out / "rig.json")
-    assert rig.joint_count == len(layout.clusters) + 3  # and the two lids
+    rigid = (layout.extra.get("stabilization") or {}).get("rigid_labels") or []
+    # face_root, head, jaw, the layout's joints, the two lids, one locator per stabilization marker
+    assert rig.joint_count == 3 + len(layout.clusters) + 2 + len(rigid)
     assert rig.texcoords is not None and rig.vertex_count == 9409  # the face, its UVs kept
     report = json.loads((out / "rig_report.json").read_text())
     assert report["skinning_check"]["rmse_mm"] < 1.5

@@ -103,7 +103,8 @@ def solve(
                                    "chosen on the session, docs/testbed.md), ridge, local-ridge, "
                                    "tapered-ridge, thin-shell, pdm-linear, pdm-biquadratic."),
     formats: str = typer.Option("npz,usd,glb", "--formats", help="Mesh outputs: npz (mesh_frames.npy), "
-                                "usd, glb (clips up to 600 frames); dense.c3d is always written."),
+                                "usd, glb (a morph basis keyed per frame: any length); dense.c3d is "
+                                "always written."),
     surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
                                 "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
                                 "the whole face) or markers (the marker surface)."),
