@@ -156,19 +156,15 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
             break
         capacity = count
     frame, keys, error, point = frame[:count], keys[:count], error[:count], point[:count]
-    # the same view set proposed by several pairs is one hypothesis (its smallest error kept)
-    base = int(keys.max()) + 2 if count else 1
-    if base ** n_cams * (int(frame.max()) + 1 if count else 1) < 2 ** 62:  # one integer per view set
-        code = frame.copy()
-        for c in range(n_cams):
-            code = code * base + keys[:, c] + 1
-        order = np.lexsort((error, code))
-        first = np.concatenate([[True], code[order[1:]] != code[order[:-1]]])
-    else:
-        order = np.lexsort((error, *keys.T[::-1], frame))
-        row = np.column_stack([frame, keys])[order]
-        first = np.concatenate([[True], (row[1:] != row[:-1]).any(axis=1)])
-    keep = order[first & np.isfinite(error[order])]
+    # the same view set proposed by several pairs is one hypothesis (its smallest error kept);
+    # a two-view set has only one pair to propose it
+    finite = np.isfinite(error)
+    many = np.nonzero(finite & ((keys >= 0).sum(axis=1) >= 3))[0]
+    order = many[np.lexsort((error[many], *keys[many].T[::-1], frame[many]))]
+    row = np.column_stack([frame[order], keys[order]])
+    first = np.ones(len(order), bool)
+    first[1:] = (row[1:] != row[:-1]).any(axis=1)
+    keep = np.sort(np.concatenate([np.nonzero(finite & ((keys >= 0).sum(axis=1) == 2))[0], order[first]]))
     return frame[keep], keys[keep], error[keep], point[keep]
 
 

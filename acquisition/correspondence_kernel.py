@@ -58,12 +58,11 @@ def proposals_kernel(norm, by_y, order, essentials, projections, focal, toleranc
                         if not (abs(l0 * xb + l1 * yb + l2) * scale < tolerance):  # NaN: no
                             continue
                         # two-view linear point: 4 equations, 3 unknowns, normal equations
-                        for r in range(4):
-                            cam = i if r < 2 else j
-                            row = r % 2
-                            value = (xa, ya, xb, yb)[r]
-                            for q in range(4):
-                                a_mat[r, q] = value * projections[cam, 2, q] - projections[cam, row, q]
+                        for q in range(4):
+                            a_mat[0, q] = xa * projections[i, 2, q] - projections[i, 0, q]
+                            a_mat[1, q] = ya * projections[i, 2, q] - projections[i, 1, q]
+                            a_mat[2, q] = xb * projections[j, 2, q] - projections[j, 0, q]
+                            a_mat[3, q] = yb * projections[j, 2, q] - projections[j, 1, q]
                         for p in range(3):
                             for q in range(4):
                                 total = 0.0
