@@ -74,37 +74,41 @@ def real_intrinsics() -> None:
     print(f"\n({clock})\n")
 
 
-def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: float | None = None) -> None:
-    poses = board_poses(rig, board, n_views, seed=1, max_tilt_deg=30.0, spread_mm=spread_mm)
-    resolution = texture_resolution(rig, board, poses)
-    with Clock() as render:
-        views = []
-        for c, camera in enumerate(rig):
-            views.append([View(f"v{v}", *board.detect(image)) if image is not None
-                          else View(f"v{v}", np.zeros(0, int), np.zeros((0, 2)))
-                          for v, image in enumerate(render_views(camera, board, poses,
-                                                                 px_per_mm=resolution, seed=c))])
-    with Clock() as base_clock:
-        fits = [calibrate_intrinsics(board, v, cam.image_size) for v, cam in zip(views, rig)]
-        start = chained_stereo(board, views, fits)
-    baseline = rig_from_poses(rig.names, [(f.matrix, f.distortion) for f in fits], start,
-                              [c.image_size for c in rig])
-    with Clock() as ba_clock:
-        result = bundle_adjust(board, views, fits, start)
-    adjusted = rig_from_poses(rig.names, result.intrinsics, result.rig_poses, [c.image_size for c in rig])
-    b_mm, b_deg = pose_errors(baseline, rig)
-    a_mm, a_deg = pose_errors(adjusted, rig)
+def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: float | None = None,
+                   seeds: tuple[int, ...] = (1,)) -> None:
     print(f"### {name}: {len(rig)} cameras, {n_views} board poses (centres within "
           f"+-{spread_mm or 0.3 * max(board.size_mm()):g} mm) ({board.corners[0]}x{board.corners[1]}, "
-          f"{board.square:g} mm), views per camera {[len(f.view_rms) for f in fits]}")
-    print("| method | centre err mm (max / mean) | orientation err deg (max / mean) | RMS px |")
-    print("|---|---|---|---|")
-    print(f"| OpenCV calibrateCamera + chained stereoCalibrate | {b_mm.max():.3f} / {b_mm[1:].mean():.3f} | "
-          f"{b_deg.max():.3f} / {b_deg[1:].mean():.3f} | {result.initial_rms:.3f} |")
-    print(f"| bundle adjustment (this) | {a_mm.max():.3f} / {a_mm[1:].mean():.3f} | "
-          f"{a_deg.max():.3f} / {a_deg[1:].mean():.3f} | {result.final_rms:.3f} |")
-    print(f"\nper camera (BA) centre mm {np.round(a_mm, 3).tolist()}, deg {np.round(a_deg, 3).tolist()}")
-    print(f"(render+detect {render}; OpenCV baseline {base_clock}; BA {ba_clock})\n")
+          f"{board.square:g} mm)")
+    print("| seed | method | centre err mm, camera-1 frame (max / mean) | deg, camera-1 frame (max / mean) | "
+          "centre err mm, aligned (max / mean) | deg, aligned (max / mean) | RMS px | CPU s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for seed in seeds:
+        poses = board_poses(rig, board, n_views, seed=seed, max_tilt_deg=30.0, spread_mm=spread_mm)
+        resolution = texture_resolution(rig, board, poses)
+        with Clock() as render:
+            views = []
+            for c, camera in enumerate(rig):
+                views.append([View(f"v{v}", *board.detect(image)) if image is not None
+                              else View(f"v{v}", np.zeros(0, int), np.zeros((0, 2)))
+                              for v, image in enumerate(render_views(camera, board, poses,
+                                                                     px_per_mm=resolution, seed=c + 10 * seed))])
+        with Clock() as base_clock:
+            fits = [calibrate_intrinsics(board, v, cam.image_size) for v, cam in zip(views, rig)]
+            start = chained_stereo(board, views, fits)
+        baseline = rig_from_poses(rig.names, [(f.matrix, f.distortion) for f in fits], start,
+                                  [c.image_size for c in rig])
+        with Clock() as ba_clock:
+            result = bundle_adjust(board, views, fits, start)
+        adjusted = rig_from_poses(rig.names, result.intrinsics, result.rig_poses, [c.image_size for c in rig])
+        for method, estimate, rms, clk in (("OpenCV calibrateCamera + chained stereoCalibrate", baseline,
+                                            result.initial_rms, base_clock),
+                                           ("bundle adjustment (this)", adjusted, result.final_rms, ba_clock)):
+            mm, deg = pose_errors(estimate, rig)
+            amm, adeg = pose_errors(estimate, rig, align=True)
+            print(f"| {seed} | {method} | {mm.max():.3f} / {mm[1:].mean():.3f} | {deg.max():.3f} / "
+                  f"{deg[1:].mean():.3f} | {amm.max():.3f} / {amm.mean():.3f} | {adeg.max():.3f} / "
+                  f"{adeg.mean():.3f} | {rms:.3f} | {clk.cpu:.1f} |", flush=True)
+    print(f"\n(last seed: render+detect {render}; views per camera {[len(f.view_rms) for f in fits]})\n")
 
 
 def face_session(spacing: float, frames: int):
@@ -222,19 +226,21 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=24, help="Cara board poses (room: x2)")
     parser.add_argument("--room-spread", type=float, default=None,
                         help="Board centres within +-this of the aim point, mm (default 0.3 x board)")
+    parser.add_argument("--seeds", default="1", help="Comma-separated board-pose seeds (rig sections)")
     parser.add_argument("--only", default="real,cara,room,images",
                         help="Comma-separated sections: real, cara, room, images")
     args = parser.parse_args()
     only = args.only.split(",")
+    seeds = tuple(int(seed) for seed in args.seeds.split(","))
     if "real" in only:
         real_intrinsics()
     if "cara" in only or "room" in only:
         print("## 2. Rig extrinsics from rendered ChArUco views (errors relative to camera 1)")
     if "cara" in only:
-        rig_extrinsics("Cara-like", cara_rig(), PRESET_BOARDS["cara"], args.views)
+        rig_extrinsics("Cara-like", cara_rig(), PRESET_BOARDS["cara"], args.views, seeds=seeds)
     if "room" in only:
         rig_extrinsics("room", room_rig(), PRESET_BOARDS["room"], 2 * args.views,
-                       spread_mm=args.room_spread)
+                       spread_mm=args.room_spread, seeds=seeds)
     if "images" in only:
         detection_and_reconstruction("3-4. Dense session", 8.0, args.frames)
         detection_and_reconstruction("3-4. Sparse layout", 20.0, args.frames)
