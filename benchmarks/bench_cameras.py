@@ -220,15 +220,112 @@ def detection_and_reconstruction(label: str, spacing: float, frames: int) -> Non
           f"merging/occlusion though seen by >= 2): {(seen2 & (unmerged < 2)).sum()}\n")
 
 
+def end_to_end(step: int, folder: Path) -> None:
+    """images -> detect -> reconstruct -> label -> cluster vs cluster of the labelled truth.
+
+    The synthetic session (``mocaptk synth``, Cara rig, 139 markers, 6 takes) is rendered every
+    ``step``-th frame (all of it would be ~50 000 images); each image is detected as it is
+    rendered (``detect_blobs``, as ``mocaptk detect`` does after decoding a PNG). The fragments
+    break at the 100 ms steps, so ``label`` sees per-frame clouds. Both layouts are scored by
+    ``mocaptk evaluate`` on the same truth capture (held-out blocks of every take)."""
+    import json
+    import subprocess
+    import sys
+
+    from mocaptk.acquisition import synth_session as ss
+    from mocaptk.acquisition.face_model import load_face_model
+    from mocaptk.acquisition.formats import write_trajectories
+    from mocaptk.trajectories import Trajectories
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cli = [sys.executable, "-m", "mocaptk"]
+
+    def run(*args) -> str:
+        done = subprocess.run([*cli, *map(str, args)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    session = folder / "session.c3d"
+    if not session.exists():
+        run("synth", session, "--rig", "cara", "--seed", "0", "--quiet")
+    truth = ss.load_ground_truth(folder / "session_truth.npz")
+    rig = cara_rig()
+    frames = np.arange(0, truth.n_frames, step)
+    rate = truth.rate / step
+    positions = truth.positions[frames]
+    normals = ss.marker_normals(load_face_model(None), truth)
+    takes = json.loads((folder / "session_takes.json").read_text())
+    for take in takes["takes"]:
+        take["start"], take["end"] = int(np.searchsorted(frames, take["start"])), int(np.searchsorted(frames, take["end"]))
+    (folder / "takes_sub.json").write_text(json.dumps(takes))
+    write_trajectories(Trajectories(positions=positions, labels=list(truth.labels), rate=rate),
+                       folder / "truth.c3d", force=True)
+    rng = np.random.default_rng(0)
+    backgrounds = [skin_shading(cam, c) for c, cam in enumerate(rig)]
+    found, detect_cpu = [[] for _ in rig], 0.0
+    with Clock() as render:
+        for f in frames:
+            seen = marker_truth(rig, truth.positions_between(f, f + 1), normals(f, f + 1))
+            for c in range(len(rig)):
+                image = render_markers(backgrounds[c], seen.pixels[c, 0], seen.radius[c, 0], rng=rng)[0]
+                start = time.process_time()
+                found[c].append(detect_blobs(image, split=True).centres)
+                detect_cpu += time.process_time() - start
+    width = max(len(b) for row in found for b in row)
+    blobs = np.full((len(rig), len(frames), width, 2), np.nan)
+    for c, row in enumerate(found):
+        for f, centres in enumerate(row):
+            blobs[c, f, :len(centres)] = centres
+    with Clock() as rec_clock:
+        result = reconstruct(rig, blobs)
+    raw = result.trajectories_array()
+    write_trajectories(Trajectories(positions=raw, labels=[f"*{i + 1}" for i in range(raw.shape[1])], rate=rate),
+                       folder / "raw.c3d", force=True)
+    labelled = run("label", folder / "raw.c3d", "--template", folder / "session_performance.c3d",
+                   "--out", folder / "labelled.c3d", "--force").strip().splitlines()[0]
+    rows = []
+    for name, capture in (("labelled truth capture (baseline)", "truth.c3d"),
+                          ("images -> detect -> reconstruct -> label", "labelled.c3d")):
+        out = folder / f"layout_{Path(capture).stem}"
+        run("cluster", folder / capture, "--regions", folder / "session_regions.json", "--takes",
+            folder / "takes_sub.json", "--step", "1", "--formats", "none", "--out", out, "--force", "--quiet")
+        run("evaluate", folder / "truth.c3d", "--layout", out / "layout.json", "--takes", folder / "takes_sub.json",
+            "--out", out / "evaluation.json", "--force")
+        evaluation = json.loads((out / "evaluation.json").read_text())
+        layout = json.loads((out / "layout.json").read_text())
+        rows.append((name, len(layout["markers"]), evaluation))
+    print(f"## 5. End to end: {truth.n_frames} frames of the synthetic session, every {step}th rendered "
+          f"({len(frames)} frames x 4 cameras, {rate:g} Hz)")
+    print(f"render+detect {render}; detection alone {detect_cpu:.1f} CPU-s "
+          f"({len(frames) / detect_cpu:.0f} frames of 4 cameras per CPU-s); reconstruct {rec_clock} "
+          f"({len(frames) / rec_clock.cpu:.0f} frames per CPU-s); label: {labelled}")
+    print("| layout from | layout markers | held-out RMSE mm (evaluate on the truth capture) |")
+    print("|---|---|---|")
+    for name, count, evaluation in rows:
+        print(f"| {name} | {count} | {json.dumps(_headline(evaluation))} |")
+    print()
+
+
+def _headline(evaluation: dict):
+    """The layout's own held-out RMSE from an evaluation.json (first numeric field named so)."""
+    for key in ("layout", "result", "layout_rmse_mm", "rmse_mm"):
+        if key in evaluation:
+            return evaluation[key]
+    return {k: v for k, v in evaluation.items() if "rmse" in k.lower()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--views", type=int, default=24, help="Cara board poses (room: x2)")
     parser.add_argument("--room-spread", type=float, default=None,
                         help="Board centres within +-this of the aim point, mm (default 0.3 x board)")
+    parser.add_argument("--e2e-step", type=int, default=10, help="End to end: render every Nth frame")
+    parser.add_argument("--e2e-dir", type=Path, default=Path("bench_cameras_e2e"),
+                        help="End to end: working folder (the synthetic session is kept there)")
     parser.add_argument("--seeds", default="1", help="Comma-separated board-pose seeds (rig sections)")
     parser.add_argument("--only", default="real,cara,room,images",
-                        help="Comma-separated sections: real, cara, room, images")
+                        help="Comma-separated sections: real, cara, room, images, e2e")
     args = parser.parse_args()
     only = args.only.split(",")
     seeds = tuple(int(seed) for seed in args.seeds.split(","))
@@ -244,6 +341,8 @@ def main() -> None:
     if "images" in only:
         detection_and_reconstruction("3-4. Dense session", 8.0, args.frames)
         detection_and_reconstruction("3-4. Sparse layout", 20.0, args.frames)
+    if "e2e" in only:
+        end_to_end(args.e2e_step, args.e2e_dir)
 
 
 if __name__ == "__main__":

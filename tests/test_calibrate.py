@@ -89,6 +89,7 @@ def test_a_view_whose_corners_lie_on_one_line_is_dropped(cam01_views):
     fit = calibrate_intrinsics(BOARD, [*views, line], size)
     assert fit.dropped == {"one-column": "corners on one line"} and len(fit.view_rms) == 7
 
+
 def test_images_of_different_sizes_in_one_camera(tmp_path, run_cli):
     folder = tmp_path / "cam1"
     folder.mkdir()
