@@ -292,26 +292,20 @@ def end_to_end(step: int, folder: Path) -> None:
         run("evaluate", folder / "truth.c3d", "--layout", out / "layout.json", "--takes", folder / "takes_sub.json",
             "--out", out / "evaluation.json", "--force")
         evaluation = json.loads((out / "evaluation.json").read_text())
-        layout = json.loads((out / "layout.json").read_text())
-        rows.append((name, len(layout["markers"]), evaluation))
+        method = json.loads((out / "layout.json").read_text())["parameters"]["method"]
+        rows.append((name, evaluation["count"], evaluation["methods"][method]["rmse_mm"],
+                     evaluation["methods"]["random"]["rmse_mm"]))
     print(f"## 5. End to end: {truth.n_frames} frames of the synthetic session, every {step}th rendered "
           f"({len(frames)} frames x 4 cameras, {rate:g} Hz)")
     print(f"render+detect {render}; detection alone {detect_cpu:.1f} CPU-s "
           f"({len(frames) / detect_cpu:.0f} frames of 4 cameras per CPU-s); reconstruct {rec_clock} "
           f"({len(frames) / rec_clock.cpu:.0f} frames per CPU-s); label: {labelled}")
-    print("| layout from | layout markers | held-out RMSE mm (evaluate on the truth capture) |")
-    print("|---|---|---|")
-    for name, count, evaluation in rows:
-        print(f"| {name} | {count} | {json.dumps(_headline(evaluation))} |")
-    print()
-
-
-def _headline(evaluation: dict):
-    """The layout's own held-out RMSE from an evaluation.json (first numeric field named so)."""
-    for key in ("layout", "result", "layout_rmse_mm", "rmse_mm"):
-        if key in evaluation:
-            return evaluation[key]
-    return {k: v for k, v in evaluation.items() if "rmse" in k.lower()}
+    print("| layout from | layout markers | held-out RMSE mm (evaluate on the truth capture) | "
+          "random layouts of that size |")
+    print("|---|---|---|---|")
+    for name, count, rmse, random in rows:
+        print(f"| {name} | {count} | {rmse:.4f} | {random:.4f} |")
+    print(f"\nratio {rows[1][2] / rows[0][2]:.3f} (target <= 1.05)\n")
 
 
 def main() -> None:
