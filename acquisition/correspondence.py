@@ -11,8 +11,9 @@ smallest error), solved exactly per group of hypotheses that share blobs. Then a
 hypothesis is accepted only when it lies within ``link_mm`` of a point of the previous frame,
 when its two blobs are each other's only epipolar partner among the blobs still unused, or
 when it lies within ``SURFACE_MM`` of the face as the points accepted so far sample it (two-view
-matches are where ghosts come from: a ghost of two rays lies in front of or behind the face);
-each of these steps is again an exact packing of the candidates it admits. Accepted points are
+matches are where ghosts come from: a ghost of two rays lies in front of or behind the face),
+nearest first, each blob once (among conflicting two-view matches the closest wins; maximising
+their number instead accepted twice the ghosts). Accepted points are
 refitted by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing
 views (outlier rejection). Points are then linked frame to frame into fragments: a
 constant-velocity prediction of each live fragment is matched to the next frame's points by an
@@ -98,7 +99,7 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     n_views = (keys >= 0).sum(axis=1)
     # >= 3 views: the most views (then the smallest error) over each whole frame at once
     many = np.nonzero(n_views >= 3)[0]
-    chosen = many[_packing(frame[many], keys[many], n_views[many] - 0.5 * error[many] / tolerance_px)]
+    chosen = many[_packing(frame[many], keys[many], _weight(n_views[many], error[many] / tolerance_px))]
     chosen = list(_two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm))
     if not chosen:
         empty = np.zeros((n_frames, 0))
@@ -122,6 +123,11 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     out[frames, slot] = points
     out_views[frames, slot] = counts
     return Reconstruction(out, out_views, link_fragments(out, link_mm=link_mm))
+
+
+def _weight(n_views: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """Weight of a hypothesis of ``n_views`` views and mean error ``error`` (in tolerances)."""
+    return n_views - 0.5 * error
 
 
 def _essential(projections: np.ndarray, i: int, j: int) -> np.ndarray:
@@ -245,9 +251,29 @@ def _best_set(conflict: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return np.sort(order[[p for p in range(n) if best[1] >> p & 1]])
 
 
+def _in_order(keys: np.ndarray) -> np.ndarray:
+    """Indices of the rows of ``keys (N, C)`` (one frame) accepted first come first served: each
+    while none of its blobs is taken (a row that shares no blob with another is always taken;
+    only the others go through the loop)."""
+    rows, cams = np.nonzero(keys >= 0)
+    blob = cams * (int(keys.max()) + 1) + keys[rows, cams] if len(rows) else rows
+    shared = np.bincount(blob)[blob] > 1
+    contested = np.zeros(len(keys), bool)
+    contested[rows[shared]] = True
+    taken, accepted = set(), []
+    for row in np.nonzero(contested)[0]:
+        mine = {int(c) * (int(keys.max()) + 1) + int(keys[row, c]) for c in np.nonzero(keys[row] >= 0)[0]}
+        if not mine & taken:
+            taken |= mine
+            accepted.append(row)
+    return np.sort(np.concatenate([np.nonzero(~contested)[0], np.array(accepted, dtype=int)]))
+
+
 def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
     """Accepted hypotheses of every frame (arrays of indices): ``chosen`` (>= 3 views), then
-    the two-view ones: near a point of the last frame, each other's only partner, on the face."""
+    the two-view ones: near a point of the last frame, each other's only partner, on the face
+    — nearest first (a two-view match is where a ghost comes from: among conflicting ones the
+    closest wins, not the largest number; counting accepted twice the ghosts)."""
     n_cams = keys.shape[1]
     cams = np.arange(n_cams)
     pairs = np.nonzero(n_views == 2)[0]
@@ -268,8 +294,8 @@ def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
         def free(rows):
             return rows[~used[cams, keys[rows]].any(axis=1)]
 
-        def take(rows, weight):
-            best = rows[_packing(frame[rows], keys[rows], weight)]
+        def take(rows):  # in this order, each while its blobs are free
+            best = rows[_in_order(keys[rows])]
             mark(best)
             picked.append(best)
 
@@ -278,8 +304,8 @@ def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
         # two views near a point of the last frame (a marker moves < link_mm per frame)
         if len(previous) and len(candidates):
             distance = cKDTree(previous).query(point[candidates])[0]
-            near = distance < link_mm
-            take(candidates[near], 1.0 - 0.5 * distance[near] / link_mm)
+            near = np.argsort(distance, kind="stable")
+            take(candidates[near[distance[near] < link_mm]])
             candidates = free(candidates)
         # two views: a pair of blobs that are each other's only unused epipolar partner
         for _ in range(2):  # accepting unique pairs can make others unique
@@ -292,14 +318,14 @@ def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
             np.add.at(count, (cam_a, blob_a), 1)
             np.add.at(count, (cam_b, blob_b), 1)
             unique = (count[cam_a, blob_a] == 1) & (count[cam_b, blob_b] == 1)
-            take(candidates[unique], np.ones(unique.sum()))
+            take(candidates[unique])
             candidates = free(candidates)
         # ambiguous two views: the candidates on the face, as sampled by the points accepted so far
         so_far = np.concatenate(picked)
         if len(candidates) and len(so_far) >= SURFACE_NEIGHBOURS:
             off = _off_surface(point[so_far], point[candidates])
-            near = off < SURFACE_MM
-            take(candidates[near], 1.0 - 0.5 * off[near] / SURFACE_MM)
+            near = np.argsort(off, kind="stable")
+            take(candidates[near[off[near] < SURFACE_MM]])
         rows = np.concatenate(picked)
         previous = point[rows]
         yield rows
