@@ -166,10 +166,16 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
     # a two-view set has only one pair to propose it
     finite = np.isfinite(error)
     many = np.nonzero(finite & ((keys >= 0).sum(axis=1) >= 3))[0]
-    order = many[np.lexsort((error[many], *keys[many].T[::-1], frame[many]))]
-    row = np.column_stack([frame[order], keys[order]])
+    if (norm.shape[2] + 1.0) ** n_cams < 2.0 ** 62:  # the view set as one integer
+        code = np.zeros(len(many), np.int64)
+        for c in range(n_cams):
+            code = code * (norm.shape[2] + 1) + keys[many, c] + 1
+    else:  # many cameras: the rank of the view set among the distinct ones
+        code = np.unique(keys[many], axis=0, return_inverse=True)[1].ravel()
+    order = np.lexsort((error[many], code, frame[many]))
     first = np.ones(len(order), bool)
-    first[1:] = (row[1:] != row[:-1]).any(axis=1)
+    first[1:] = (code[order[1:]] != code[order[:-1]]) | (frame[many][order[1:]] != frame[many][order[:-1]])
+    order = many[order]
     keep = np.sort(np.concatenate([np.nonzero(finite & ((keys >= 0).sum(axis=1) == 2))[0], order[first]]))
     return frame[keep], keys[keep], error[keep], point[keep]
 
