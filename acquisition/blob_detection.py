@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .blob_kernel import blob_moments
+
 THRESHOLD = 0.35
 #: A blob whose area exceeds this many times the median blob area, or whose second-moment
 #: axes differ by more than ``MERGED_ELONGATION``, is two (or more) markers merged.
@@ -38,51 +40,34 @@ def detect_blobs(image: np.ndarray, *, min_area: int = 6, max_area: int = 2000,
                  threshold: float = THRESHOLD, split: bool = False) -> Blobs:
     """Marker blobs of an 8-bit grey ``image (H, W)``. With ``split``, a merged blob becomes two
     (flagged) centres on its major axis, as two equal discs would give its second moments."""
-    background = float(np.median(image[::8, ::8]))
+    # the median of every 8th pixel (a histogram: 3x faster than a sort)
+    counts = cv2.calcHist([np.ascontiguousarray(image[::8, ::8])], [0], None, [256], [0, 256]).ravel()
+    background = float(np.searchsorted(np.cumsum(counts), counts.sum() / 2))
     level = background + threshold * (255.0 - background)
-    mask = cv2.threshold(image, level, 1, cv2.THRESH_BINARY)[1]
-    # components of the box around the bright pixels only (the face is part of the frame): 5x faster
+    mask = cv2.threshold(image, level, 255, cv2.THRESH_BINARY)[1]
+    # components of the box around the bright pixels only (the face is part of the frame)
     x0, y0, box_w, box_h = cv2.boundingRect(mask)
     if box_w == 0:
         return _NONE
-    labels = np.zeros(image.shape, np.int32)
-    count, labels[y0:y0 + box_h, x0:x0 + box_w], stats, _ = cv2.connectedComponentsWithStats(
-        mask[y0:y0 + box_h, x0:x0 + box_w], connectivity=8, ltype=cv2.CV_32S)
-    stats[:, cv2.CC_STAT_LEFT] += x0
-    stats[:, cv2.CC_STAT_TOP] += y0
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(
+        mask[y0:y0 + box_h, x0:x0 + box_w], connectivity=8, ltype=cv2.CV_16U)
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.nonzero((area >= min_area) & (area <= max_area))[0] + 1
     if len(keep) == 0:
         return _NONE
-    left, top = stats[keep, cv2.CC_STAT_LEFT], stats[keep, cv2.CC_STAT_TOP]
-    w, h = stats[keep, cv2.CC_STAT_WIDTH], stats[keep, cv2.CC_STAT_HEIGHT]
-    # one square window per blob, big enough for the largest kept blob plus its blurred rim
-    half = int(np.max(np.maximum(w, h))) // 2 + 3
-    offsets = np.arange(-half, half + 1)
-    cx, cy = left + w // 2, top + h // 2
-    ys = np.clip(cy[:, None] + offsets, 0, image.shape[0] - 1)
-    xs = np.clip(cx[:, None] + offsets, 0, image.shape[1] - 1)
-    patch = image[ys[:, :, None], xs[:, None, :]].astype(np.float32) - background
-    owner = labels[ys[:, :, None], xs[:, None, :]]
-    radius = np.maximum(w, h)[:, None, None] / 2 + 2.0
-    dx, dy = xs[:, None, :] - cx[:, None, None], ys[:, :, None] - cy[:, None, None]
-    inside = ((owner == keep[:, None, None]) | (owner == 0)) & (dx * dx + dy * dy <= radius ** 2)
-    weight = np.where(inside, np.maximum(patch, 0.0), 0.0)
-    total = weight.sum(axis=(1, 2))
-    mx = (weight * xs[:, None, :]).sum(axis=(1, 2)) / total
-    my = (weight * ys[:, :, None]).sum(axis=(1, 2)) / total
-    # second moments of the thresholded component: elongation of merged pairs
-    own = (owner == keep[:, None, None]).astype(np.float32)
-    n = own.sum(axis=(1, 2))
-    ox = (own * xs[:, None, :]).sum(axis=(1, 2)) / n
-    oy = (own * ys[:, :, None]).sum(axis=(1, 2)) / n
-    ex, ey = xs[:, None, :] - ox[:, None, None], ys[:, :, None] - oy[:, None, None]
-    sxx, syy = (own * ex * ex).sum(axis=(1, 2)) / n, (own * ey * ey).sum(axis=(1, 2)) / n
-    sxy = (own * ex * ey).sum(axis=(1, 2)) / n
+    stats = stats[keep]
+    left, top = stats[:, cv2.CC_STAT_LEFT] + x0, stats[:, cv2.CC_STAT_TOP] + y0
+    w, h = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    # one window per blob, its disc covering the blob and its blurred rim (compiled: one pass)
+    sxx, syy, sxy = (np.empty(len(keep)) for _ in range(3))
+    mx, my = np.empty(len(keep)), np.empty(len(keep))
+    blob_moments(image, labels, x0, y0, keep.astype(np.int64), left + w // 2, top + h // 2,
+                 np.maximum(w, h) // 2 + 3, np.maximum(w, h) / 2 + 2.0, float(background),
+                 mx, my, sxx, syy, sxy)
     spread = np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
     major, minor = (sxx + syy) / 2 + spread, np.maximum((sxx + syy) / 2 - spread, 1e-6)
     elongation = np.sqrt(major / minor)
-    blob_area = area[keep - 1].astype(np.float64)
+    blob_area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
     merged = (blob_area > MERGED_AREA * np.median(blob_area)) | (elongation > MERGED_ELONGATION)
     centres = np.column_stack([mx, my])
     if split and merged.any():
@@ -94,3 +79,4 @@ def detect_blobs(image: np.ndarray, *, min_area: int = 6, max_area: int = 2000,
         blob_area = np.concatenate([blob_area[~merged], np.tile(blob_area[merged] / 2, 2)])
         merged = np.concatenate([np.zeros((~merged).sum(), bool), np.ones(2 * merged.sum(), bool)])
     return Blobs(centres, blob_area, merged)
+

@@ -3,17 +3,21 @@
 Per frame: every camera pair proposes the blob pairs within ``tolerance_px`` of each other's
 epipolar line; each proposal is triangulated (two-view DLT in undistorted normalized
 coordinates) and collects, in every other camera, the nearest blob within ``tolerance_px`` of
-its reprojection. Proposals with the same views are one hypothesis. Hypotheses of three or more
-views are accepted best first over the whole frame (most views, then smallest reprojection
-error), each blob used once; then a two-view hypothesis is accepted only when it lies within
-``link_mm`` of a point of the previous frame, when its two blobs are each other's only epipolar
-partner among the blobs still unused, or when it lies within ``SURFACE_MM`` of the face as the
-points accepted so far sample it (two-view matches are where ghosts come from: a ghost of two
-rays lies in front of or behind the face). Accepted points are refitted
-by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing views
-(outlier rejection). Points are then linked frame to frame into fragments: a constant-velocity
-prediction of each live fragment is matched to the next frame's points by an optimal
-assignment (Hungarian) within ``link_mm``.
+its reprojection (one compiled pass over all frames, :mod:`.correspondence_kernel`). Proposals
+with the same views are one hypothesis. Hypotheses of three or more views are chosen by a
+global assignment per frame: the set that uses each blob at most once with the largest total
+weight (views minus half the mean error in tolerances: the most views explained, then the
+smallest error), solved exactly per group of hypotheses that share blobs. Then a two-view
+hypothesis is accepted only when it lies within ``link_mm`` of a point of the previous frame,
+when its two blobs are each other's only epipolar partner among the blobs still unused, or
+when it lies within ``SURFACE_MM`` of the face as the points accepted so far sample it (two-view
+matches are where ghosts come from: a ghost of two rays lies in front of or behind the face),
+nearest first, each blob once (among conflicting two-view matches the closest wins; maximising
+their number instead accepted twice the ghosts). Accepted points are
+refitted by the robust triangulation kernel (:mod:`.triangulate`), which drops disagreeing
+views (outlier rejection). Points are then linked frame to frame into fragments: a
+constant-velocity prediction of each live fragment is matched to the next frame's points by an
+optimal assignment (Hungarian) within ``link_mm``.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
 
 from .cameras import CameraRig
@@ -88,32 +93,24 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     blobs = np.asarray(blobs, dtype=np.float64)
     n_cams, n_frames = blobs.shape[:2]
     norm = _normalized(rig, blobs)
-    projections = [np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig]
+    projections = np.array([np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig])
     focal = np.array([cam.focal_px for cam in rig])
-    essentials = {}
-    for i in range(n_cams):
-        for j in range(i + 1, n_cams):
-            rotation = rig[j].rotation @ rig[i].rotation.T
-            t = rig[j].tvec - rotation @ rig[i].tvec
-            cross = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-            essentials[i, j] = cross @ rotation
-    chosen_views: list[np.ndarray] = []  # (C,) blob index or -1, per accepted point
-    chosen_frame: list[int] = []
-    previous = np.zeros((0, 3))
-    for f in range(n_frames):
-        views, previous = _frame_hypotheses(norm[:, f], projections, essentials, focal,
-                                            tolerance_px, previous, link_mm)
-        chosen_views += views
-        chosen_frame += [f] * len(views)
-    if not chosen_views:
+    frame, keys, error, point = _hypotheses(norm, projections, focal, tolerance_px)
+    n_views = (keys >= 0).sum(axis=1)
+    # >= 3 views: the most views (then the smallest error) over each whole frame at once
+    many = np.nonzero(n_views >= 3)[0]
+    chosen = many[_packing(frame[many], keys[many], _weight(n_views[many], error[many] / tolerance_px))]
+    chosen = list(_two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm))
+    if not chosen:
         empty = np.zeros((n_frames, 0))
         return Reconstruction(np.zeros((n_frames, 0, 3)), empty.astype(int), empty.astype(int))
-    picks = np.array(chosen_views)
-    frames = np.array(chosen_frame)
+    picks = np.concatenate(chosen)
+    picks = picks[np.lexsort((np.arange(len(picks)), frame[picks]))]
+    frames = frame[picks]
     observations = np.full((n_cams, len(picks), 2), np.nan)
     for c in range(n_cams):
-        used = picks[:, c] >= 0
-        observations[c, used] = blobs[c, frames[used], picks[used, c]]
+        used = keys[picks, c] >= 0
+        observations[c, used] = blobs[c, frames[used], keys[picks[used], c]]
     points, inliers = triangulate_points(rig, observations, min_views=2,
                                          outlier_threshold_px=outlier_threshold_px)
     good = np.isfinite(points[:, 0])
@@ -128,90 +125,216 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     return Reconstruction(out, out_views, link_fragments(out, link_mm=link_mm))
 
 
-def _frame_hypotheses(norm: np.ndarray, projections: list[np.ndarray], essentials: dict,
-                      focal: np.ndarray, tolerance_px: float, previous: np.ndarray,
-                      near_mm: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """Accepted view sets ``(C,)`` (blob index per camera, -1 unused) of one frame and their
-    two-view points ``(A, 3)`` mm; ``norm (C, B, 2)`` normalized blobs (NaN padding),
-    ``previous (P, 3)`` the last frame's points (to pick among ambiguous two-view matches)."""
+def _weight(n_views: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """Weight of a hypothesis of ``n_views`` views and mean error ``error`` (in tolerances)."""
+    return n_views - 0.5 * error
+
+
+def _essential(projections: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Essential matrix ``(3, 3)`` of camera ``j`` relative to camera ``i``."""
+    rotation = projections[j, :, :3] @ projections[i, :, :3].T
+    t = projections[j, :, 3] - rotation @ projections[i, :, 3]
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rotation
+
+
+def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
+                tolerance_px: float) -> tuple[np.ndarray, ...]:
+    """Every frame's distinct view sets: ``frame (H,)``, ``keys (H, C)`` blob per camera (-1
+    none), ``error (H,)`` mean px, ``point (H, 3)`` mm (two-view), from ``norm (C, F, B, 2)``
+    normalized blobs (the compiled :func:`.correspondence_kernel.proposals_kernel`)."""
+    from .correspondence_kernel import proposals_kernel
+
     n_cams = len(projections)
-    present = [np.nonzero(np.isfinite(norm[c, :, 0]))[0] for c in range(n_cams)]
-    trees = [cKDTree(norm[c, present[c]] * focal[c]) if len(present[c]) else None for c in range(n_cams)]
-    keys, errs, pts = [], [], []  # per proposal: views (C,), error px, point mm
-    for (i, j), essential in essentials.items():
-        if not len(present[i]) or not len(present[j]):
-            continue
-        xi = np.column_stack([norm[i, present[i]], np.ones(len(present[i]))])
-        xj = np.column_stack([norm[j, present[j]], np.ones(len(present[j]))])
-        lines = xi @ essential.T  # epipolar lines in camera j of the blobs of camera i
-        distance = np.abs(lines @ xj.T) / np.hypot(lines[:, :1], lines[:, 1:2]) * focal[j]
-        a, b = np.nonzero(distance < tolerance_px)
-        if not len(a):
-            continue
-        points = _two_view(projections[i], projections[j], norm[i, present[i][a]], norm[j, present[j][b]])
-        support = np.full((len(a), n_cams), -1)
-        support[:, i], support[:, j] = present[i][a], present[j][b]
-        errors = np.zeros(len(a))
-        for k in range(n_cams):
-            cam = projections[k]
-            depth = points @ cam[2, :3] + cam[2, 3]
-            projected = (points @ cam[:2, :3].T + cam[:2, 3]) / depth[:, None] * focal[k]
-            if k in (i, j):
-                residual = np.linalg.norm(projected - norm[k, support[:, k]] * focal[k], axis=1)
-                errors += np.where(depth > 0, residual, np.inf)
-            elif trees[k] is not None:
-                gap, nearest = trees[k].query(projected, distance_upper_bound=tolerance_px)
-                hit = np.isfinite(gap) & (depth > 0)
-                support[hit, k] = present[k][nearest[hit]]
-                errors += np.where(hit, gap, 0.0)
-        keys.append(support)
-        errs.append(errors / (support >= 0).sum(axis=1))
-        pts.append(points)
-    if not keys:
-        return [], np.zeros((0, 3))
-    keys, errs, pts = np.concatenate(keys), np.concatenate(errs), np.concatenate(pts)
-    n_views = (keys >= 0).sum(axis=1)
-    order = np.lexsort((errs, -n_views))  # most views, then smallest error
-    order = order[np.isfinite(errs[order])]
-    width = int(keys.max()) + 2
-    used = np.zeros((n_cams, width), bool)  # column -1 (unused camera) is never set
-    cams = np.arange(n_cams)
-    accepted: list[int] = []
-
-    def take(rows) -> None:
-        for row in rows:
-            key = keys[row]
-            if not used[cams, key].any():  # an index of -1 reads the last column: always False
-                used[cams[key >= 0], key[key >= 0]] = True
-                accepted.append(row)
-
-    take(order[n_views[order] >= 3])  # >= 3 views: best first over the whole frame
-    pairs = order[n_views[order] == 2]
-    # two views near a point of the last frame (a marker moves < near_mm per frame), nearest first
-    if len(previous) and len(pairs):
-        distance = cKDTree(previous).query(pts[pairs])[0]
-        near = np.argsort(distance, kind="stable")
-        take(pairs[near[distance[near] < near_mm]])
-    # two views: only a pair of blobs that are each other's only unused epipolar partner
-    for _ in range(2):  # accepting unique pairs can make others unique
-        free = pairs[~used[cams, keys[pairs]].any(axis=1)]
-        if not len(free):
+    essentials = np.zeros((n_cams, n_cams, 3, 3))
+    for i in range(n_cams):
+        for j in range(i + 1, n_cams):
+            essentials[i, j] = _essential(projections, i, j)
+    capacity = 8 * norm.shape[1] * norm.shape[2] + 1
+    pixels = norm * focal[:, None, None, None]
+    order = np.argsort(pixels[..., 1], axis=2, kind="stable")  # NaN last
+    by_y = np.ascontiguousarray(np.take_along_axis(pixels, order[..., None], axis=2))
+    while True:
+        frame, keys = np.empty(capacity, np.int64), np.empty((capacity, n_cams), np.int64)
+        error, point = np.empty(capacity), np.empty((capacity, 3))
+        count = proposals_kernel(np.ascontiguousarray(norm), by_y, order, essentials, projections, focal,
+                                 float(tolerance_px), frame, keys, error, point)
+        if count <= capacity:
             break
-        cam_a = np.argmax(keys[free] >= 0, axis=1)
-        cam_b = n_cams - 1 - np.argmax(keys[free][:, ::-1] >= 0, axis=1)
-        blob_a, blob_b = keys[free, cam_a], keys[free, cam_b]
-        count = np.zeros((n_cams, width), int)
-        np.add.at(count, (cam_a, blob_a), 1)
-        np.add.at(count, (cam_b, blob_b), 1)
-        take(free[(count[cam_a, blob_a] == 1) & (count[cam_b, blob_b] == 1)])
-    # ambiguous two views: the candidate on the face, as sampled by the points accepted so far
-    free = pairs[~used[cams, keys[pairs]].any(axis=1)]
-    if len(free) and len(accepted) >= SURFACE_NEIGHBOURS:
-        off = _off_surface(pts[np.array(accepted)], pts[free])
-        near = np.argsort(off, kind="stable")
-        take(free[near[off[near] < SURFACE_MM]])
-    accepted_rows = np.array(accepted, dtype=int)
-    return list(keys[accepted_rows]), pts[accepted_rows].reshape(-1, 3)
+        capacity = count
+    frame, keys, error, point = frame[:count], keys[:count], error[:count], point[:count]
+    # the same view set proposed by several pairs is one hypothesis (its smallest error kept);
+    # a two-view set has only one pair to propose it
+    finite = np.isfinite(error)
+    many = np.nonzero(finite & ((keys >= 0).sum(axis=1) >= 3))[0]
+    if (norm.shape[2] + 1.0) ** n_cams < 2.0 ** 62:  # the view set as one integer
+        code = np.zeros(len(many), np.int64)
+        for c in range(n_cams):
+            code = code * (norm.shape[2] + 1) + keys[many, c] + 1
+    else:  # many cameras: the rank of the view set among the distinct ones
+        code = np.unique(keys[many], axis=0, return_inverse=True)[1].ravel()
+    order = np.lexsort((error[many], code, frame[many]))
+    first = np.ones(len(order), bool)
+    first[1:] = (code[order[1:]] != code[order[:-1]]) | (frame[many][order[1:]] != frame[many][order[:-1]])
+    order = many[order]
+    keep = np.sort(np.concatenate([np.nonzero(finite & ((keys >= 0).sum(axis=1) == 2))[0], order[first]]))
+    return frame[keep], keys[keep], error[keep], point[keep]
+
+
+def _packing(frame: np.ndarray, keys: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Indices of the hypotheses that use every ``(frame, camera, blob)`` at most once with the
+    largest total ``weight``: an exact weighted set packing per group of hypotheses that share
+    blobs (most are alone; a group of up to ``_SEARCH`` by branch and bound, a larger one by
+    HiGHS' integer programming)."""
+    n = len(frame)
+    if n == 0:
+        return np.zeros(0, int)
+    n_cams = keys.shape[1]
+    rows, cams = np.nonzero(keys >= 0)
+    blob = (frame[rows] * n_cams + cams) * (int(keys.max()) + 1) + keys[rows, cams]
+    blob_ids, blob_index = np.unique(blob, return_inverse=True)
+    if len(blob_ids) == len(blob):  # no blob wanted twice
+        return np.arange(n)
+    # groups: the smallest hypothesis index reachable through shared blobs (label propagation)
+    group = np.arange(n)
+    while True:
+        lowest = np.full(len(blob_ids), n)
+        np.minimum.at(lowest, blob_index, group[rows])
+        spread = group.copy()
+        np.minimum.at(spread, rows, lowest[blob_index])
+        if (spread == group).all():
+            break
+        group = spread
+    size = np.bincount(group)
+    alone = size[group] == 1
+    # two hypotheses that share a blob: the heavier
+    two = np.nonzero(size[group] == 2)[0]
+    two = two[np.argsort(group[two], kind="stable")].reshape(-1, 2)
+    chosen = [np.nonzero(alone)[0], two[np.arange(len(two)), np.argmax(weight[two], axis=1)]]
+    members = np.nonzero(size[group] > 2)[0]
+    members = members[np.argsort(group[members], kind="stable")]
+    for hyps in np.split(members, np.cumsum(size[np.unique(group[members])])[:-1]) if len(members) else []:
+        k = keys[hyps]  # one frame: hypotheses conflict when they share a blob of one camera
+        conflict = ((k[:, None] == k[None]) & (k[:, None] >= 0)).any(axis=2)
+        chosen.append(hyps[_best_set(conflict, weight[hyps])])
+    return np.sort(np.concatenate(chosen))
+
+
+#: Largest group of conflicting hypotheses solved by branch and bound (beyond: HiGHS).
+_SEARCH = 20
+
+
+def _best_set(conflict: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Indices of the independent set of largest total ``weight`` (> 0) of the graph
+    ``conflict (n, n)`` bool (diagonal True)."""
+    n = len(weight)
+    if n > _SEARCH:
+        from scipy.optimize import LinearConstraint, milp
+
+        rows, cols = np.nonzero(np.triu(conflict, 1))
+        pair = coo_matrix((np.ones(2 * len(rows)), (np.repeat(np.arange(len(rows)), 2),
+                                                     np.column_stack([rows, cols]).ravel())),
+                          shape=(len(rows), n))
+        result = milp(-weight, constraints=LinearConstraint(pair, -np.inf, 1), integrality=np.ones(n),
+                      bounds=(0, 1))
+        return np.nonzero(result.x > 0.5)[0]
+    order = np.argsort(-weight, kind="stable")
+    w = weight[order].tolist()
+    blocked = [int(sum(1 << q for q in np.nonzero(conflict[order[p], order])[0])) for p in range(n)]
+    rest = np.concatenate([np.cumsum(w[::-1])[::-1], [0.0]]).tolist()
+    best = [0.0, 0]
+
+    def search(p: int, taken: int, value: float) -> None:
+        if value + rest[p] <= best[0]:
+            return
+        if p == n:
+            best[0], best[1] = value, taken
+            return
+        if not taken & blocked[p]:
+            search(p + 1, taken | (1 << p), value + w[p])
+        search(p + 1, taken, value)
+
+    search(0, 0, 0.0)
+    return np.sort(order[[p for p in range(n) if best[1] >> p & 1]])
+
+
+def _in_order(keys: np.ndarray) -> np.ndarray:
+    """Indices of the rows of ``keys (N, C)`` (one frame) accepted first come first served: each
+    while none of its blobs is taken (a row that shares no blob with another is always taken;
+    only the others go through the loop)."""
+    rows, cams = np.nonzero(keys >= 0)
+    blob = cams * (int(keys.max()) + 1) + keys[rows, cams] if len(rows) else rows
+    shared = np.bincount(blob)[blob] > 1
+    contested = np.zeros(len(keys), bool)
+    contested[rows[shared]] = True
+    taken, accepted = set(), []
+    for row in np.nonzero(contested)[0]:
+        mine = {int(c) * (int(keys.max()) + 1) + int(keys[row, c]) for c in np.nonzero(keys[row] >= 0)[0]}
+        if not mine & taken:
+            taken |= mine
+            accepted.append(row)
+    return np.sort(np.concatenate([np.nonzero(~contested)[0], np.array(accepted, dtype=int)]))
+
+
+def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
+    """Accepted hypotheses of every frame (arrays of indices): ``chosen`` (>= 3 views), then
+    the two-view ones: near a point of the last frame, each other's only partner, on the face
+    — nearest first (a two-view match is where a ghost comes from: among conflicting ones the
+    closest wins, not the largest number; counting accepted twice the ghosts)."""
+    n_cams = keys.shape[1]
+    cams = np.arange(n_cams)
+    pairs = np.nonzero(n_views == 2)[0]
+    bounds = np.searchsorted(frame[pairs], np.arange(n_frames + 1))
+    chosen_bounds = np.searchsorted(frame[chosen], np.arange(n_frames + 1))
+    width = int(keys.max()) + 2 if len(keys) else 1
+    previous = np.zeros((0, 3))
+    for f in range(n_frames):
+        accepted = chosen[chosen_bounds[f]:chosen_bounds[f + 1]]
+        candidates = pairs[bounds[f]:bounds[f + 1]]
+        used = np.zeros((n_cams, width), bool)  # column -1 (unused camera) is never set
+        picked = [accepted]
+
+        def mark(rows):
+            k = keys[rows]
+            used[np.broadcast_to(cams, k.shape)[k >= 0], k[k >= 0]] = True
+
+        def free(rows):
+            return rows[~used[cams, keys[rows]].any(axis=1)]
+
+        def take(rows):  # in this order, each while its blobs are free
+            best = rows[_in_order(keys[rows])]
+            mark(best)
+            picked.append(best)
+
+        mark(accepted)
+        candidates = free(candidates)
+        # two views near a point of the last frame (a marker moves < link_mm per frame)
+        if len(previous) and len(candidates):
+            distance = cKDTree(previous).query(point[candidates])[0]
+            near = np.argsort(distance, kind="stable")
+            take(candidates[near[distance[near] < link_mm]])
+            candidates = free(candidates)
+        # two views: a pair of blobs that are each other's only unused epipolar partner
+        for _ in range(2):  # accepting unique pairs can make others unique
+            if not len(candidates):
+                break
+            cam_a = np.argmax(keys[candidates] >= 0, axis=1)
+            cam_b = n_cams - 1 - np.argmax(keys[candidates][:, ::-1] >= 0, axis=1)
+            blob_a, blob_b = keys[candidates, cam_a], keys[candidates, cam_b]
+            count = np.zeros((n_cams, width), int)
+            np.add.at(count, (cam_a, blob_a), 1)
+            np.add.at(count, (cam_b, blob_b), 1)
+            unique = (count[cam_a, blob_a] == 1) & (count[cam_b, blob_b] == 1)
+            take(candidates[unique])
+            candidates = free(candidates)
+        # ambiguous two views: the candidates on the face, as sampled by the points accepted so far
+        so_far = np.concatenate(picked)
+        if len(candidates) and len(so_far) >= SURFACE_NEIGHBOURS:
+            off = _off_surface(point[so_far], point[candidates])
+            near = np.argsort(off, kind="stable")
+            take(candidates[near[off[near] < SURFACE_MM]])
+        rows = np.concatenate(picked)
+        previous = point[rows]
+        yield rows
 
 
 def _off_surface(surface: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -228,31 +351,38 @@ def _off_surface(surface: np.ndarray, points: np.ndarray) -> np.ndarray:
 def link_fragments(points: np.ndarray, *, link_mm: float = LINK_MM) -> np.ndarray:
     """Fragment id ``(F, P)`` of every point of ``points (F, P, 3)`` (NaN padding: -1): each
     live fragment's next position is predicted at constant velocity and matched to the next
-    frame's points by the Hungarian assignment within ``link_mm``; unmatched points start new
+    frame's points by the Hungarian assignment within ``link_mm`` (a prediction and a point that
+    are each other's only candidate are matched without it); unmatched points start new
     fragments, unmatched fragments end."""
     n_frames, width = points.shape[:2]
     ids = np.full((n_frames, width), -1)
-    live: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # id -> (last, previous)
+    live = np.zeros(0, int)  # fragment ids, their last and previous positions (NaN: none)
+    last, before = np.zeros((0, 3)), np.zeros((0, 3))
     next_id = 0
     for f in range(n_frames):
         present = np.nonzero(np.isfinite(points[f, :, 0]))[0]
         current = points[f, present]
-        keys = list(live)
-        matched_rows: dict[int, int] = {}
-        if keys and len(present):
-            predicted = np.array([2 * last - prev if prev is not None else last
-                                  for last, prev in (live[k] for k in keys)])
-            cost = np.linalg.norm(predicted[:, None] - current[None], axis=2)
-            rows, cols = linear_sum_assignment(np.where(cost < link_mm, cost, 1e6))
-            matched_rows = {c: keys[r] for r, c in zip(rows, cols) if cost[r, c] < link_mm}
-        new_live = {}
-        for col, index in enumerate(present):
-            fragment = matched_rows.get(col)
-            if fragment is None:
-                fragment, next_id = next_id, next_id + 1
-                new_live[fragment] = (current[col], None)
-            else:
-                new_live[fragment] = (current[col], live[fragment][0])
-            ids[f, index] = fragment
-        live = new_live
+        match = np.full(len(present), -1)  # row of live per current point
+        if len(live) and len(present):
+            predicted = np.where(np.isfinite(before), 2 * last - before, last)
+            near = cKDTree(predicted).sparse_distance_matrix(cKDTree(current), link_mm, output_type="ndarray")
+            rows, cols = near["i"].astype(int), near["j"].astype(int)
+            per_row, per_col = np.bincount(rows, minlength=len(live)), np.bincount(cols, minlength=len(present))
+            alone = (per_row[rows] == 1) & (per_col[cols] == 1)
+            match[cols[alone]] = rows[alone]
+            rest_rows, rest_cols = np.unique(rows[~alone]), np.unique(cols[~alone])
+            if len(rest_rows):
+                cost = np.linalg.norm(predicted[rest_rows, None] - current[None, rest_cols], axis=2)
+                r, c = linear_sum_assignment(np.where(cost < link_mm, cost, 1e6))
+                ok = cost[r, c] < link_mm
+                match[rest_cols[c[ok]]] = rest_rows[r[ok]]
+        new = match < 0
+        fragment = np.empty(len(present), int)
+        fragment[~new] = live[match[~new]]
+        fragment[new] = next_id + np.arange(new.sum())
+        next_id += int(new.sum())
+        previous = np.full((len(present), 3), np.nan)
+        previous[~new] = last[match[~new]]
+        ids[f, present] = fragment
+        live, last, before = fragment, current, previous
     return ids

@@ -78,6 +78,18 @@ def test_an_outlier_view_is_dropped_with_its_error(cam01_views):
     assert fit.rms < 0.2 and len(fit.view_rms) == 6
 
 
+
+def test_a_view_whose_corners_lie_on_one_line_is_dropped(cam01_views):
+    """A partial board of one row has no homography: dropped with its reason, not an OpenCV
+    assertion (found on rendered room-rig views)."""
+    views, size = cam01_views
+    column = views[0].ids % BOARD.corners[0] == 0  # the first column of corners only (7)
+    line = View("one-column", views[0].ids[column], views[0].pixels[column])
+    assert line.found
+    fit = calibrate_intrinsics(BOARD, [*views, line], size)
+    assert fit.dropped == {"one-column": "corners on one line"} and len(fit.view_rms) == 7
+
+
 def test_images_of_different_sizes_in_one_camera(tmp_path, run_cli):
     folder = tmp_path / "cam1"
     folder.mkdir()

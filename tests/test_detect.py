@@ -89,6 +89,23 @@ def test_cameras_with_different_frame_counts(tmp_path, run_cli):
     assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
 
 
+def test_images_of_different_sizes_within_a_camera(tmp_path, run_cli):
+    (tmp_path / "a").mkdir()
+    cv2.imwrite(str(tmp_path / "a" / "0.png"), np.full((20, 30), 90, np.uint8))
+    cv2.imwrite(str(tmp_path / "a" / "1.png"), np.full((24, 30), 90, np.uint8))
+    result = run_cli("detect", tmp_path / "a", "--out", tmp_path / "d.npz")
+    assert result.exit_code == 2 and "must share one size" in result.stderr
+    assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
+def test_a_video_that_cannot_be_decoded(tmp_path, run_cli):
+    video = tmp_path / "cam1.mp4"
+    video.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 8)
+    result = run_cli("detect", video, "--out", tmp_path / "d.npz")
+    assert result.exit_code == 2 and "cannot decode" in result.stderr
+    assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
 def test_synth_images_needs_a_rig(tmp_path, run_cli):
     result = run_cli("synth", tmp_path / "s.c3d", "--rig", "none", "--images", tmp_path / "img")
     assert result.exit_code == 2 and "--images needs a camera rig" in result.stderr

@@ -84,3 +84,40 @@ def test_reconstruct_without_blobs_is_empty():
     rig = cara_rig()
     result = reconstruct(rig, np.full((4, 3, 2, 2), np.nan))
     assert result.points.shape == (3, 0, 3) and result.n_fragments == 0
+
+
+def test_a_frame_is_assigned_globally_not_best_first():
+    from mocaptk.acquisition.correspondence import _packing
+
+    # one 4-view hypothesis shares a blob with each of two disjoint 3-view ones: best first
+    # would take the 4 views; the global assignment explains 6 observations
+    keys = np.array([[0, 0, 0, 0], [0, 1, 1, -1], [1, 2, -1, 0]])
+    weight = np.array([3.9, 2.8, 2.7])
+    assert _packing(np.zeros(3, int), keys, weight).tolist() == [1, 2]
+    # the same hypotheses in different frames do not conflict
+    assert _packing(np.array([0, 1, 2]), keys, weight).tolist() == [0, 1, 2]
+
+
+@pytest.mark.parametrize("n", [7, 26])  # branch and bound; integer programming beyond 20
+def test_the_packing_is_the_best_independent_set(n):
+    from itertools import combinations
+
+    from mocaptk.acquisition.correspondence import _best_set
+
+    rng = np.random.default_rng(n)
+    conflict = rng.random((n, n)) < (0.4 if n < 10 else 0.25)
+    conflict = conflict | conflict.T | np.eye(n, dtype=bool)
+    weight = rng.uniform(0.5, 4.0, n)
+    chosen = _best_set(conflict, weight)
+    assert not conflict[np.ix_(chosen, chosen)][~np.eye(len(chosen), dtype=bool)].any()
+    if n < 10:  # every subset
+        best = max(weight[list(s)].sum() for r in range(n + 1) for s in combinations(range(n), r)
+                   if not conflict[np.ix_(s, s)][~np.eye(r, dtype=bool)].any())
+        assert weight[chosen].sum() == pytest.approx(best)
+    else:  # at least as heavy as best first
+        greedy, taken = [], np.zeros(n, bool)
+        for p in np.argsort(-weight):
+            if not (conflict[p] & taken).any():
+                greedy.append(p)
+                taken[p] = True
+        assert weight[chosen].sum() >= weight[greedy].sum() - 1e-9
