@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,7 @@ from .correspondence import Correspondence, correspond
 from .gaze import eye_labels, gaze_angles
 from .livelink_csv import livelink_csv, yaw_pitch_roll
 from .rom_calibration import DEFAULT_PRIOR, Calibration, calibrate, side_ties
-from .solve import CHUNK_FRAMES, FaceSolver, head_poses, layout_frames, to_head_frame
+from .solve import CHUNK_FRAMES, POSE_FROM_LAYOUT, FaceSolver, head_poses, layout_frames, to_head_frame
 from .weight_solve import DEFAULT_L1, DEFAULT_SMOOTH, solve_weights
 
 __all__ = ["RETARGET_FORMAT", "Retargeter", "RetargetResult", "fit_retargeter", "load_calibration",
@@ -88,27 +88,89 @@ def fit_retargeter(character: Character, session: Trajectories, *, prior: float 
 def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajectories, path: str, *,
                      l1: float = DEFAULT_L1, smooth: float = DEFAULT_SMOOTH, stabilize: bool = True,
                      chunk: int = CHUNK_FRAMES) -> RetargetResult:
-    """Weights of every frame of ``capture`` (its file ``path``, for messages)."""
+    """Weights of every frame of ``capture`` (its file ``path``, for messages).
+
+    Poses from the layout's least-moving markers (no stabilization markers) take part of the
+    expression for head motion (on the sample's still performance, 20 layout markers: up to 2.6°
+    and 4 mm): they are refined with the expression (:func:`_joint_poses`), and dropped when the
+    rig explains the capture better without them (:func:`_posed_fits_better`)."""
     x = layout_frames(solver, capture, path)  # raises when layout markers are missing
     poses = head_poses(solver, capture) if stabilize else None
+    joint = poses is not None and poses.source == POSE_FROM_LAYOUT and not poses.still
     rows = np.array([retargeter.labels.index(label) for label in solver.layout_labels])
     basis, inverse = retargeter.calibration.tied_basis(rows)
     neutral = retargeter.calibration.neutral[rows]
     n_frames = capture.n_frames
     weights = np.zeros((n_frames, len(basis)))
     residual, lost = np.full(n_frames, np.nan), np.zeros(n_frames, dtype=np.int64)
+    rotations = None if poses is None else np.array(poses.rotations, dtype=np.float64)
+    translations = None if poses is None else np.array(poses.translations, dtype=np.float64)
+    if joint and not _posed_fits_better(basis, neutral, x, rotations, translations, l1=l1):
+        poses = replace(poses, rotations=np.broadcast_to(np.eye(3), rotations.shape).copy(),
+                        translations=np.zeros_like(translations), still=True)
+        rotations, translations, joint = poses.rotations, poses.translations, False
     previous = None
     for start in range(0, n_frames, chunk):
         part = slice(start, start + chunk)
-        frames = np.array(x[part], dtype=np.float64)
-        if poses is not None:  # into the head frame: R^T (x - t); no pose: markers lost
-            frames = to_head_frame(frames, poses, part)
+        world = np.array(x[part], dtype=np.float64)
+        if joint:
+            rotations[part], translations[part] = _joint_poses(
+                basis, neutral, world, rotations[part], translations[part], l1=l1, smooth=smooth,
+                previous=previous)
+        frames = world if poses is None else _in_head(world, rotations[part], translations[part])
         solved = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous)
         weights[part], residual[part], lost[part] = solved.weights, solved.residual_mm, solved.lost
         previous = solved.weights[-1] if len(solved.weights) else previous
-    head = np.zeros((n_frames, 3)) if poses is None else yaw_pitch_roll(poses.rotations)
+    head = np.zeros((n_frames, 3)) if poses is None else yaw_pitch_roll(rotations)
+    if joint:  # the head-frame eye markers follow the refined poses
+        poses = replace(poses, rotations=rotations, translations=translations)
     eyes, eye_markers = _gaze(retargeter, capture, poses)
     return RetargetResult(weights[:, inverse], head, residual, lost, solver.layout_labels, eyes, eye_markers)
+
+
+#: Rounds of :func:`_joint_poses` (pose, then expression, then pose ...).
+JOINT_POSE_ROUNDS = 3
+#: Frames (evenly spread) on which :func:`_posed_fits_better` compares the two hypotheses.
+POSE_TEST_FRAMES = 1000
+
+
+def _posed_fits_better(basis: np.ndarray, neutral: np.ndarray, x: np.ndarray, rotations: np.ndarray,
+                       translations: np.ndarray, *, l1: float) -> bool:
+    """Whether the rig fits the capture's layout markers ``x`` (F, L, 3) better (median RMS
+    residual) with the refined poses than with none: a head that did not move, seen through a few
+    expression-moving markers, is better left unposed."""
+    test = np.linspace(0, len(x) - 1, min(len(x), POSE_TEST_FRAMES)).astype(np.int64)
+    world = np.array(x[test], dtype=np.float64)
+    rot, trans = _joint_poses(basis, neutral, world, rotations[test].copy(), translations[test].copy(),
+                              l1=l1, smooth=0.0, previous=None)
+    posed = solve_weights(basis, _in_head(world, rot, trans) - neutral, l1=l1, smooth=0.0).residual_mm
+    unposed = solve_weights(basis, world - neutral, l1=l1, smooth=0.0).residual_mm
+    return bool(np.nanmedian(posed) < np.nanmedian(unposed))
+
+
+def _in_head(world: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """``R^T (x - t)`` per frame (f, L, 3); a frame without a pose: NaN (its markers lost)."""
+    return np.einsum("fji,fmj->fmi", rotations, world - translations[:, None])
+
+
+def _joint_poses(basis: np.ndarray, neutral: np.ndarray, world: np.ndarray, rotations: np.ndarray,
+                 translations: np.ndarray, *, l1: float, smooth: float, previous: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Head poses refined with the expression: alternately the weights in the current head frame,
+    then each frame's pose as the rigid fit (all seen layout markers) of the rig's prediction
+    ``neutral + A w`` onto the capture ``world`` (f, L, 3) mm. What the rig's shapes explain stays
+    expression; only the rigid remainder is head motion. Frames the fit cannot pose keep theirs."""
+    from mocaptk.acquisition.stabilize import kabsch
+
+    seen = np.isfinite(world).all(axis=2)
+    for _ in range(JOINT_POSE_ROUNDS):
+        frames = _in_head(world, rotations, translations)
+        w = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous).weights
+        predicted = neutral + np.einsum("fs,smc->fmc", w, basis)
+        rot, trans = kabsch(predicted, np.where(seen[..., None], world, 0.0), seen.astype(float))
+        ok = np.isfinite(rot).all(axis=(1, 2))
+        rotations[ok], translations[ok] = rot[ok], trans[ok]
+    return rotations, translations
 
 
 def _gaze(retargeter: Retargeter, capture: Trajectories, poses) -> tuple[np.ndarray, dict[str, str]]:

@@ -144,6 +144,17 @@ def test_saved_calibration_for_another_rig_is_refused(workspace, tmp_path, run_c
     assert done.exit_code == 2 and not (tmp_path / "o").exists()
     assert done.stderr.strip() == (f"mocaptk: error: {tmp_path / 'other.npz'}: calibrated for 40 "
                                    "shapes, the character has 52")
+    from mocaptk.atomic import write_bytes
+    from mocaptk.retarget.export_character import character_glb_bytes
+    rig = load_character("arkit")  # a real rig with 40 shapes, given the 52-shape calibration
+    write_bytes(tmp_path / "forty.glb", character_glb_bytes(
+        rig.replace(names=rig.names[:40], deltas=rig.deltas[:40]), np.zeros((0, 40)), 60.0))
+    done = run_cli("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
+                   "--character", tmp_path / "forty.glb", "--calibration", root / "out" / "calibration.npz",
+                   "--out", tmp_path / "o", "--formats", "none")
+    assert done.exit_code == 2 and not (tmp_path / "o").exists()
+    assert done.stderr.strip() == (f"mocaptk: error: {root / 'out' / 'calibration.npz'}: calibrated for 52 "
+                                   "shapes, the character has 40")
 
 
 def test_capture_lacking_layout_markers_and_character_without_shapes(workspace, tmp_path, run_cli):
@@ -368,3 +379,40 @@ def test_report_shows_the_character_driven_by_the_weights_beside_the_actor(works
     assert jaw in character["curves"] and ARKIT_NAMES.index("tongueOut") not in character["curves"]
     actor = np.array(data["markers"]["neutral"], dtype=float)
     assert np.min(np.array(character["vertices"])[:, 0]) > np.nanmax(actor[:, 0])  # beside, not on top
+
+
+@pytest.mark.slow
+def test_few_marker_poses_leave_a_still_head_unposed_and_follow_a_moving_one(workspace, tmp_path, run_cli):
+    """A 20-marker layout has no stabilization markers: its least-moving markers move with the
+    expression. The still performance must not get false head motion (it cost r 0.98 -> 0.83);
+    the same performance with added head motion must still be posed."""
+    from scipy.spatial.transform import Rotation
+
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+    from mocaptk.retarget.solve import train_solver
+
+    root, _ = workspace
+    assert run_cli("cluster", root / "dense_halfface.c3d", "--markers", "20", "--out", tmp_path / "l20",
+                   "--formats", "none", "--quiet").exit_code == 0
+    session = read_c3d(root / "dense_halfface.c3d")
+    solver = train_solver(read_layout(tmp_path / "l20" / "layout.json"), session, {})
+    assert not solver.rigid_labels  # poses from the least-moving layout markers
+    retargeter = fit_retargeter(load_character("arkit"), session)
+    capture = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    truth = arkit_truth(load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz"))
+    moving = (truth > 0.1).any(axis=0)
+
+    def mean_r(weights):
+        return np.mean([np.corrcoef(weights[:, k], truth[:, k])[0, 1] for k in np.flatnonzero(moving)])
+
+    still = retarget_capture(retargeter, solver, capture, "still")
+    assert np.all(still.head == 0) and mean_r(still.weights) > 0.95
+    t = np.arange(capture.n_frames) / capture.rate
+    yaw = 8 * np.sin(2 * np.pi * 0.2 * t)
+    rot = Rotation.from_euler("YXZ", np.stack([yaw, 5 * np.sin(2 * np.pi * 0.13 * t), 0 * t], 1),
+                              degrees=True).as_matrix()
+    centre = np.nanmean(capture.positions[0], axis=0)
+    turned = capture.replace(positions=np.einsum("fij,fmj->fmi", rot, capture.positions - centre) + centre)
+    posed = retarget_capture(retargeter, solver, turned, "turned")
+    assert np.abs(np.degrees(posed.head[:, 0]) - yaw).max() < 1.5 and mean_r(posed.weights) > 0.8
