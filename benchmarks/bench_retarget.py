@@ -1,6 +1,8 @@
 """``mocaptk retarget``: weight recovery against ground truth, lost markers, speed and memory.
 
-    python benchmarks/bench_retarget.py accuracy     # 2 actors x default layout at 3 sizes, baselines
+    python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
+    BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
+        python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
     python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
     python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
     python benchmarks/bench_retarget.py memory       # peak memory of a 72,000-frame retarget (subprocess)
@@ -195,10 +197,12 @@ def accuracy() -> None:
                       f"{actor.fit_seconds[1]:.1f} s CPU")
                 print("| layout markers | method | mean MAE | mean r | mesh RMSE mm |\n|---|---|---|---|---|")
                 for size in sizes:
-                    folder = work / f"layout_{session.parent.name}_{session.stem}_{size or 'default'}"
+                    extra = os.environ.get("BENCH_RETARGET_CLUSTER", "").split()  # e.g. "--method set-cover --character arkit"
+                    tag = "_".join(x.strip("-") for x in extra)
+                    folder = work / f"layout_{session.parent.name}_{session.stem}_{size or 'default'}{'_' + tag if tag else ''}"
                     if not (folder / "layout.json").is_file():
                         mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force",
-                                *(("--markers", size) if size else ()))
+                                *(("--markers", size) if size else ()), *extra)
                     results = actor.methods(folder / "layout.json", capture)
                     count = len(json.loads((folder / "layout.json").read_text())["layout"])
                     for method, weights in results.items():
