@@ -1,6 +1,8 @@
 """``mocaptk retarget``: weight recovery against ground truth, lost markers, speed and memory.
 
-    python benchmarks/bench_retarget.py accuracy     # 2 actors x default layout at 3 sizes, baselines
+    python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
+    BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
+        python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
     python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
     python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
     python benchmarks/bench_retarget.py memory       # peak memory of a 72,000-frame retarget (subprocess)
@@ -30,8 +32,11 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_c3d"
-ICT = REPO.parent / "shared" / "data" / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
+ICT = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data")) / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
 IDENTITY = "1.5,-1.0,0.8"
+#: ROM reaches compared: Ribera's full protocol (1) and about what our synthetic ROMs reach (their
+#: truth: median 0.77-0.79 of each shape's range; each expression at 0.45-1 intensity).
+REACHES = (1.0, 0.8)
 
 
 def mocaptk(*args) -> None:
@@ -43,17 +48,23 @@ def mocaptk(*args) -> None:
 
 
 def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
-    """(name, session, performance, performance truth) for the sample and the synthetic full face."""
-    full = work / "full"
-    if not (full / "actor.c3d").is_file():
-        full.mkdir(parents=True, exist_ok=True)
-        mocaptk("synth", full / "actor.c3d", "--full", "--identity", IDENTITY, "--spacing", "10",
-                "--rig", "none", "--seed", "11", "--noise", "0.2", "--expressions", "5", "--rest", "1.5",
-                "--hold", "2.0", "--performance", "20", "--quiet", "--force")
-    return [("sample (half face)", SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d",
-             SAMPLES / "dense_halfface_performance_truth.npz"),
-            (f"synth --full --identity {IDENTITY}", full / "actor.c3d", full / "actor_performance.c3d",
-             full / "actor_performance_truth.npz")]
+    """(name, session, performance, performance truth) for the sample, the synthetic full face and
+    the same actor with a fuller ROM (20 expressions per region: every action several times, so
+    its extremes come closer to the rig's 1). ``BENCH_RETARGET_SETS`` picks some (0,1,2)."""
+    sets = []
+    for folder, expressions in (("full", 5), ("fullrom", 20)):
+        full = work / folder
+        if not (full / "actor.c3d").is_file():
+            full.mkdir(parents=True, exist_ok=True)
+            mocaptk("synth", full / "actor.c3d", "--full", "--identity", IDENTITY, "--spacing", "10",
+                    "--rig", "none", "--seed", "11", "--noise", "0.2", "--expressions", expressions,
+                    "--rest", "1.5", "--hold", "2.0", "--performance", "20", "--quiet", "--force")
+        sets.append((f"synth --full --identity {IDENTITY} --expressions {expressions}", full / "actor.c3d",
+                     full / "actor_performance.c3d", full / "actor_performance_truth.npz"))
+    every = [("sample (half face)", SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d",
+              SAMPLES / "dense_halfface_performance_truth.npz"), *sets]
+    chosen = os.environ.get("BENCH_RETARGET_SETS")
+    return [every[int(i)] for i in chosen.split(",")] if chosen else every
 
 
 def arkit_truth(truth) -> np.ndarray:
@@ -81,19 +92,38 @@ def scores(weights: np.ndarray, truth: np.ndarray, rig) -> dict:
                           for k in np.flatnonzero(moving)}}
 
 
-class Actor:
-    """A session fitted once (correspondence + calibration) and its layouts' solvers."""
+def stylized(rig):
+    """A character with other proportions *and* other motion: the generic rig with a 20 % wider
+    jaw and an 8 mm longer nose (its shapes bent with it), every shape's amplitude scaled by a
+    fixed factor in [0.6, 1.6] (blinks kept at 1: the lids must still close) — where the ROM
+    calibration should matter: the character's shapes at the markers are not the actor's motion."""
+    def warp(v: np.ndarray) -> np.ndarray:
+        v = v.copy()
+        v[..., 0] *= 1 + 0.2 * np.clip((-40.0 - v[..., 1]) / 40.0, 0, 1)
+        tip = rig.vertices[np.argmax(rig.vertices[:, 2])]
+        v[..., 2] += 8.0 * np.exp(-np.sum((v - tip) ** 2, axis=-1) / (2 * 15.0 ** 2))
+        return v
 
-    def __init__(self, session_path: Path) -> None:
+    factor = np.random.default_rng(3).uniform(0.6, 1.6, len(rig.names))
+    factor[[i for i, n in enumerate(rig.names) if "Blink" in n]] = 1.0
+    vertices = warp(rig.vertices.astype(np.float64))
+    deltas = (warp(rig.vertices[None] + rig.deltas.astype(np.float64)) - vertices) * factor[:, None, None]
+    return rig.replace(vertices=vertices, deltas=deltas.astype(np.float32), source="stylized"), factor
+
+
+class Actor:
+    """A session fitted once per character (correspondence + calibration, both alignments)."""
+
+    def __init__(self, session_path: Path, character) -> None:
         from mocaptk.acquisition.c3d_read import read_c3d
-        from mocaptk.retarget.character import load_character
         from mocaptk.retarget.retarget_outputs import fit_retargeter
 
         self.session = read_c3d(session_path)
-        self.rig = load_character("arkit")
+        self.rig = character
         start = time.perf_counter(), time.process_time()
         self.retargeter = fit_retargeter(self.rig, self.session)
         self.fit_seconds = (time.perf_counter() - start[0], time.process_time() - start[1])
+        self.reached = {q: fit_retargeter(self.rig, self.session, reach=q) for q in REACHES}
 
     def methods(self, layout_path: Path, capture) -> dict[str, np.ndarray]:
         from scipy.optimize import nnls
@@ -106,9 +136,10 @@ class Actor:
         layout = read_layout(layout_path)
         solver = train_solver(layout, self.session, {"path": None, "sha256": None})
         ours = retarget_capture(self.retargeter, solver, capture, "capture")
+        n = len(self.rig.names)
         uncalibrated = Retargeter(self.rig, None, Calibration(
             self.retargeter.correspondence.shape_basis(self.rig), self.retargeter.calibration.neutral,
-            self.retargeter.calibration.ties, np.ones(52), np.ones(52)), self.retargeter.labels)
+            self.retargeter.calibration.ties, np.ones(n), np.ones(n)), self.retargeter.labels)
         same_solve = retarget_capture(uncalibrated, solver, capture, "capture")
         corr, labels = self.retargeter.correspondence, list(self.retargeter.labels)
         prior = corr.shape_basis(self.rig)
@@ -133,7 +164,9 @@ class Actor:
             return out[:, inverse]
 
         dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, capture, "capture"))])
-        return {"ours (ROM-calibrated, bounded, L1, smooth)": ours.weights,
+        return {"ours (ROM-calibrated, stretch; bounded, L1, smooth)": ours.weights,
+                **{f"ours, ROM extremes aligned (--rom-reach {q})": retarget_capture(r, solver, capture, "capture").weights
+                   for q, r in self.reached.items()},
                 "same solve without ROM calibration": same_solve.weights,
                 "unconstrained least squares": per_frame(cal.basis[:, rows], d, False),
                 "NNLS, raw displacements, no ROM (Zell)": per_frame(prior[:, rows], d, True),
@@ -143,30 +176,45 @@ class Actor:
 def accuracy() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
     from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.character import load_character
 
+    generic = load_character("arkit")
+    other, factor = stylized(generic)
+    print(f"stylized character: amplitude factors {np.round(factor, 2).tolist()}")
+    sizes = [None, 20, 40] if len(sys.argv) < 3 else [None if s == "default" else int(s) for s in sys.argv[2].split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         for name, session, performance, truth_path in datasets(work):
-            actor = Actor(session)
             truth = arkit_truth(load_ground_truth(truth_path))
+            rom = arkit_truth(load_ground_truth(truth_path.with_name(truth_path.name.replace("_performance", ""))))
             capture = read_c3d(performance)
-            print(f"\n## {name}: fit + calibration {actor.fit_seconds[0]:.1f} s wall, "
-                  f"{actor.fit_seconds[1]:.1f} s CPU")
-            print("| layout markers | method | mean MAE | mean r | mesh RMSE mm |\n|---|---|---|---|---|")
-            for size in (None, 20, 40):
-                folder = work / f"layout_{session.stem}_{size or 'default'}"
-                if not (folder / "layout.json").is_file():
-                    mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force",
-                            *(("--markers", size) if size else ()))
-                results = actor.methods(folder / "layout.json", capture)
-                count = len(json.loads((folder / "layout.json").read_text())["layout"])
-                for method, weights in results.items():
-                    s = scores(weights, truth, actor.rig)
-                    print(f"| {count}{'' if size else ' (default)'} | {method} | {s['mae']:.3f} | "
-                          f"{s['r']:.3f} | {s['mesh_rmse_mm']:.2f} |")
-                    if method.startswith("ours") and size is None:
-                        worst = sorted(s["per_shape"].items(), key=lambda kv: kv[1][1])[:5]
-                        print(f"|  | worst r: {', '.join(f'{k} {v[1]:.2f}' for k, v in worst)} | | | |")
+            reached = rom.max(axis=0)[(rom > 0.1).any(axis=0)]
+            print(f"\n## {name}: the ROM reaches {np.median(reached):.2f} of the rig's range (median over "
+                  f"its shapes; {reached.min():.2f}-{reached.max():.2f})")
+            for rig in (generic, other):
+                actor = Actor(session, rig)
+                print(f"\n### onto {rig.source}: fit + calibration {actor.fit_seconds[0]:.1f} s wall, "
+                      f"{actor.fit_seconds[1]:.1f} s CPU")
+                print("| layout markers | method | mean MAE | mean r | mesh RMSE mm |\n|---|---|---|---|---|")
+                for size in sizes:
+                    extra = os.environ.get("BENCH_RETARGET_CLUSTER", "").split()  # e.g. "--method set-cover --character arkit"
+                    tag = "_".join(x.strip("-") for x in extra)
+                    folder = work / f"layout_{session.parent.name}_{session.stem}_{size or 'default'}{'_' + tag if tag else ''}"
+                    if not (folder / "layout.json").is_file():
+                        mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force",
+                                *(("--markers", size) if size else ()), *extra)
+                    results = actor.methods(folder / "layout.json", capture)
+                    count = len(json.loads((folder / "layout.json").read_text())["layout"])
+                    for method, weights in results.items():
+                        s = scores(weights, truth, actor.rig)
+                        print(f"| {count}{'' if size else ' (default)'} | {method} | {s['mae']:.3f} | "
+                              f"{s['r']:.3f} | {s['mesh_rmse_mm']:.2f} |", flush=True)
+                        if method.startswith("ours") and size is None:
+                            worst = sorted(s["per_shape"].items(), key=lambda kv: kv[1][1])[:5]
+                            print(f"|  | worst r: {', '.join(f'{k} {v[1]:.2f}' for k, v in worst)} | | | |")
+                            if os.environ.get("BENCH_RETARGET_PER_SHAPE"):
+                                print("|  | per shape (MAE, r): " + ", ".join(
+                                    f"{k} {v[0]:.3f}/{v[1]:.2f}" for k, v in s["per_shape"].items()) + " | | | |")
 
 
 def lost() -> None:
@@ -174,6 +222,7 @@ def lost() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
     from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.character import load_character
     from mocaptk.retarget.retarget_outputs import retarget_capture
     from mocaptk.retarget.solve import train_solver
 
@@ -181,10 +230,10 @@ def lost() -> None:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         print("| actor | lost | mean MAE | mean r | mesh RMSE mm | NaN weights |\n|---|---|---|---|---|---|")
         for name, session, performance, truth_path in datasets(work):
-            actor = Actor(session)
+            actor = Actor(session, load_character("arkit"))
             truth = arkit_truth(load_ground_truth(truth_path))
             capture = read_c3d(performance)
-            folder = work / f"layout_{session.stem}_default"
+            folder = work / f"layout_{session.parent.name}_{session.stem}_default"
             if not (folder / "layout.json").is_file():
                 mocaptk("cluster", session, "--out", folder, "--formats", "none", "--quiet", "--force")
             solver = train_solver(read_layout(folder / "layout.json"), actor.session, {})

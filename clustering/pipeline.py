@@ -49,6 +49,9 @@ class ClusterOptions:
     ``markers``: their number (None: the paper's rule at ``factor``; with ``"paper"`` the factor
     is then found by bisection). ``rig``: ``cara``, ``room`` or a rig file; the method then weighs
     how the rig sees each marker (:func:`~mocaptk.clustering.methods.problem.camera_aware`).
+    ``shapes``: (labels, (K, M, 3) mm) a character rig's K shapes at the session's markers
+    ``labels`` (``--character``, mapped by the caller): ``set-cover`` covers them instead of the
+    session's extreme frames; ``shapes_source`` names them in the layout's parameters.
     """
 
     factor: float = 1.1
@@ -61,6 +64,8 @@ class ClusterOptions:
     takes: list[Take] | None = None
     rigid: tuple[str, ...] | None = None  # rigid head markers for stabilization (None: detected)
     rig: str | None = None  # camera rig whose per-marker costs the layout method weighs (None: camera-blind)
+    shapes: tuple[tuple[str, ...], np.ndarray] | None = None
+    shapes_source: str | None = None
 
 
 @dataclass
@@ -144,12 +149,17 @@ def rigid_reference(session: Trajectories, rigid: Sequence[str]) -> np.ndarray:
     return neutral_pose(session.positions[:, session.index(list(rigid))])
 
 
-def check_layout_options(*, method: str, markers: int | None, rig: str | None = None) -> None:
-    """Reject an unknown layout method, a marker count < 1 and ``--rig`` with the paper's
-    representatives or naming no preset and no rig file (OptionError / InputFileError)."""
+def check_layout_options(*, method: str, markers: int | None, rig: str | None = None,
+                         shapes: bool = False) -> None:
+    """Reject an unknown layout method, a marker count < 1, ``--rig`` with the paper's
+    representatives or naming no preset and no rig file, and given ``shapes`` (``--character``)
+    with a method other than set cover (OptionError / InputFileError)."""
     from .methods import method_names
     if method not in method_names():
         raise OptionError(f"unknown --method {method!r} (choose from {', '.join(method_names())})")
+    if shapes and method != "set-cover":
+        raise OptionError(f"--character needs --method set-cover (its shapes are what set cover covers), "
+                          f"not {method}")
     if markers is not None and markers < 1:
         raise OptionError(f"--markers must be >= 1, got {markers}")
     if rig is not None:
@@ -336,7 +346,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     from .methods.session_layout import relayout  # the methods build on this module
     if progress:
         progress(f"choosing the layout ({options.method})")
-    return relayout(result, method=options.method, count=options.markers, rig=options.rig)
+    return relayout(result, method=options.method, count=options.markers, rig=options.rig,
+                    shapes=options.shapes, shapes_source=options.shapes_source)
 
 
 def _clusters_of_count(regions: Sequence[tuple[np.ndarray, np.ndarray]], count: int

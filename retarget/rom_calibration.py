@@ -15,10 +15,18 @@ region — with the character's expression space as the prior:
    This learns the actor's extremes and coupling; the prior keeps shapes the ROM hardly
    uses (or that markers barely see) at the character's.
 3. Repeat :data:`ROUNDS` times.
-4. **Range**: each shape's ROM extreme (the :data:`RANGE_PERCENTILE`-th percentile of its ROM
-   weights) must fall inside the rig's [0, 1]: a shape the actor drives past 1 is stretched so
-   its extreme is 1 (nothing saturates); none is shrunk, since a ROM need not reach every
-   shape's end.
+4. **Range** (``reach``): each shape's ROM extreme (the :data:`RANGE_PERCENTILE`-th percentile
+   of its ROM weights, in the character's units) is aligned with the rig's range.
+
+   - ``reach=None`` (default): a shape the actor drives past 1 is stretched so its extreme is 1
+     (nothing saturates); none is shrunk, since a ROM need not reach every shape's end. The
+     character's amplitude stays the anchor: right when the character moves as much as the actor.
+   - ``reach=q`` (Ribera et al.'s alignment, ``q = 1``): the ROM performs every shape to ``q`` of
+     its range (a full range-of-motion protocol: 1), so every shape the ROM performs (extreme ≥
+     :data:`MIN_PERFORMED`) is scaled so that its extreme is exactly ``q``: the actor's widest jaw
+     is the character's widest jaw whatever their amplitudes. Shapes the ROM barely performs
+     keep the default rule. Where the ROM reaches less than ``q`` of a shape, its weights come out
+     too high by ``q`` / reached.
 
 The neutral maps to all weights 0 by construction: displacements are taken from the actor's
 neutral (:func:`mocaptk.clustering.neutral.neutral_pose` of the session).
@@ -48,6 +56,9 @@ ROUNDS = 4
 DEFAULT_PRIOR = 1.0
 #: Percentile of a shape's ROM weights taken as its extreme.
 RANGE_PERCENTILE = 99.5
+#: With ``reach``: a shape whose ROM extreme is below this (character units) counts as not
+#: performed by the ROM and is not shrunk.
+MIN_PERFORMED = 0.2
 #: A side shape seen with less than this fraction of its twin's energy follows the twin.
 TIE_ENERGY_RATIO = 0.25
 
@@ -57,7 +68,7 @@ class Calibration:
     """``basis`` (S, M, 3) mm the actor's shapes at every dense marker; ``neutral`` (M, 3) mm;
     ``ties`` (S,) the index of the solved variable each shape takes its weight from (itself
     unless it follows a mirror twin); ``rom_extreme`` (S,) the shapes' ROM extremes (before the
-    stretch) and ``stretch`` (S,) the factor applied (≥ 1)."""
+    alignment) and ``stretch`` (S,) the factor the shapes were scaled by (≥ 1 without ``reach``)."""
 
     basis: np.ndarray
     neutral: np.ndarray
@@ -97,11 +108,12 @@ def _mirror(name: str) -> str:
 
 def calibrate(rom: np.ndarray, neutral: np.ndarray, prior: np.ndarray, ties: np.ndarray, *,
               strength: float = DEFAULT_PRIOR, l1: float = DEFAULT_L1,
-              rounds: int = ROUNDS) -> Calibration:
+              rounds: int = ROUNDS, reach: float | None = None) -> Calibration:
     """Learn the actor's shapes from the ROM ``rom`` (F, M, 3) mm (head-relative, NaN gaps).
 
     ``neutral`` (M, 3) mm the actor's neutral; ``prior`` (S, M, 3) mm the character's shapes
-    at the markers in the actor's frame; ``ties`` from :func:`side_ties`.
+    at the markers in the actor's frame; ``ties`` from :func:`side_ties`; ``reach`` in (0, 1]
+    the fraction of each shape's range the ROM performs (None: keep the character's amplitude).
     """
     step = max(1, int(np.ceil(len(rom) / MAX_FRAMES)))
     delta = np.asarray(rom[::step], dtype=np.float64) - neutral
@@ -115,6 +127,8 @@ def calibrate(rom: np.ndarray, neutral: np.ndarray, prior: np.ndarray, ties: np.
     weights = _rom_weights(calibration, delta, l1)
     extreme = np.percentile(weights, RANGE_PERCENTILE, axis=0) if len(weights) else np.zeros(len(prior))
     stretch = np.maximum(extreme, 1.0)
+    if reach is not None:  # the actor's extreme is the rig's reach
+        stretch = np.where(extreme >= MIN_PERFORMED, extreme / reach, stretch)
     return Calibration(basis * stretch[:, None, None], neutral, calibration.ties, extreme, stretch)
 
 

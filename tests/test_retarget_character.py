@@ -144,6 +144,17 @@ def test_saved_calibration_for_another_rig_is_refused(workspace, tmp_path, run_c
     assert done.exit_code == 2 and not (tmp_path / "o").exists()
     assert done.stderr.strip() == (f"mocaptk: error: {tmp_path / 'other.npz'}: calibrated for 40 "
                                    "shapes, the character has 52")
+    from mocaptk.atomic import write_bytes
+    from mocaptk.retarget.export_character import character_glb_bytes
+    rig = load_character("arkit")  # a real rig with 40 shapes, given the 52-shape calibration
+    write_bytes(tmp_path / "forty.glb", character_glb_bytes(
+        rig.replace(names=rig.names[:40], deltas=rig.deltas[:40]), np.zeros((0, 40)), 60.0))
+    done = run_cli("retarget", root / "layout" / "layout.json", root / "perf_layout.c3d",
+                   "--character", tmp_path / "forty.glb", "--calibration", root / "out" / "calibration.npz",
+                   "--out", tmp_path / "o", "--formats", "none")
+    assert done.exit_code == 2 and not (tmp_path / "o").exists()
+    assert done.stderr.strip() == (f"mocaptk: error: {root / 'out' / 'calibration.npz'}: calibrated for 52 "
+                                   "shapes, the character has 40")
 
 
 def test_capture_lacking_layout_markers_and_character_without_shapes(workspace, tmp_path, run_cli):
@@ -288,3 +299,120 @@ def test_fbx_characters_read_back_ours_and_blenders(workspace, tmp_path):
     assert theirs.names == rig.names
     assert np.abs(theirs.vertices - rig.vertices).max() < 1e-3  # mm
     assert np.abs(theirs.deltas - rig.deltas).max() < 1e-3
+
+
+def test_eye_markers_are_found_by_their_whole_label_only():
+    from mocaptk.retarget.gaze import eye_labels
+
+    assert eye_labels(["EYE_01", "EYE_L", "LEFT_EYE", "PUPIL_L", "R_Pupil", "cornea.r"]) == \
+        {"left": "PUPIL_L", "right": "R_Pupil"}  # lid/socket markers (EYE_01, EYE_L) never taken
+    assert eye_labels(["LeftIris", "GAZE_R", "pupils_L"]) == {"left": "LeftIris", "right": "GAZE_R"}
+
+
+def test_gaze_angles_recover_known_yaw_and_pitch_in_the_characters_axes():
+    from mocaptk.retarget.gaze import EYE_RADIUS_MM, gaze_angles
+
+    rng = np.random.default_rng(2)
+    axes = np.linalg.qr(rng.normal(size=(3, 3)))[0]  # left, up, forward columns in the head frame
+    axes[:, 2] *= np.sign(np.linalg.det(axes))
+    truth = np.zeros((300, 2))
+    truth[100:] = rng.uniform(-0.4, 0.4, size=(200, 2))  # mostly ahead, as the median assumes
+    yaw, pitch = truth.T
+    d = np.stack([np.sin(yaw) * np.cos(pitch), -np.sin(pitch), np.cos(yaw) * np.cos(pitch)], axis=1)
+    eye = np.array([30.0, 40.0, 80.0]) + EYE_RADIUS_MM * d @ axes.T
+    eye[7] = np.nan  # lost: 0
+    got = gaze_angles(eye, axes)
+    ok = np.isfinite(eye).all(axis=1)
+    assert np.abs(got[ok] - truth[ok]).max() < 1e-9 and np.all(got[7] == 0)
+    assert np.all(gaze_angles(np.full((4, 3), np.nan), axes) == 0)
+
+
+@pytest.mark.slow
+def test_gaze_from_pupil_markers_reaches_the_livelink_columns(workspace, tmp_path, run_cli):
+    root, _ = workspace
+    capture = read_c3d(root / "perf_layout.c3d")
+    axes = np.load(root / "out" / "calibration.npz")["axes"]  # the character's axes, head frame
+    t = np.arange(capture.n_frames) / capture.rate
+    yaw = np.where(t > 5, 0.3 * np.sin(2 * np.pi * 0.5 * t), 0.0)  # 5 s ahead, then looking around
+    pitch = np.where(t > 5, 0.2 * np.sin(2 * np.pi * 0.3 * t), 0.0)
+    d = np.stack([np.sin(yaw) * np.cos(pitch), -np.sin(pitch), np.cos(yaw) * np.cos(pitch)], axis=1)
+    eyes = [label for label in capture.labels if label.startswith("EYE_")]
+    centre = np.nanmean(capture.positions[0, capture.index(eyes)], axis=0) - 10 * axes[:, 2]
+    pupil = centre + 12.0 * d @ axes.T
+    pupil[100:110] = np.nan
+    positions = np.concatenate([capture.positions, pupil[:, None]], axis=1)
+    write_c3d(capture.replace(labels=(*capture.labels, "PUPIL_L"), positions=positions, residuals=None),
+              tmp_path / "eyes.c3d")
+    done = run_cli("retarget", root / "layout" / "layout.json", tmp_path / "eyes.c3d", "--character", "arkit",
+                   "--out", tmp_path / "o", "--formats", "none", "--no-renders")
+    assert done.exit_code == 0, done.stderr
+    with open(tmp_path / "o" / "blendshapes.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    got = np.array([[float(r[c]) for c in ("LeftEyeYaw", "LeftEyePitch", "RightEyeYaw")] for r in rows])
+    ok = np.isfinite(pupil).all(axis=1)
+    assert np.abs(got[ok, 0] - yaw[ok]).max() < 0.01 and np.abs(got[ok, 1] - pitch[ok]).max() < 0.01
+    assert np.all(got[~ok, :2] == 0) and np.all(got[:, 2] == 0)  # lost: 0; no right eye marker: 0
+    assert json.loads((tmp_path / "o" / "retarget.json").read_text())["eye_markers"] == {"left": "PUPIL_L"}
+    assert np.all(np.array([float(r["LeftEyeYaw"]) for r in
+                            csv.DictReader(open(root / "out" / "blendshapes.csv"))]) == 0)  # none: 0
+
+
+@pytest.mark.slow
+def test_report_shows_the_character_driven_by_the_weights_beside_the_actor(workspace):
+    import base64
+    import re
+
+    root, _ = workspace
+    text = (root / "out" / "report.html").read_text(encoding="utf-8")
+    block = re.search(r'<script id="report-data" type="application/json">(.*?)</script>', text, re.S)
+    data = json.loads(block.group(1))
+    assert data["kind"] == "retarget" and data["format"] == "mocaptk.report"
+    clip, character = data["clips"][0], data["character"]
+    weights = np.load(root / "out" / "weights.npz")["weights"]
+    assert clip["source_frames"] == len(weights) and len(character["weights"]) == clip["frames"]
+    assert np.allclose(character["weights"], weights[::clip["step"]], atol=6e-4)  # the replayed frames
+    rig = load_character("arkit")
+    assert character["names"] == list(rig.names) and len(character["vertices"]) == len(rig.vertices)
+    shapes = np.frombuffer(base64.b64decode(character["shapes"]), "<i2").reshape(rig.deltas.shape)
+    jaw = ARKIT_NAMES.index("jawOpen")
+    assert np.corrcoef(shapes[jaw].ravel(), rig.deltas[jaw].ravel())[0, 1] > 0.999
+    assert jaw in character["curves"] and ARKIT_NAMES.index("tongueOut") not in character["curves"]
+    actor = np.array(data["markers"]["neutral"], dtype=float)
+    assert np.min(np.array(character["vertices"])[:, 0]) > np.nanmax(actor[:, 0])  # beside, not on top
+
+
+@pytest.mark.slow
+def test_few_marker_poses_leave_a_still_head_unposed_and_follow_a_moving_one(workspace, tmp_path, run_cli):
+    """A 20-marker layout has no stabilization markers: its least-moving markers move with the
+    expression. The still performance must not get false head motion (it cost r 0.98 -> 0.83);
+    the same performance with added head motion must still be posed."""
+    from scipy.spatial.transform import Rotation
+
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+    from mocaptk.retarget.solve import train_solver
+
+    root, _ = workspace
+    assert run_cli("cluster", root / "dense_halfface.c3d", "--markers", "20", "--out", tmp_path / "l20",
+                   "--formats", "none", "--quiet").exit_code == 0
+    session = read_c3d(root / "dense_halfface.c3d")
+    solver = train_solver(read_layout(tmp_path / "l20" / "layout.json"), session, {})
+    assert not solver.rigid_labels  # poses from the least-moving layout markers
+    retargeter = fit_retargeter(load_character("arkit"), session)
+    capture = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    truth = arkit_truth(load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz"))
+    moving = (truth > 0.1).any(axis=0)
+
+    def mean_r(weights):
+        return np.mean([np.corrcoef(weights[:, k], truth[:, k])[0, 1] for k in np.flatnonzero(moving)])
+
+    still = retarget_capture(retargeter, solver, capture, "still")
+    assert np.all(still.head == 0) and mean_r(still.weights) > 0.95
+    t = np.arange(capture.n_frames) / capture.rate
+    yaw = 8 * np.sin(2 * np.pi * 0.2 * t)
+    rot = Rotation.from_euler("YXZ", np.stack([yaw, 5 * np.sin(2 * np.pi * 0.13 * t), 0 * t], 1),
+                              degrees=True).as_matrix()
+    centre = np.nanmean(capture.positions[0], axis=0)
+    turned = capture.replace(positions=np.einsum("fij,fmj->fmi", rot, capture.positions - centre) + centre)
+    posed = retarget_capture(retargeter, solver, turned, "turned")
+    assert np.abs(np.degrees(posed.head[:, 0]) - yaw).max() < 1.5 and mean_r(posed.weights) > 0.8

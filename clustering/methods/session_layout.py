@@ -26,10 +26,13 @@ METHOD_MAX_FRAMES = 8192
 
 
 def relayout(result: ClusterResult, *, method: str, count: int | None = None, seed: int = 0,
-             rig: str | None = None) -> ClusterResult:
+             rig: str | None = None, shapes: tuple[tuple[str, ...], np.ndarray] | None = None,
+             shapes_source: str | None = None) -> ClusterResult:
     """``result`` with its clusters chosen by ``method``: ``count`` measured markers (default: as
     many as ``result`` has); with ``rig``, weighing how that rig sees every marker (mirror images
-    of a half face included, across the layout's sagittal plane)."""
+    of a half face included, across the layout's sagittal plane); with ``shapes`` (labels,
+    (K, M, 3) mm), set cover covers those shapes (a character's, at the session's markers;
+    ``shapes_source`` recorded as the layout's ``character``)."""
     if method == "paper":
         return result
     layout = result.layout
@@ -55,6 +58,10 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
                               plane=plane if layout.parameters.get("mirror") else None).select(labels)
         problem = camera_aware(problem, visibility=costs.visibility,
                                triangulation_error_mm=costs.triangulation_error_mm)
+    if shapes is not None:  # the set cover's shapes: the character's, in this session's marker order
+        given = {label: k for k, label in enumerate(shapes[0])}
+        at = np.array([given.get(label, -1) for label in labels])
+        problem.cache["set_cover_shapes"] = np.where((at >= 0)[None, :, None], np.asarray(shapes[1])[:, at], 0.0)
     selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
     chosen = selected.layout
     trusted = layout.extra.get("orientation", {}).get("labels") != "contradict"
@@ -90,6 +97,8 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
     parameters = dict(layout.parameters, method=method)
     if rig is not None:
         parameters["rig"] = rig
+    if shapes is not None:
+        parameters["character"] = {"source": shapes_source, "shapes": int(len(shapes[1]))}
     if "winner" in selected.details:  # which contender the hybrid chose
         parameters["winner"] = selected.details["winner"]
     notes = result.notes + list(selected.details.get("notes", []))  # e.g. contenders skipped

@@ -146,6 +146,10 @@ def cluster(
     rig: str = typer.Option(None, "--rig", help="Camera rig the layout is for: cara, room or a rig "
                             "file; the method then avoids markers the rig sees badly or triangulates "
                             "noisily (see mocaptk plan). Not with --method paper."),
+    character: str = typer.Option(None, "--character", help="With --method set-cover: cover this "
+                                  "blendshape rig's shapes (arkit, or a .glb/.fbx/.usd as in mocaptk "
+                                  "retarget) mapped to the session's markers, instead of the session's "
+                                  "extreme frames (Zell & McDonnell)."),
     markers: int = typer.Option(None, "--markers", help="Exactly N measured markers (mirrored twins come "
                                 "on top) instead of the count the paper's rule gives at --factor."),
     regions: Path = typer.Option(None, "--regions", help="Regions file: JSON {region: list of labels} "
@@ -205,7 +209,9 @@ def cluster(
     if given_rigid is not None and len(set(given_rigid)) < 3:
         raise OptionError(f"--rigid: stabilization needs at least 3 distinct rigid markers, got {len(set(given_rigid))}")
     rig_options(max_influences, None, False, 1)  # bad rig options fail before the slow part
-    check_layout_options(method=method, markers=markers, rig=rig)  # fail before the slow part
+    check_layout_options(method=method, markers=markers, rig=rig, shapes=character is not None)  # fail early
+    if character is not None and len(sessions) > 1:
+        raise OptionError("--character takes one session (the character is placed on its neutral)")
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
@@ -232,9 +238,16 @@ def cluster(
         with np.errstate(all="ignore"):
             neutral = neutral_pose(traj.positions)
     warn_unless_face(traj, session, regions_given=regions is not None, neutral=neutral)
+    shapes = None
+    if character is not None:  # the rig's shapes at the session's markers (retarget's correspondence)
+        from mocaptk.retarget.character import load_character
+        from mocaptk.retarget.correspondence import correspond
+        rig_face = load_character(character)
+        shapes = (tuple(traj.labels), correspond(rig_face, neutral).shape_basis(rig_face))
     options = ClusterOptions(
         factor=factor, method=method, markers=markers, step=step, stabilize=not no_stabilize,
-        mirror=mirror, rigid=rigid_labels(rigid), rig=rig,
+        mirror=mirror, rigid=rigid_labels(rigid), rig=rig, shapes=shapes,
+        shapes_source=None if character is None else rig_face.source,
         regions=read_regions(regions, traj.labels) if regions else None,
         takes=read_takes(takes, traj.n_frames) if takes else None)
     with console.status("clustering") as status:

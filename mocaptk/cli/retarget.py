@@ -43,6 +43,10 @@ def retarget(
                                  "default 0.05)."),
     prior: float = typer.Option(None, "--prior", help="Pull of the actor's calibrated shapes "
                                 "towards the character's (default 1)."),
+    rom_reach: float = typer.Option(None, "--rom-reach", metavar="Q", help="The ROM performs every shape "
+                                    "to Q of its range (Ribera's full protocol: 1): each shape it performs "
+                                    "is scaled so its extreme is Q. Default: the character's amplitude, "
+                                    "stretched only where the ROM goes past 1."),
     formats: str = typer.Option("glb,usd,fbx", "--formats", help="Character files: glb, usd, fbx "
                                 "(or none)."),
     renders: bool = typer.Option(True, "--renders/--no-renders", help="Write retarget_frames.png "
@@ -65,12 +69,13 @@ def retarget(
     from mocaptk.clustering.pipeline import load_session, stabilize
     from mocaptk.retarget.character import load_character
     from mocaptk.retarget.retarget_outputs import (CHARACTER_FORMATS, fit_retargeter, load_calibration,
-                                                   retarget_capture, write_renders,
+                                                   retarget_capture, write_renders, write_report_page,
                                                    write_retarget_outputs)
     from mocaptk.retarget.rom_calibration import DEFAULT_PRIOR
     from mocaptk.retarget.solve import train_solver
     from mocaptk.retarget.weight_solve import DEFAULT_L1, DEFAULT_SMOOTH
     from mocaptk.clustering.layout import layout_rigid_set
+    from .report import report_line
     from .rig import parse_formats
     from .solve import session_path
 
@@ -83,8 +88,12 @@ def retarget(
     unknown = [f for f in chosen if f not in CHARACTER_FORMATS]
     if unknown:
         raise OptionError(f"unknown --formats {', '.join(unknown)} (choose from {', '.join(CHARACTER_FORMATS)})")
-    if calibration is not None and prior is not None:
-        raise OptionError("--prior is a calibration option; a --calibration file is already calibrated")
+    if rom_reach is not None and not 0 < rom_reach <= 1:
+        raise OptionError(f"--rom-reach must be in (0, 1], got {rom_reach}")
+    options["rom_reach"] = rom_reach  # None: the character's amplitude
+    if calibration is not None and (prior is not None or rom_reach is not None):
+        raise OptionError("--prior and --rom-reach are calibration options; a --calibration file is "
+                          "already calibrated")
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
     console = Console(stderr=True, quiet=quiet)
@@ -110,7 +119,7 @@ def retarget(
             retargeter = load_calibration(calibration, char, dense.labels)
         else:
             say("placing the character on the actor and calibrating on the session")
-            retargeter = fit_retargeter(char, dense, prior=options["prior"], l1=options["l1"])
+            retargeter = fit_retargeter(char, dense, prior=options["prior"], l1=options["l1"], reach=rom_reach)
         say("solving the weights")
         result = retarget_capture(retargeter, solver, traj, str(capture), l1=options["l1"],
                                   smooth=options["smooth"], stabilize=not no_stabilize)
@@ -121,7 +130,12 @@ def retarget(
                 say("rendering the actor beside the character")
                 pictures = write_renders(staging, retargeter, solver, traj, result, stabilize=not no_stabilize)
             summary = write_retarget_outputs(retargeter, result, traj, capture_source, identity, staging,
-                                             options=options, formats=chosen, extra_outputs=pictures,
-                                             progress=say)
+                                             options=options, formats=chosen,
+                                             extra_outputs=[*pictures, "report.html"], progress=say)
+            say("writing report.html")
+            _, size, clips = write_report_page(
+                staging / "report.html", retargeter, solver, lay, traj, result, summary=summary_text(summary),
+                title=f"mocaptk retarget: {capture.name} onto {char.source}", stabilize=not no_stabilize)
     if not quiet:
-        typer.echo(summary_text(summary) + f"wrote {out}/ ({', '.join(summary['outputs'])})")
+        typer.echo(summary_text(summary) + report_line(out / "report.html", size, clips) + "\n"
+                   + f"wrote {out}/ ({', '.join(summary['outputs'])})")

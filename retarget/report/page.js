@@ -10,6 +10,7 @@
   const clusters = data.clusters || [];
   const errors = data.errors || [];
   const mesh = data.mesh;
+  const character = data.character ? decodeCharacter(data.character) : null;  // retarget: beside the actor
   const plane = data.mirror_plane;
   const gd = document.getElementById("scene");
   const GAP = -32768;
@@ -20,6 +21,30 @@
     for (let i = 0; i < raw.length; i++) bytes[i] = raw.charCodeAt(i);
     return Object.assign({}, c, {track: new Int16Array(bytes.buffer)});  // little-endian (x86, ARM)
   });
+
+  // The character's shapes (S x V x 3 int16 offsets) and replayed weights (frames x S).
+  function decodeCharacter(c) {
+    const raw = atob(c.shapes);
+    const bytes = new Uint8Array(raw.length);
+    for (let i = 0; i < raw.length; i++) bytes[i] = raw.charCodeAt(i);
+    return Object.assign({}, c, {deltas: new Int16Array(bytes.buffer)});
+  }
+
+  // Character vertices at the replay frame: neutral + sum_k w_k delta_k.
+  function characterVertices(frame) {
+    const V = character.vertices.length, w = character.weights[frame] || [], r = character.resolution_mm;
+    const x = new Float64Array(V), y = new Float64Array(V), z = new Float64Array(V);
+    for (let v = 0; v < V; v++) { const p = character.vertices[v]; x[v] = p[0]; y[v] = p[1]; z[v] = p[2]; }
+    for (let k = 0; k < w.length; k++) {
+      if (!w[k]) continue;
+      const base = k * V * 3, s = w[k] * r;
+      for (let v = 0; v < V; v++) {
+        x[v] += s * character.deltas[base + 3 * v]; y[v] += s * character.deltas[base + 3 * v + 1];
+        z[v] += s * character.deltas[base + 3 * v + 2];
+      }
+    }
+    return {x: Array.from(x), y: Array.from(y), z: Array.from(z)};
+  }
 
   const state = {clip: 0, frame: 0, colour: errors.length ? 0 : -1,
                  show: {face: true, dense: true, links: true, numbers: true, mirrored: true},
@@ -176,6 +201,13 @@
       face.vertexcolor = mesh.colours;
     }
     out.push(face);
+    if (character) {
+      const cv = characterVertices(state.frame);
+      out.push({type: "mesh3d", name: "character", x: cv.x, y: cv.y, z: cv.z, color: "#d9c2a6",
+                i: character.faces.map(function (f) { return f[0]; }), j: character.faces.map(function (f) { return f[1]; }),
+                k: character.faces.map(function (f) { return f[2]; }), hoverinfo: "skip", flatshading: false,
+                lighting: face.lighting, lightposition: face.lightposition});
+    }
     // member links to the representative
     const lx = [], ly = [], lz = [], lc = [];
     if (state.colour < 0 || !errors[state.colour].layout) {
@@ -251,7 +283,7 @@
   // Fixed axis ranges (the view never rescales during replay) and a box scaled like the data.
   function sceneBox() {
     const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-    mesh.vertices.concat(M.neutral).forEach(function (p) {
+    mesh.vertices.concat(M.neutral, character ? character.vertices : []).forEach(function (p) {
       for (let a = 0; a < 3; a++) if (isFinite(p[a])) { lo[a] = Math.min(lo[a], p[a]); hi[a] = Math.max(hi[a], p[a]); }
     });
     const pad = 15, span = [0, 1, 2].map(function (a) { return hi[a] - lo[a] + 2 * pad; });
@@ -349,6 +381,25 @@
     if (t.note) { const p = document.createElement("p"); p.textContent = t.note; tables.appendChild(p); }
   });
 
+  // ---- weight curves (retarget) -----------------------------------------------------------
+  let curves = null;
+  if (character && clips.length) {
+    curves = document.createElement("div");
+    curves.id = "curves";
+    document.getElementById("view").appendChild(curves);
+    const c0 = clips[0];
+    const t = character.weights.map(function (_, f) { return f * c0.step / c0.source_rate_hz; });
+    const lines = character.curves.map(function (k) {
+      return {type: "scatter", mode: "lines", name: character.names[k], x: t, line: {width: 1.2},
+              y: character.weights.map(function (w) { return w[k]; })};
+    });
+    Plotly.newPlot(curves, lines, {
+      margin: {l: 40, r: 8, t: 6, b: 28}, showlegend: true, legend: {font: {size: 9}},
+      xaxis: {title: {text: "s", standoff: 2}}, yaxis: {range: [0, 1], title: {text: "weight", standoff: 2}},
+      shapes: [{type: "line", x0: 0, x1: 0, y0: 0, y1: 1, line: {color: "#c00", width: 1}}]
+    }, {displaylogo: false, responsive: true});
+  }
+
   // ---- time ------------------------------------------------------------------------------
   const slider = document.getElementById("time");
   const clock = document.getElementById("clock");
@@ -362,6 +413,7 @@
     const source = state.frame * c.step;
     clock.textContent = (source / c.source_rate_hz).toFixed(2) + " s · frame " + source + "/" + c.source_frames +
       " @ " + fmt(c.source_rate_hz, 0) + " Hz · replay " + fmt(c.rate_hz, 1) + " Hz (" + ordinal(c.step) + ")";
+    if (curves) Plotly.relayout(curves, {"shapes[0].x0": source / c.source_rate_hz, "shapes[0].x1": source / c.source_rate_hz});
   }
   function setClip(k) {
     state.clip = k; state.frame = 0; clipSelect.value = String(k);

@@ -12,8 +12,8 @@ from mocaptk.trajectories import Trajectories
 from ..build import DenseCloud, RigBuild, dense_cloud
 from .scene import REPLAY_BUDGET_BYTES, replay_clips, replay_step, scene_data
 
-__all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse", "session_clips",
-           "solve_report"]
+__all__ = ["cluster_report", "compare_report", "error_map", "evaluation_report", "per_marker_rmse",
+           "retarget_report", "session_clips", "solve_report"]
 
 
 def session_clips(cloud: DenseCloud, rate_hz: float, *, labels: Sequence[str] = (),
@@ -170,3 +170,51 @@ def solve_report(layout: Layout, solved: Trajectories, *, marker_error: np.ndarr
     data.update(kind="solve", title=title, summary=summary, clips=clips,
                 tables=[{"title": "Model and solve", "columns": ["", ""], "rows": list(table)}])
     return data
+
+
+#: Gap (mm) between the actor's face and the character beside it on the page.
+CHARACTER_GAP_MM = 25.0
+#: A weight curve is drawn for the shapes whose weight exceeds this somewhere.
+CURVE_MIN_WEIGHT = 0.1
+
+
+def retarget_report(layout: Layout, solved: Trajectories, *, character, weights: np.ndarray,
+                    table: Sequence[Sequence], summary: str, title: str) -> dict:
+    """Page data of ``mocaptk retarget``: the actor (the solved dense markers ``solved``,
+    head-relative, at the replay's frames: every ``step``-th of ``weights``' F, given in
+    ``solved.metadata["replay"]`` as (step, F)) with the layout, the ``character``
+    (:class:`~mocaptk.retarget.character.Character`) beside it driven by ``weights`` (F, S) at the
+    same frames, the weights as curves, and ``table`` rows ([name, value])."""
+    step, frames = solved.metadata["replay"]
+    cloud = dense_cloud(layout, solved)
+    data = scene_data(cloud, layout=layout)
+    captured = int(np.sum(cloud.captured))
+    clips = replay_clips([("performance: actor and character", cloud.trajectories[:, :captured])], solved.rate,
+                         cloud.neutral[:captured], sampled=(step, frames))
+    data.update(kind="retarget", title=title, summary=summary, clips=clips,
+                character=character_scene(character, weights[::step], cloud.neutral),
+                tables=[{"title": "Retarget", "columns": ["", ""], "rows": list(table)}])
+    return data
+
+
+def character_scene(character, weights: np.ndarray, actor: np.ndarray) -> dict:
+    """The character beside the ``actor``'s markers (N, 3) mm rig frame: its neutral scaled to the
+    actor's height, shapes as int16 offsets (:data:`~.scene.TRACK_MM` steps, base64), the
+    replayed ``weights`` (f, S) and which shapes get a curve."""
+    import base64
+
+    from .scene import DIGITS, TRACK_MM
+
+    rest = np.asarray(character.vertices, dtype=float)
+    finite = actor[np.isfinite(actor).all(axis=1)]
+    scale = np.ptp(finite[:, 1]) / max(np.ptp(rest[:, 1]), 1e-9)
+    lo, hi = rest.min(axis=0) * scale, rest.max(axis=0) * scale
+    centre = (finite.min(axis=0) + finite.max(axis=0)) / 2
+    shift = np.array([finite[:, 0].max() + CHARACTER_GAP_MM - lo[0], centre[1] - (lo[1] + hi[1]) / 2,
+                      centre[2] - hi[2] + (finite[:, 2].max() - centre[2])])
+    shapes = np.clip(np.round(np.asarray(character.deltas, dtype=float) * scale / TRACK_MM), -32767, 32767)
+    curves = [int(k) for k in np.flatnonzero(np.asarray(weights).max(axis=0, initial=0) > CURVE_MIN_WEIGHT)]
+    return {"names": list(character.names), "vertices": np.round(rest * scale + shift, DIGITS),
+            "faces": np.asarray(character.faces, dtype=np.int64), "resolution_mm": TRACK_MM,
+            "shapes": base64.b64encode(shapes.astype("<i2").tobytes()).decode("ascii"),
+            "weights": np.round(np.asarray(weights, dtype=float), 3), "curves": curves}
