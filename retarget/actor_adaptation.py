@@ -10,10 +10,15 @@ session's, in the head frame:
   :data:`EXPRESSION_VARIANCE` of its layout motion) projected out, so a performance that smiles
   or speaks more than it rests does not count as another face.
 
-Adapting takes the capture through the similarity (rotation, translation, one scale) that best
-lays its neutral onto the session's, solves there, and brings the dense markers back: a larger or
-smaller face is solved at the session actor's size. What is left of the shape difference is
-carried by the model as the session actor's own motion would be.
+Adapting takes the capture through the scale and translation that best lay its neutral onto the
+session's (no rotation: the head pose, from the stabilization markers, already orients the capture
+in the session's head frame; a rotation fitted to every layout marker's neutral turns the other
+face's shape and the performance's expression bias into a tilt), solves there, and brings the dense
+markers back: a larger or smaller face is solved at the session actor's size. What is left of the
+shape difference is carried by the model as the session actor's own motion would be. Measured
+(benchmarks/bench_cross_actor.py, docs/solve.md): with the fitted rotation the adaptation raised
+the error on 1 of 4 cross-actor pairs (+6 %) and gained 17-29 % on two; without it, it lowers the
+error on all 4 (-7 % to -50 %).
 """
 
 from __future__ import annotations
@@ -34,20 +39,19 @@ MISMATCH_SCALE = 0.04
 
 @dataclass(frozen=True)
 class Adaptation:
-    """The similarity taking the capture's neutral onto the session's (head frame):
-    ``p_session = scale · rotation @ p_capture + translation``. Layout markers go in through it,
+    """The scale and translation (mm) taking the capture's neutral onto the session's (head
+    frame): ``p_session = scale · p_capture + translation``. Layout markers go in through it,
     solved dense markers come back through its inverse, so the model solves the new actor's
     expressions at the session actor's size."""
 
     scale: float
-    rotation: np.ndarray
     translation: np.ndarray
 
     def to_session(self, points: np.ndarray) -> np.ndarray:
-        return self.scale * points @ self.rotation.T + self.translation
+        return self.scale * points + self.translation
 
     def to_capture(self, points: np.ndarray) -> np.ndarray:
-        return (points - self.translation) @ self.rotation / self.scale
+        return (points - self.translation) / self.scale
 
 
 @dataclass(frozen=True)
@@ -95,17 +99,15 @@ def neutral_mismatch(neutral: np.ndarray, offset: np.ndarray) -> NeutralMismatch
 
 
 def adapt_to_capture(neutral: np.ndarray, offset: np.ndarray) -> Adaptation:
-    """The similarity (Umeyama: rotation, translation, one scale) taking the capture's neutral
-    ``neutral + offset`` onto the session's layout ``neutral`` (L, 3) mm."""
+    """The scale (the ratio of the neutrals' RMS sizes about their centroids, as
+    :func:`neutral_mismatch` measures it) and translation (centroid onto centroid), no rotation,
+    taking the capture's neutral ``neutral + offset`` onto the session's layout ``neutral``
+    (L, 3) mm."""
     seen = np.isfinite(offset).all(axis=1) & np.isfinite(neutral).all(axis=1)
     a, b = neutral[seen] + offset[seen], neutral[seen]
     ca, cb = a.mean(axis=0), b.mean(axis=0)
-    u, sing, vt = np.linalg.svd((b - cb).T @ (a - ca))
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    fix = np.array([1.0, 1.0, d])
-    rotation = u @ np.diag(fix) @ vt
-    scale = float((sing * fix).sum() / np.sum((a - ca) ** 2))
-    return Adaptation(scale, rotation, cb - scale * rotation @ ca)
+    scale = float(np.sqrt(np.sum((b - cb) ** 2) / np.sum((a - ca) ** 2)))
+    return Adaptation(scale, cb - scale * ca)
 
 
 def _median(x: np.ndarray) -> np.ndarray:

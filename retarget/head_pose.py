@@ -89,6 +89,27 @@ def robust_head_poses(reference: np.ndarray, capture: Trajectories, labels: Sequ
     return HeadPoses(rot, trans, residual, dropped, tuple(labels), source, motion)
 
 
+def fixed_pose(reference: np.ndarray, capture: Trajectories,
+               labels: Sequence[str]) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """One pose for the whole capture: rotation (3, 3) and translation (3,) mm laying the
+    session's head-frame ``reference`` (K, 3) mm of the markers ``labels`` onto their median
+    position in the capture, and how far (RMS, mm) they move about that median. A head that
+    does not move (a head-relative capture in another frame) needs this one pose, not one per
+    frame fitted to markers that move with the face. None with fewer than 3 markers seen."""
+    from mocaptk.clustering.neutral import neutral_pose
+
+    points = capture.positions[:, capture.index(list(labels))]
+    median = neutral_pose(points)
+    seen = np.isfinite(median).all(axis=1)
+    if seen.sum() < 3:
+        return None
+    rot, trans = kabsch(np.asarray(reference, dtype=np.float64), np.nan_to_num(median)[None],
+                        seen[None].astype(float))
+    sq = np.sum((points - median) ** 2, axis=2)
+    sq = sq[np.isfinite(sq)]
+    return rot[0], trans[0], float(np.sqrt(sq.mean())) if sq.size else float("nan")
+
+
 def _own_shape(reference: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The capture's own shape of its pose markers (K, 3) mm, laid onto ``reference`` (the
     session's): per frame a plain rigid fit, then each marker's median in that frame. Another

@@ -34,7 +34,7 @@ from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import Adaptation
 from .consistency import LayoutGaussian, Screen, capture_screen, screen_frames, training_consistency
-from .head_pose import HeadPoses, least_moving_markers, refine_poses, robust_head_poses
+from .head_pose import HeadPoses, fixed_pose, least_moving_markers, refine_poses, robust_head_poses
 from .mesh_map import MeshMap
 
 __all__ = ["FaceSolver", "MeshMap", "SolvedChunk", "head_poses", "layout_frames", "solve_chunks",
@@ -57,8 +57,11 @@ class FaceSolver:
     a layout without them); ``fallback_labels`` / ``fallback_reference`` (K, 3) mm the
     least-moving layout markers a capture without stabilization markers is posed from;
     ``gaussian`` the layout markers' Gaussian (ghosts, consistency; None in old model files) and
-    ``training_consistency_mm`` its consistency on the session; ``session`` the training
-    session's identity (``path``, ``sha256``, ``frames``, ``markers``).
+    ``training_consistency_mm`` its consistency on the session; ``rigid_motion_mm`` the RMS
+    distance of the stabilization markers from ``rigid_reference`` over the session (their own
+    skin motion in the head frame: facial markers chosen on a head-relative session move with
+    the expressions; NaN in old model files); ``session`` the training session's identity
+    (``path``, ``sha256``, ``frames``, ``markers``).
     """
 
     model: FaceModel
@@ -71,6 +74,7 @@ class FaceSolver:
     fallback_reference: np.ndarray | None = None
     gaussian: LayoutGaussian | None = None
     training_consistency_mm: float = float("nan")
+    rigid_motion_mm: float = float("nan")
 
     def header(self) -> dict[str, Any]:
         """The JSON header of the saved model (see ``save_model``); the numbers the solve uses go
@@ -81,8 +85,10 @@ class FaceSolver:
 
     def extra_arrays(self) -> dict[str, np.ndarray]:
         """Arrays saved beside the model: ``solver_rigid_reference``, ``solver_fallback_reference``,
-        ``solver_mean``, ``solver_cov`` (the Gaussian), ``solver_training_consistency``."""
-        out = {"solver_training_consistency": np.array(self.training_consistency_mm)}
+        ``solver_mean``, ``solver_cov`` (the Gaussian), ``solver_training_consistency``,
+        ``solver_rigid_motion``."""
+        out = {"solver_training_consistency": np.array(self.training_consistency_mm),
+               "solver_rigid_motion": np.array(self.rigid_motion_mm)}
         for name, value in (("rigid_reference", self.rigid_reference),
                             ("fallback_reference", self.fallback_reference)):
             if value is not None:
@@ -105,7 +111,8 @@ class FaceSolver:
                    _array_or_none(extra.get("solver_rigid_reference")), dict(header["session"]),
                    fallback if "solver_fallback_reference" in extra else (),
                    _array_or_none(extra.get("solver_fallback_reference")), gaussian,
-                   float(extra.get("solver_training_consistency", float("nan"))))
+                   float(extra.get("solver_training_consistency", float("nan"))),
+                   float(extra.get("solver_rigid_motion", float("nan"))))
 
 
 def load_solver(path: str | os.PathLike[str], *, session: Mapping[str, Any] | None = None) -> FaceSolver:
@@ -138,6 +145,8 @@ def train_solver(layout: Layout, session: Trajectories, source: Mapping[str, Any
     layout_labels = tuple(session.labels[i] for i in model.layout)
     rigid_labels = tuple(label for label in rigid_labels if label in known)
     reference = model.neutral[session.index(rigid_labels)] if len(rigid_labels) >= 3 else None
+    rigid_motion = float("nan") if reference is None else \
+        _rms_distance(session.positions[:, session.index(rigid_labels)], reference)
     train_layout = session.positions[:, model.layout]
     neutral = model.neutral[model.layout]
     motion = _motion_p95(train_layout, neutral)
@@ -148,7 +157,7 @@ def train_solver(layout: Layout, session: Trajectories, source: Mapping[str, Any
     return FaceSolver(model, tuple(session.labels), layout_labels,
                       rigid_labels if reference is not None else (), reference, identity,
                       fallback, model.neutral[session.index(fallback)] if fallback else None,
-                      gaussian, training_consistency(gaussian, train_layout))
+                      gaussian, training_consistency(gaussian, train_layout), rigid_motion)
 
 
 def layout_frames(solver: FaceSolver, capture: Trajectories, path: str) -> np.ndarray:
@@ -172,7 +181,10 @@ def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
     """The capture's head poses in the session's head frame: from the layout's stabilization
     markers, or, when the capture has fewer than 3 of them, from the least-moving layout markers
     (``HeadPoses.source`` says which); identity poses (``still``) when those markers already sit
-    within ``HEAD_RELATIVE_RMS_MM`` RMS of their session shape; None when the solver has neither."""
+    within ``HEAD_RELATIVE_RMS_MM`` RMS of their session shape, beyond the stabilization markers'
+    own motion in the session (:func:`still_limit_mm`); one fixed pose for every frame (also
+    ``still``) when the stabilization markers move no more than that about their own median
+    (a head-relative capture in another frame); None when the solver has neither."""
     known = set(capture.labels)
     present = [k for k, label in enumerate(solver.rigid_labels) if label in known]
     if solver.rigid_reference is not None and len(present) >= 3:
@@ -185,11 +197,29 @@ def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
             poses = _refined(solver, poses, capture.positions[:, capture.index(solver.layout_labels)])
     else:
         return None
-    if poses.motion_rms_mm < HEAD_RELATIVE_RMS_MM:  # skin sliding on the pose markers is not head motion
-        n = len(poses.rotations)
+    limit = still_limit_mm(solver, poses)
+    n = len(poses.rotations)
+    if poses.motion_rms_mm < limit:  # skin motion of the pose markers is not head motion
         return replace(poses, rotations=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
                        translations=np.zeros((n, 3)), still=True)
+    if poses.source == POSE_FROM_RIGID:
+        fixed = fixed_pose(solver.rigid_reference[present], capture, poses.labels)
+        if fixed is not None and fixed[2] < limit:
+            return replace(poses, rotations=np.broadcast_to(fixed[0], (n, 3, 3)).copy(),
+                           translations=np.broadcast_to(fixed[1], (n, 3)).copy(), still=True,
+                           motion_rms_mm=fixed[2])
     return poses
+
+
+def still_limit_mm(solver: FaceSolver, poses: HeadPoses) -> float:
+    """The pose markers' RMS motion (mm) below which a capture is already in the head frame:
+    ``HEAD_RELATIVE_RMS_MM``, plus, for the stabilization markers, their own motion in the
+    session's head frame. A layout made on a head-relative session (blenderFace) may have chosen
+    facial markers as its stabilization set; a capture of the same kind moves them as much as
+    the session did, and posing it on them would turn expressions into head motion (and leave
+    the frames where fewer than 3 of them are seen unsolved)."""
+    own = solver.rigid_motion_mm if poses.source == POSE_FROM_RIGID else float("nan")
+    return HEAD_RELATIVE_RMS_MM + (own if np.isfinite(own) else 0.0)
 
 
 @dataclass(frozen=True)
@@ -273,6 +303,13 @@ def _motion_p95(frames: np.ndarray, neutral: np.ndarray) -> np.ndarray:
     seen = np.isfinite(dist).any(axis=0)
     out[seen] = [np.percentile(d[np.isfinite(d)], 95) for d in dist[:, seen].T]
     return out
+
+
+def _rms_distance(points: np.ndarray, reference: np.ndarray) -> float:
+    """RMS distance (mm) of ``points`` (F, K, 3) from ``reference`` (K, 3) over the seen ones."""
+    sq = np.sum((points - reference) ** 2, axis=2)
+    sq = sq[np.isfinite(sq)]
+    return float(np.sqrt(sq.mean())) if sq.size else float("nan")
 
 
 def _array_or_none(value: Any) -> np.ndarray | None:

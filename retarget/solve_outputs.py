@@ -73,9 +73,13 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                      f"least-moving layout markers {', '.join(poses.labels)}, refined on all of them "
                      "(see pose_residual_mm in solve_frames.csv)")
     if poses is not None and poses.still:
-        notes.append(f"the capture is already in the session's head frame (its {poses.source} "
-                     f"{', '.join(poses.labels)} move {poses.motion_rms_mm:.2f} mm RMS): head motion "
-                     "not removed")
+        fixed = bool(np.any(poses.translations)) or not np.allclose(poses.rotations, np.eye(3))
+        notes.append(f"the capture's head does not move (its {poses.source} "
+                     f"{', '.join(poses.labels)} move {poses.motion_rms_mm:.2f} mm RMS"
+                     + ("" if np.isnan(solver.rigid_motion_mm) or poses.source != POSE_FROM_RIGID
+                        else f", {solver.rigid_motion_mm:.2f} mm in the session") + "): "
+                     + ("one fixed pose lays its frame onto the session's head frame" if fixed
+                        else "already in the session's head frame, head motion not removed"))
     head = to_head_frame(x, poses)
     screen = adaptation = None
     mismatch = None

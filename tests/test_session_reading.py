@@ -63,6 +63,35 @@ def test_solve_evaluate_and_rig_read_the_csv_session_without_repeating(csv_layou
     assert 80 < max(heights) - min(heights) < 160  # mm, a face's size
 
 
+@pytest.mark.slow
+def test_a_head_relative_capture_is_not_posed_on_facial_stabilization_markers(csv_layout, run_cli):
+    """blenderFace is head-relative, so Subject_01's layout took facial markers (lids, cheek,
+    brow) as its stabilization set. Posing a capture frame by frame on them turned expressions
+    into head motion: Subject_01 solved with its own layout was 6.6 mm off at the markers outside
+    the layout (0.13 mm without poses). They move as much as in the session: the head is still
+    (Subject_01), or one fixed pose lays another recording's frame onto the session's (Subject_02)."""
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.clustering.pipeline import load_session
+
+    lay = csv_layout / "layout" / "layout.json"
+    in_layout = set(read_layout(lay).labels)
+    summaries = {}
+    for subject in ("Subject_01", "Subject_02"):
+        out = csv_layout / f"posed_{subject}"
+        done = run_cli("solve", lay, csv_layout / f"{subject}.csv", "--out", out, "--formats", "npz",
+                       "--surface", "markers", "--quiet")
+        assert done.exit_code == 0, done.stderr
+        summaries[subject] = json.loads((out / "solve.json").read_text())
+        assert summaries[subject]["head_motion"]["still"]
+    own, _ = load_session(str(csv_layout / "Subject_01.csv"), rate=25.0, units="187.6")
+    dense = read_trajectories(csv_layout / "posed_Subject_01" / "dense.c3d")
+    other = [label for label in dense.labels if label not in in_layout]
+    err = np.linalg.norm(dense.positions[:, dense.index(other)] - own.positions[:, own.index(other)], axis=2)
+    assert np.sqrt(np.nanmean(err ** 2)) < 0.5  # mm (measured 0.13; posed per frame: 6.6)
+    assert any("already in the session's head frame" in n for n in summaries["Subject_01"]["notes"])
+    assert any("one fixed pose" in n for n in summaries["Subject_02"]["notes"])
+
+
 def test_given_options_win_and_other_kinds_are_read_as_they_are():
     layout = Layout({"path": "s.csv", "reading": {"rate": 25.0, "units": "cm", "first_frame": 1}}, {}, (), ())
     assert recorded_reading(layout, Path("take.csv"), rate=None, units=None) == (25.0, "cm")
