@@ -100,7 +100,7 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import default_face
+        from .default_face import SOLVE_LID_REACH_MM, default_face
         from .lid_joints import SENSOR_MIN_MM
 
         neutral = np.asarray(neutral, dtype=np.float64)
@@ -117,7 +117,8 @@ class MeshMap:
                                       lateral=None if plane is None else plane[1])
         points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
         rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
-        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane)
+        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane,
+                            lid_reach_mm=SOLVE_LID_REACH_MM)
         if face is None:
             return None
         nearest, dist = anchor_vertices(face.fitted, face.faces, points)
