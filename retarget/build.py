@@ -519,7 +519,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                            nearest)
     index, value = cap_weights(weights, max_influences=options.max_influences,
                                min_weight=options.min_weight, fallback=nearest, mirror=mirror,
-                               continuous=mesh_kind != "marker surface")
+                               continuous=mesh_kind == "face")
     rig = Rig.from_markers(vertices, faces, marker_labels=labels, marker_positions=joint_positions,
                            marker_sides=sides, marker_regions=regions_of,
                            weight_index=index, weight_value=value, texcoords=texcoords)
