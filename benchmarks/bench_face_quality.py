@@ -9,9 +9,7 @@ root, with ../shared/data or $MOCAPTK_SHARED_DATA):
 
 from __future__ import annotations
 
-import os
 import sys
-import tarfile
 import tempfile
 from pathlib import Path
 
@@ -37,7 +35,7 @@ def quality(posed: np.ndarray, rest: np.ndarray, faces: np.ndarray) -> tuple[int
 
 
 def main() -> None:
-    from render_faces import SAMPLE, skinned
+    from render_faces import SAMPLE, skinned, user_meshes
 
     from mocaptk.acquisition.formats import read_trajectories
     from mocaptk.acquisition.synth_session import load_ground_truth
@@ -50,15 +48,9 @@ def main() -> None:
     layout = cluster_session(session, options=ClusterOptions(
         factor=1.1, stabilize=False, takes=truth.takes)).layout
     perf = read_trajectories(SAMPLE / "dense_halfface_performance.c3d", strip_prefixes=True)
-    shared = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data"))
     with tempfile.TemporaryDirectory() as tmp:
-        tarball = shared / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
-        with tarfile.open(tarball) as tar:
-            member = tar.extractfile("ICT-FaceKit/FaceXModel/generic_neutral_mesh.obj")
-            (Path(tmp) / "head.obj").write_bytes(member.read())
-        for name, path in (("default rig", None),
-                           ("--mesh MediaPipe", shared / "face_mesh" / "mediapipe" / "canonical_face_model.obj"),
-                           ("--mesh ICT-FaceKit head", Path(tmp) / "head.obj")):
+        for name, path in [("default rig", None)] + [(title, path) for _, path, title
+                                                     in user_meshes(Path(tmp))]:
             build = build_rig(layout, session, mesh=None if path is None else load_mesh(path),
                               check=False)
             back, worst, p999 = quality(skinned(build, perf), build.rig.vertices, build.rig.faces)

@@ -498,6 +498,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     labels, sides = list(reps), [c.side for c in layout.clusters]
     regions_of = [c.region for c in layout.clusters]
     lids = None
+    lid_rows = False  # the lids' vertices are capped continuously (their edges are tiny)
     if face is not None and face.lids and options.max_influences > 1:
         lids, weights = lid_joints(face, weights, joint_vertices=joint_vertices,
                                    displacement=cloud.trajectories[:, rep_idx]
@@ -506,6 +507,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         labels += [LID_JOINT] * len(face.lids)
         sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
         regions_of += ["eye"] * len(face.lids)
+        lid_rows = weights[:, len(reps):].any(axis=1)
         corners = [c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])]
         weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
                                 pinned=joint_vertices)
@@ -519,7 +521,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                            nearest)
     index, value = cap_weights(weights, max_influences=options.max_influences,
                                min_weight=options.min_weight, fallback=nearest, mirror=mirror,
-                               continuous=mesh_kind == "face")
+                               continuous=lid_rows)
     rig = Rig.from_markers(vertices, faces, marker_labels=labels, marker_positions=joint_positions,
                            marker_sides=sides, marker_regions=regions_of,
                            weight_index=index, weight_value=value, texcoords=texcoords)

@@ -152,12 +152,13 @@ def symmetric_weights(weights: np.ndarray, vertex_mirror: np.ndarray,
 def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: float = 1e-3,
                 fallback: np.ndarray | None = None,
                 mirror: tuple[np.ndarray, np.ndarray] | None = None,
-                continuous: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                continuous: bool | np.ndarray = False) -> tuple[np.ndarray, np.ndarray]:
     """Keep each vertex's ``max_influences`` largest weights >= ``min_weight``, sum 1.
 
-    ``continuous``: the kept weights less the largest one dropped (and less ``min_weight``), so
-    a weight reaches 0 before it is dropped and the skin has no step where the kept joints
-    change (a step of 0.1 x 8 mm over a 0.2 mm edge of a lid stretches it 4x; issue 30).
+    ``continuous`` (True, or (V,) bool: these vertices): the kept weights less the largest one
+    dropped (and less ``min_weight``), so a weight reaches 0 before it is dropped and the skin
+    has no step where the kept joints change (a step of 0.1 x 8 mm over a 0.2 mm edge of a lid
+    stretches it 4x; issue 30).
 
     Parameters
     ----------
@@ -184,11 +185,12 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
     k = min(max_influences, w.shape[1])
     order = np.argsort(-w, axis=1, kind="stable")
     value = np.take_along_axis(w, order[:, :k], axis=1)
-    if continuous:
+    rows = np.broadcast_to(np.asarray(continuous, dtype=bool), (len(w),))
+    if rows.any():
         dropped = np.take_along_axis(w, order[:, k:k + 1], axis=1) if k < w.shape[1] else 0.0
-        value = np.clip(value - np.maximum(dropped, 0.0) - min_weight, 0.0, None)
-        value[value.sum(axis=1) <= 0] = np.take_along_axis(w, order[:, :k], axis=1)[
-            value.sum(axis=1) <= 0]  # ties all the way down: keep them as they are
+        soft = np.clip(value - np.maximum(dropped, 0.0) - min_weight, 0.0, None)
+        rows = rows & (soft.sum(axis=1) > 0)  # ties all the way down: kept as they are
+        value[rows] = soft[rows]
     order = order[:, :k]
     while True:  # renormalizing can push a kept weight under min_weight (rows summing > 1)
         value[value < min_weight] = 0.0
@@ -213,7 +215,7 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
 
 def _cap_mirrored(w: np.ndarray, *, max_influences: int, min_weight: float,
                   fallback: np.ndarray | None, mirror: tuple[np.ndarray, np.ndarray],
-                  continuous: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                  continuous: bool | np.ndarray = False) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cap_weights` of symmetric weights, symmetric: cap one vertex of each mirror pair
     (rows of midline vertices with equal L/R weights at the cut dropped in pairs), then copy
     the mirror image onto the other."""

@@ -548,8 +548,8 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     backward against its rest in any frame of the held-out performance and no edge stretches
     past 2x its rest length (issue 30; measured 0 and 1.98x; before: 146 folded triangles at
     the full blink and 4.71x, from lid weights dropped by the capping, a blink counted twice and
-    the eye corners' torn weights). The whole face is not there yet: 13 folded triangles under
-    the nostrils, 2 at the mouth corners, 2.82x at the widest jaw (docs/default-face.md)."""
+    the eye corners' torn weights). The whole face is not there yet: 2 folded triangles at the
+    mouth corners and 2.62x at the widest jaw (docs/default-face.md)."""
     from scipy.spatial import cKDTree
 
     from mocaptk.acquisition.formats import read_trajectories
