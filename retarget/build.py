@@ -40,7 +40,7 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
-from .default_face import default_face
+from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, default_face
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -64,13 +64,6 @@ FORMATS = ("json", "fbx", "glb")
 #: Default region falloff in dense marker spacings (docs/rig-weights.md has the measurements).
 FALLOFF_SPACINGS = 3.0
 
-#: The default face's weights blend towards its mouth corners' own within this (mm;
-#: :func:`~mocaptk.retarget.weights.blend_corners`; sample, most folded triangles at the widest
-#: jaw: 92 with none, 54 at 8 mm, 20 at 12 mm, 2 at 16 mm; the mouth's error unchanged).
-MOUTH_CORNER_MM = 16.0
-#: ... and towards its eyes' corners within this (mm; sample, most folded triangles at the
-#: fullest blink: 22 with none, 2 at 8 mm, 0 at 12 mm; the eye region's error +0.5 %).
-EYE_CORNER_MM = 12.0
 
 #: The default mesh's border turns inwards by at most this (degrees) at a marker: deeper notches
 #: are filled (a zigzag top of the forehead; sample: 44 -> 14 degrees on the rig's top border).
