@@ -40,7 +40,7 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
-from .default_face import default_face
+from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, default_face
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -48,8 +48,8 @@ from .influence import anchor_vertices, distinct_vertices, edge_graph, main_infl
 from .lid_joints import LidJoints, lid_joints
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
-from .weights import (cap_weights, mirror_maps, region_masks, shape_by_regions, symmetric_weights,
-                      thin_shell_weights)
+from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
+                      symmetric_weights, thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "check_surface", "file_hierarchy",
@@ -64,6 +64,7 @@ SNAP_DEGREES = 25.0
 FORMATS = ("json", "fbx", "glb")
 #: Default region falloff in dense marker spacings (docs/rig-weights.md has the measurements).
 FALLOFF_SPACINGS = 3.0
+
 
 #: The default mesh's border turns inwards by at most this (degrees) at a marker: deeper notches
 #: are filled (a zigzag top of the forehead; sample: 44 -> 14 degrees on the rig's top border).
@@ -504,28 +505,41 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
                                                          falloff_mm=falloff,
                                                          members=member_vertices))
+    if face is not None:  # the mouth's corners
+        weights = blend_corners(weights, vertices, [face.upper_lip[0], face.upper_lip[-1]],
+                                reach_mm=MOUTH_CORNER_MM, pinned=joint_vertices)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,
                             vertex=None if face is None else face.mirror)
+    joint_positions = cloud.neutral[rep_idx]
+    labels, sides = list(reps), [c.side for c in layout.clusters]
+    regions_of = [c.region for c in layout.clusters]
+    lids = None
+    lid_rows = False  # the lids' vertices are capped continuously (their edges are tiny)
+    if face is not None and face.lids and options.max_influences > 1:
+        lids, weights = lid_joints(face, weights, joint_vertices=joint_vertices,
+                                   displacement=cloud.trajectories[:, rep_idx]
+                                   - cloud.neutral[rep_idx])
+        joint_positions = np.vstack([joint_positions, lids.positions])
+        labels += [LID_JOINT] * len(face.lids)
+        sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
+        regions_of += ["eye"] * len(face.lids)
+        lid_rows = weights[:, len(reps):].any(axis=1)
+        corners = [c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])]
+        weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
+                                pinned=joint_vertices)
+        if mirror is not None:  # the right eye's lid is the left's mirror image
+            n = len(reps)
+            lid_mirror = np.arange(n, n + len(face.lids))[::-1 if len(face.lids) == 2 else 1]
+            mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
                            nearest)
     index, value = cap_weights(weights, max_influences=options.max_influences,
-                               min_weight=options.min_weight, fallback=nearest, mirror=mirror)
-    joint_positions = cloud.neutral[rep_idx]
-    labels, sides = list(reps), [c.side for c in layout.clusters]
-    regions_of = [c.region for c in layout.clusters]
-    lids = None
-    if face is not None and face.lids and options.max_influences > 1:
-        lids, index, value = lid_joints(face, index, value, joint_vertices=joint_vertices,
-                                        min_weight=options.min_weight)
-        lids = lids.calibrated(cloud.trajectories[:, rep_idx] - cloud.neutral[rep_idx])
-        joint_positions = np.vstack([joint_positions, lids.positions])
-        labels += [LID_JOINT] * len(face.lids)
-        sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
-        regions_of += ["eye"] * len(face.lids)
+                               min_weight=options.min_weight, fallback=nearest, mirror=mirror,
+                               continuous=lid_rows)
     rig = Rig.from_markers(vertices, faces, marker_labels=labels, marker_positions=joint_positions,
                            marker_sides=sides, marker_regions=regions_of,
                            weight_index=index, weight_value=value, texcoords=texcoords)

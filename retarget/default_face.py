@@ -32,7 +32,8 @@ import numpy as np
 from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
-__all__ = ["DefaultFace", "Lid", "default_face", "loop_area", "template_openings"]
+__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "default_face", "loop_area",
+           "template_openings"]
 
 #: Rounds of the non-rigid fit (closest points move as the face does).
 FIT_ROUNDS = 3
@@ -42,9 +43,26 @@ RBF_WIDTH_SPACINGS = 2.0
 RBF_SMOOTHING = 0.05
 #: Vertices this far (mm) from the mouth opening keep their place when the lips close.
 LIP_REACH_MM = 14.0
-#: Vertices this far (mm) from an eye opening keep their place when its lid closes (sample:
-#: 8 mm puts the eye region's marker-driven error within 4 % of the marker surface's; 12 mm: +23 %).
-LID_REACH_MM = 8.0
+#: Vertices this far (mm) from an eye opening keep their place when its lid closes (sample: a
+#: full blink at 8 mm stretched the lid's skin 2.26x, 1.98x at 12 mm; the rig calibrates what
+#: its markers show of the wider blink, see :mod:`~mocaptk.retarget.lid_joints`).
+LID_REACH_MM = 12.0
+#: The same for ``solve``'s mesh, whose blink is not calibrated on the session: 8 mm puts the
+#: eye region's marker-driven error within 4 % of the marker surface's (12 mm: +23 %) and the
+#: aperture at a full blink at 11 % of rest (12 mm: 36 %).
+SOLVE_LID_REACH_MM = 8.0
+#: Rim vertices this close (mm of arc) to an opening's corner are not pinned when it closes
+#: (sample: 42 triangles folded by closing the lips -> 2; the mouth's seam area at rest
+#: 0.2 -> 9.7 mm², 1.2 % of its widest opening; the lids' full blink 0.2 % -> 2 % of rest).
+CORNER_FREE_MM = 5.0
+#: The default face's weights (and solve's map) blend towards its mouth corners' own within
+#: this (mm; :func:`~mocaptk.retarget.weights.blend_corners`; sample, the rig's most folded
+#: triangles at the widest jaw: 92 with none, 54 at 8 mm, 20 at 12 mm, 2 at 16 mm; the mouth's
+#: error unchanged; solve's mesh 88 -> 2).
+MOUTH_CORNER_MM = 16.0
+#: ... and towards its eyes' corners within this (mm; sample, most folded triangles at the
+#: fullest blink: 22 with none, 2 at 8 mm, 0 at 12 mm; the eye region's error +0.5 %).
+EYE_CORNER_MM = 12.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,10 +133,12 @@ def _split(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def default_face(points: np.ndarray, *, spacing: float,
-                 plane: tuple[np.ndarray, np.ndarray] | None = None) -> DefaultFace | None:
+                 plane: tuple[np.ndarray, np.ndarray] | None = None,
+                 lid_reach_mm: float = LID_REACH_MM) -> DefaultFace | None:
     """The ICT-FaceKit face fitted to the dense neutral ``points`` (N, 3) mm (rig frame: Y up,
     facing +Z; ``spacing`` their marker spacing, mm); ``plane`` ``(point, unit normal)`` makes it
-    mirror-symmetric. None when the template does not fit (see :func:`fit_template`)."""
+    mirror-symmetric; ``lid_reach_mm`` how far the blink reaches from an eye. None when the
+    template does not fit (see :func:`fit_template`)."""
     points = np.asarray(points, dtype=float)
     template = fit_template(points, spacing=spacing)
     if template is None:
@@ -133,7 +153,7 @@ def default_face(points: np.ndarray, *, spacing: float,
     closed = vertices + _closing(vertices, faces, [(upper, lower, 0.5)], reach_mm=LIP_REACH_MM)
     if plane is not None:
         closed = _symmetric(closed, mirror, *plane)
-    lids = [Lid(top, bottom, _closing(closed, faces, [(top, bottom, 0.0)], reach_mm=LID_REACH_MM))
+    lids = [Lid(top, bottom, _closing(closed, faces, [(top, bottom, 0.0)], reach_mm=lid_reach_mm))
             for top, bottom in eyes]
     if plane is not None:  # the other eye's blink: the mirror image of the first's
         normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
@@ -172,7 +192,8 @@ def _closing(vertices: np.ndarray, faces: np.ndarray,
              rims: list[tuple[np.ndarray, np.ndarray, float]], *, reach_mm: float) -> np.ndarray:
     """Displacements (V, 3) mm closing openings: each ``(upper, lower, line)`` rim pair meets on
     the curve ``lower + line (upper - lower)`` (at each rim vertex's arc-length fraction; line 0:
-    the lower rim stays), and a biharmonic field carries it over, zero ``reach_mm`` away."""
+    the lower rim stays), and a biharmonic field carries it over, zero ``reach_mm`` away (the
+    rims' ends near the corners follow the field)."""
     import igl
     from scipy.spatial import cKDTree
 
@@ -182,11 +203,23 @@ def _closing(vertices: np.ndarray, faces: np.ndarray,
         values += [_along(vertices, upper, lower, line) - vertices[upper],
                    _along(vertices, lower, upper, 1.0 - line) - vertices[lower]]
     rim, first = np.unique(np.concatenate(fixed), return_index=True)  # corners: in both rims
+    moved = np.concatenate(values)[first]
+    # the rims' last CORNER_FREE_MM to each corner are left to the field: pinned there, where
+    # the rims meet at an angle, the closing folded the corner's small triangles
+    keep = ~np.isin(rim, np.concatenate([_near_corners(vertices, r) for r in fixed]))
+    rim, moved = rim[keep], moved[keep]
     far = np.flatnonzero(cKDTree(vertices[rim]).query(vertices)[0] > reach_mm)
     b = np.concatenate([rim, far]).astype(np.int64)
-    bc = np.concatenate([np.concatenate(values)[first], np.zeros((len(far), 3))])
+    bc = np.concatenate([moved, np.zeros((len(far), 3))])
     return np.asarray(igl.harmonic(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
                                    b, bc, 2))
+
+
+def _near_corners(vertices: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """The vertices of ``rim`` (corner to corner) within :data:`CORNER_FREE_MM` of arc length
+    from either corner (the corners too)."""
+    run = _fractions(vertices[rim]) * np.linalg.norm(np.diff(vertices[rim], axis=0), axis=1).sum()
+    return rim[np.minimum(run, run[-1] - run) < CORNER_FREE_MM]
 
 
 def _along(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:

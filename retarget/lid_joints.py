@@ -10,7 +10,9 @@ blink weight). Per eye:
   the session's fullest blinks (its :data:`FULL_PERCENTILE`: the dense session's eye take
   blinks);
 - the **lid joint** sits at the upper rim's centre; it follows the markers as the rim's own
-  weights would (``follow``) and adds ``b(t)`` times the rim's full-blink displacement;
+  weights would (``follow``) and adds ``b(t)`` times the rim's full-blink displacement less
+  what following makes of a full blink (the markers near the eye move with the blink: counted
+  twice, the lid overshot the lower rim and folded);
 - each vertex's weight on it is the fraction of the rim's full blink its own full-blink
   displacement is, and its other weights shrink to leave room.
 """
@@ -39,7 +41,7 @@ MIN_LID_WEIGHT = 0.01
 @dataclass(frozen=True, eq=False)
 class LidJoints:
     """Per eye (E eyes): ``positions`` (E, 3) mm bind positions, ``follow`` (E, L) weights over
-    the layout joints, ``closed`` (E, 3) mm the displacement at a full blink, and the sensors:
+    the layout joints, ``closed`` (E, 3) mm the displacement a full blink adds to following, and the sensors:
     ``sensor_index`` (E,) arrays of layout joints with ``sensor_blink`` (E,) arrays (S, 3) mm,
     their displacement at a full blink."""
 
@@ -85,42 +87,40 @@ class LidJoints:
         return follow + self.blink(displacement)[..., None] * self.closed
 
 
-def lid_joints(face: DefaultFace, index: np.ndarray, value: np.ndarray, *,
-               joint_vertices: np.ndarray, min_weight: float) -> tuple[LidJoints, np.ndarray, np.ndarray]:
-    """The lid joints of ``face`` and the weights with them: ``index``/``value`` (V, k) capped
-    weights over the L layout joints (``joint_vertices`` (L,) their vertices); the lid joints
-    become joints L, L + 1... Each row keeps k influences (its weakest gives way to the lid,
-    the rest scaled back to sum 1, none below ``min_weight``)."""
-    n_layout = len(joint_vertices)
-    dense = np.zeros((len(face.vertices), n_layout))
-    np.add.at(dense, (np.repeat(np.arange(len(dense)), index.shape[1]), index.ravel()),
-              value.ravel())
+def lid_joints(face: DefaultFace, weights: np.ndarray, *, joint_vertices: np.ndarray,
+               displacement: np.ndarray) -> tuple[LidJoints, np.ndarray]:
+    """The lid joints of ``face`` and the dense weights (V, L + E) with them, before capping:
+    ``weights`` (V, L) over the L layout joints (``joint_vertices`` (L,) their vertices; the
+    session's ``displacement`` (F, L, 3) mm calibrates the full blink); the lid joints become
+    joints L, L + 1... A vertex's lid weight is what its markers do not make of its full-blink
+    displacement, as a fraction of the rim's, and its other weights shrink to leave room
+    (capped with the rest afterwards: no influence is dropped out of turn)."""
+    dense = np.asarray(weights, dtype=float)
+    sensors = [np.flatnonzero(np.linalg.norm(lid.blink[joint_vertices], axis=1) > SENSOR_MIN_MM)
+               for lid in face.lids]
+    uncalibrated = LidJoints(np.zeros((len(face.lids), 3)), np.zeros((len(face.lids), len(dense[0]))),
+                             np.zeros((len(face.lids), 3)), tuple(sensors),
+                             tuple(lid.blink[joint_vertices[s]] for lid, s in zip(face.lids, sensors)))
+    calibrated = uncalibrated.calibrated(displacement).full
     lid_weight = np.zeros((len(face.vertices), len(face.lids)))
-    positions, follow, closed, sensors, sensor_blink = [], [], [], [], []
+    positions, follow, closed = [], [], []
     for e, lid in enumerate(face.lids):
-        full = lid.blink[lid.upper].mean(axis=0)
-        lid_weight[:, e] = np.clip(lid.blink @ full / float(full @ full), 0.0, 1.0)
+        # the rim's farthest move: every vertex's lid weight stays within [0, 1]
+        full = lid.blink[lid.upper][int(np.argmax(np.linalg.norm(lid.blink[lid.upper], axis=1)))]
+        # what the markers make of a full blink (they show `calibrated` of the template's), and
+        # the lid the rest: a vertex's lid weight w is least squares for (1 - w) own + w full =
+        # its blink
+        markers = calibrated[e] * lid.blink[joint_vertices]
+        own = dense @ markers
+        gap = full - own
+        lid_weight[:, e] = np.clip(np.einsum("vk,vk->v", lid.blink - own, gap)
+                                   / np.maximum(np.einsum("vk,vk->v", gap, gap), 1e-12), 0.0, 1.0)
         positions.append(face.vertices[lid.upper].mean(axis=0))
         follow.append(dense[lid.upper].mean(axis=0))
-        closed.append(full)
-        moved = np.linalg.norm(lid.blink[joint_vertices], axis=1)
-        sensors.append(np.flatnonzero(moved > SENSOR_MIN_MM))
-        sensor_blink.append(lid.blink[joint_vertices[sensors[-1]]])
-    lid_weight[lid_weight < max(MIN_LID_WEIGHT, min_weight)] = 0.0
-    k = index.shape[1]
-    new_index = np.column_stack([index, np.zeros((len(index), 1), np.int64)])
-    new_value = np.column_stack([value, np.zeros(len(value))])
-    rows = np.flatnonzero(lid_weight.any(axis=1))
-    eye = np.argmax(lid_weight[rows], axis=1)  # one lid per vertex: the eyes are far apart
-    w = lid_weight[rows, eye]
-    new_index[rows, k] = n_layout + eye
-    new_value[rows, k] = w
-    new_value[rows, :k] *= (1.0 - w)[:, None]
-    order = np.argsort(-new_value, axis=1, kind="stable")[:, :k]  # the weakest gives way
-    new_index = np.take_along_axis(new_index, order, axis=1)
-    new_value = np.take_along_axis(new_value, order, axis=1)
-    new_value[new_value < min_weight] = 0.0  # as capped: no weight below min_weight
-    new_value /= new_value.sum(axis=1, keepdims=True)
-    new_index[new_value <= 0] = 0
-    return (LidJoints(np.array(positions), np.array(follow), np.array(closed), tuple(sensors),
-                      tuple(sensor_blink)), new_index, new_value)
+        closed.append(full - follow[-1] @ markers)  # the lid follows the markers too
+    lid_weight[lid_weight < MIN_LID_WEIGHT] = 0.0
+    keep = 1.0 - lid_weight.max(axis=1)  # one lid per vertex: the eyes are far apart
+    lid_weight[lid_weight < lid_weight.max(axis=1, keepdims=True)] = 0.0
+    joints = replace(uncalibrated, positions=np.array(positions), follow=np.array(follow),
+                     closed=np.array(closed), full=calibrated)
+    return joints, np.column_stack([dense * keep[:, None], lid_weight])

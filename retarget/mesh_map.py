@@ -100,7 +100,8 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import default_face
+        from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, SOLVE_LID_REACH_MM, default_face
+        from .weights import blend_corners
         from .lid_joints import SENSOR_MIN_MM
 
         neutral = np.asarray(neutral, dtype=np.float64)
@@ -117,7 +118,8 @@ class MeshMap:
                                       lateral=None if plane is None else plane[1])
         points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
         rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
-        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane)
+        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane,
+                            lid_reach_mm=SOLVE_LID_REACH_MM)
         if face is None:
             return None
         nearest, dist = anchor_vertices(face.fitted, face.faces, points)
@@ -126,6 +128,16 @@ class MeshMap:
         anchors[used[close]] = nearest[close]
         vertices = face.vertices @ rotation  # back to the session frame
         mesh = cls.anchored(vertices, face.faces, anchors, columns)
+        # the openings part like lenses, not cracks whose tips fold (as the rig's weights)
+        matrix = mesh.matrix
+        for corners, reach in (([face.upper_lip[0], face.upper_lip[-1]], MOUTH_CORNER_MM),
+                               ([c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])],
+                                EYE_CORNER_MM)):
+            matrix = blend_corners(matrix, face.vertices, corners, reach_mm=reach,
+                                   pinned=anchors[anchors >= 0])
+        matrix = matrix.astype(np.float32)
+        mesh = cls(mesh.vertices, mesh.faces, matrix,
+                   mesh.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))
         blinks = []
         for lid in face.lids:
             shape = lid.blink @ rotation

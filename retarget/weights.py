@@ -29,8 +29,8 @@ from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["cap_weights", "mirror_maps", "region_masks", "shape_by_regions", "symmetric_weights",
-           "thin_shell_weights"]
+__all__ = ["blend_corners", "cap_weights", "mirror_maps", "region_masks", "shape_by_regions",
+           "symmetric_weights", "thin_shell_weights"]
 
 
 def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: np.ndarray, *,
@@ -103,6 +103,27 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
 
 
+def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
+                  reach_mm: float, pinned: np.ndarray) -> np.ndarray:
+    """``weights`` (V, J) blended towards each of the ``corners`` (C,) vertex's own row, fully at
+    the corner and not at all ``reach_mm`` away ((1 - r / reach)² of the distance r); the
+    ``pinned`` (P,) vertices' rows are kept.
+
+    At an opening's corner (the mouth's, an eye's) the upper and lower rims' weights differ
+    from one vertex to the next, so the skin there tears like a crack's tip and its small
+    triangles fold when the jaw opens; blended, the opening parts as a lens does, more and more
+    away from its corners (issue 30)."""
+    w = np.array(weights, dtype=float)
+    v = np.asarray(vertices, dtype=float)
+    keep = np.zeros(len(w), bool)
+    keep[np.asarray(pinned, dtype=np.int64)] = True
+    for corner in np.asarray(corners, dtype=np.int64):
+        alpha = np.clip(1.0 - np.linalg.norm(v - v[corner], axis=1) / reach_mm, 0.0, 1.0) ** 2
+        alpha[keep] = 0.0
+        w += alpha[:, None] * (w[corner] - w)
+    return w
+
+
 def mirror_maps(vertices: np.ndarray, plane_point: np.ndarray, plane_normal: np.ndarray, *,
                 tolerance_mm: float) -> np.ndarray | None:
     """Each vertex's mirror vertex (V,) across the plane, or None when the mesh is not
@@ -130,8 +151,14 @@ def symmetric_weights(weights: np.ndarray, vertex_mirror: np.ndarray,
 
 def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: float = 1e-3,
                 fallback: np.ndarray | None = None,
-                mirror: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                mirror: tuple[np.ndarray, np.ndarray] | None = None,
+                continuous: bool | np.ndarray = False) -> tuple[np.ndarray, np.ndarray]:
     """Keep each vertex's ``max_influences`` largest weights >= ``min_weight``, sum 1.
+
+    ``continuous`` (True, or (V,) bool: these vertices): the kept weights less the largest one
+    dropped (and less ``min_weight``), so a weight reaches 0 before it is dropped and the skin
+    has no step where the kept joints change (a step of 0.1 x 8 mm over a 0.2 mm edge of a lid
+    stretches it 4x; issue 30).
 
     Parameters
     ----------
@@ -154,10 +181,17 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
     w = np.asarray(weights, dtype=float)
     if mirror is not None:
         return _cap_mirrored(w, max_influences=max_influences, min_weight=min_weight,
-                             fallback=fallback, mirror=mirror)
+                             fallback=fallback, mirror=mirror, continuous=continuous)
     k = min(max_influences, w.shape[1])
-    order = np.argsort(-w, axis=1, kind="stable")[:, :k]
-    value = np.take_along_axis(w, order, axis=1)
+    order = np.argsort(-w, axis=1, kind="stable")
+    value = np.take_along_axis(w, order[:, :k], axis=1)
+    rows = np.broadcast_to(np.asarray(continuous, dtype=bool), (len(w),))
+    if rows.any():
+        dropped = np.take_along_axis(w, order[:, k:k + 1], axis=1) if k < w.shape[1] else 0.0
+        soft = np.clip(value - np.maximum(dropped, 0.0) - min_weight, 0.0, None)
+        rows = rows & (soft.sum(axis=1) > 0)  # ties all the way down: kept as they are
+        value[rows] = soft[rows]
+    order = order[:, :k]
     while True:  # renormalizing can push a kept weight under min_weight (rows summing > 1)
         value[value < min_weight] = 0.0
         total = value.sum(axis=1)
@@ -180,8 +214,8 @@ def cap_weights(weights: np.ndarray, *, max_influences: int = 4, min_weight: flo
 
 
 def _cap_mirrored(w: np.ndarray, *, max_influences: int, min_weight: float,
-                  fallback: np.ndarray | None,
-                  mirror: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+                  fallback: np.ndarray | None, mirror: tuple[np.ndarray, np.ndarray],
+                  continuous: bool | np.ndarray = False) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cap_weights` of symmetric weights, symmetric: cap one vertex of each mirror pair
     (rows of midline vertices with equal L/R weights at the cut dropped in pairs), then copy
     the mirror image onto the other."""
@@ -197,7 +231,7 @@ def _cap_mirrored(w: np.ndarray, *, max_influences: int, min_weight: float,
                 break
             w[v, np.abs(w[v] - w[v, order[k - 1]]) <= 1e-12] = 0.0
     index, value = cap_weights(w, max_influences=max_influences, min_weight=min_weight,
-                               fallback=fallback)
+                               fallback=fallback, continuous=continuous)
     copy = vertex_mirror < np.arange(len(w))  # the second vertex of each pair mirrors the first
     source = vertex_mirror[copy]
     index[copy] = np.where(value[source] > 0, joint_mirror[index[source]], 0)

@@ -55,18 +55,23 @@ def main(argv: list[str]) -> None:
     poses = np.concatenate([mesh.vertices[None], mesh.apply(dense)])
     render(poses @ build.cloud.rotation.T, mesh.faces, out / "solve_mesh.png",
            "solve's mesh (mesh.usd / mesh.glb)")
-    shared = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data"))
     with tempfile.TemporaryDirectory() as tmp:
-        tarball = shared / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
-        with tarfile.open(tarball) as tar:
-            member = tar.extractfile("ICT-FaceKit/FaceXModel/generic_neutral_mesh.obj")
-            (Path(tmp) / "head.obj").write_bytes(member.read())
-        for name, path, title in (
-                ("mediapipe", shared / "face_mesh" / "mediapipe" / "canonical_face_model.obj",
-                 "--mesh MediaPipe canonical face"),
-                ("ict_head", Path(tmp) / "head.obj", "--mesh ICT-FaceKit head")):
+        for name, path, title in user_meshes(Path(tmp)):
             user = build_rig(layout, session, mesh=load_mesh(path), check=False)
             render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title)
+
+
+def user_meshes(tmp: Path) -> list[tuple[str, Path, str]]:
+    """(name, path, title) of the ``--mesh`` faces from ../shared/data: the MediaPipe canonical
+    face and the ICT-FaceKit head (extracted into ``tmp``)."""
+    shared = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data"))
+    tarball = shared / "face_mesh" / "ict_facekit" / "ict_facekit_FaceXModel_subset.tar.xz"
+    with tarfile.open(tarball) as tar:
+        member = tar.extractfile("ICT-FaceKit/FaceXModel/generic_neutral_mesh.obj")
+        (tmp / "head.obj").write_bytes(member.read())
+    return [("mediapipe", shared / "face_mesh" / "mediapipe" / "canonical_face_model.obj",
+             "--mesh MediaPipe canonical face"),
+            ("ict_head", tmp / "head.obj", "--mesh ICT-FaceKit head")]
 
 
 def skinned(build, capture, frames=None) -> np.ndarray:
