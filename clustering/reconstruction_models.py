@@ -975,6 +975,8 @@ def load_model(path: str | os.PathLike[str], *, session: Mapping[str, Any] | Non
         if trained.get(key) != value:
             raise InputFileError(path, f"the model was trained on another session ({key} "
                                  f"{quoted(trained.get(key))}, expected {quoted(value)})")
+    # float16 / float32 arrays: linalg refuses float16, and small types overflow in the solve
+    arrays = {k: v.astype(np.float64) if v.dtype.kind == "f" else v for k, v in arrays.items()}
     try:
         _check_model(header, arrays, labelled=labelled)
     except _BadModel as exc:
@@ -1050,7 +1052,7 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
     shape("error_drop", n_layout)
     finite("error_base", low=0, high=_REACH_MM, nan=True)
     finite("error_drop", low=0, high=_REACH_MM, nan=True)
-    if kind in ("ridge", "local-ridge", "tapered-ridge"):
+    if kind in ("ridge", "local-ridge", "tapered-ridge", "ridge-cv"):
         shape("mean", 3 * m)
         shape("cov", 3 * m, 3 * m)
         for name in ("frames", "ridge"):
@@ -1067,6 +1069,10 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
         if not a["taper_mm"] > 1e-6:  # inf: no taper (a length the CV may choose)
             raise _BadModel("taper_mm has values out of range")
         for name in ("cv_lengths_mm", "cv_rmse_mm"):
+            if a[name].ndim != 1:
+                raise _BadModel(f"{name} must be a list of numbers")
+    if kind == "ridge-cv":
+        for name in ("cv_ridges", "cv_rmse_mm"):
             if a[name].ndim != 1:
                 raise _BadModel(f"{name} must be a list of numbers")
     if "faces" in names:

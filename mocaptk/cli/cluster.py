@@ -49,6 +49,20 @@ def warn_unless_face(traj, session: Path, *, regions_given: bool, neutral=None) 
         print(f"mocaptk: warning: {session}: {check.units_warning}", file=sys.stderr)
 
 
+def _followed_elsewhere(layout) -> list[str]:
+    """A line per region with markers but no layout marker of its own: which layout markers its
+    markers follow (their influence regions reach into it)."""
+    lines = []
+    for region in layout.regions:
+        if not region.markers or any(c.region == region.name for c in layout.clusters):
+            continue
+        inside = set(region.markers)
+        followed = [f"{c.representative} ({c.region})" for c in layout.clusters if inside & set(c.members)]
+        lines.append(f"{region.name}: no layout marker of its own; its {len(inside)} marker"
+                     f"{'' if len(inside) == 1 else 's'} follow " + (", ".join(followed) or "no layout marker"))
+    return lines
+
+
 def summary_text(result) -> str:
     """Short text summary: markers per region (measured + mirrored = total), notes, warnings.
 
@@ -86,6 +100,7 @@ def summary_text(result) -> str:
         lines.append(f"{region.name:<16}{len(region.markers):>7}{own:>10}{mirrored:>10}{own + mirrored:>7}"
                      + (f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}" if paper else ""))
     lines.append(f"{'total':<16}{sums[0]:>7}{sums[1]:>10}{sums[2]:>10}{sums[1] + sums[2]:>7}")
+    lines += _followed_elsewhere(layout)
     stabilization = layout.extra.get("stabilization", {})
     rigid = stabilization.get("rigid_labels")
     if rigid and stabilization.get("applied"):
@@ -174,8 +189,10 @@ def cluster(
     animate: list[Path] = typer.Option(None, "--animate", help="A performance to bake onto the "
                                        "rig after the session's own motion (as in mocaptk rig)."),
 ) -> None:
-    """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra's
-    correlation clusters; markers chosen by the hybrid method unless --method paper).
+    """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra).
+
+    The influence regions are the paper's correlation clusters; the measured markers are chosen
+    by the hybrid method unless --method paper.
 
     Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json,
     summary.txt, report.html, pictures, rig files and guide.pdf (--formats none: the first three).

@@ -50,7 +50,7 @@ def compare(
     force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
     quiet: Quiet = False,
 ) -> None:
-    """Held-out RMSE and p95 (mm), run time and layout statistics of every layout method at every count.
+    """Held-out RMSE and p95 (mm), run time and layout statistics of every method at every count.
 
     Layout statistics (Zell & McDonnell, ε = 0.3 and 0.7): % of layout markers where no extreme
     frame of the session moves ≥ ε, and how many extreme frames no layout marker sees move ≥ ε.

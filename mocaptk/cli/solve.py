@@ -122,9 +122,10 @@ def solve(
     neutral: str = typer.Option(None, "--neutral", metavar="FIRST:LAST", help="Capture frames at "
                                 "rest (0-based, LAST excluded) giving the capture's neutral; implies "
                                 "--adapt-neutral."),
-    rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
-                             "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
+    rig: bool = typer.Option(False, "--bake-rig", help="Also build the layout's face rig and bake the "
+                             "solved capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
                              "'mocaptk rig --animate' writes them; needs the session)."),
+    rig_alias: bool = typer.Option(False, "--rig", hidden=True),  # the old spelling; --rig is a camera rig elsewhere
     rate: Rate = None,  # the capture's (default: the layout's session's, for a file of its kind)
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
@@ -145,6 +146,8 @@ def solve(
     from mocaptk.clustering.layout import layout_rigid_set
     from .report import write_solve_report
     from .rig import parse_formats
+
+    rig = rig or rig_alias
 
     if model_kind is not None and model_kind not in MODEL_KINDS:
         raise OptionError(f"unknown --model-kind {model_kind!r} (choose from {', '.join(MODEL_KINDS)})")
@@ -188,7 +191,7 @@ def solve(
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
                  + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
         if rig and model is not None:
-            raise OptionError("--rig needs the session (it builds the rig on it): leave out --model")
+            raise OptionError("--bake-rig needs the session (it builds the rig on it): leave out --model")
         if rest is not None and rest.stop > traj.n_frames:
             raise OptionError(f"--neutral {neutral}: the capture has {traj.n_frames} frames")
         with staged_folder(out, force=force) as staging:
