@@ -23,7 +23,8 @@ a 5,000-character or control-character string, an empty or wrong-typed container
 key removed, an item duplicated; or the text is cut. Each case must end in exit 0 or in one line
 ``mocaptk: error: ...`` (exit 2) of at most 300 characters that names a file; anything else is a
 finding: a traceback (another exception), a Python warning, a crash, a hang (no answer within the
-time bound), a longer or unnamed error line.
+time bound), a longer or unnamed error line, a ``mocaptk: warning:`` / ``note:`` line over 300
+characters.
 
 Usage::
 
@@ -499,6 +500,9 @@ def classify(answer: dict, case: dict) -> str:
     errors = [line for line in lines if line.startswith("mocaptk: error: ")]
     others = [line for line in lines if not line.startswith(("mocaptk: error: ", "mocaptk: warning: ",
                                                                   "mocaptk: note: "))]
+    notes = [line.split(": ", 2)[2] for line in lines if line.startswith(("mocaptk: warning: ", "mocaptk: note: "))]
+    if any(len(note) > MAX_LINE for note in notes):  # warnings are cut like errors
+        return "long_line"
     if answer["code"] == 0:
         return "ok" if not others else "stray_output"
     if answer["code"] != 2 or len(errors) != 1 or others:

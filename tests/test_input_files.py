@@ -454,3 +454,19 @@ def test_float16_model_arrays_are_read_as_float64(tmp_path, solver_parts):
             one_line(exc, path)
         else:
             assert solver.model.cov.dtype == np.float64
+
+
+def test_warning_lines_are_cut_like_error_lines(run_cli, tmp_path):
+    """A 5,000-character region name was quoted whole in cluster's warnings (lines of > 4,000
+    characters); warnings keep the 300-character bound of error lines."""
+    regions = {"x" * 5000: ["NOSE_02_C"], "rest": [label for label in read_trajectories(
+        SAMPLES / "dense_halfface.c3d").labels if label != "NOSE_02_C"]}
+    (tmp_path / "regions.json").write_text(json.dumps(regions))
+    done = run_cli("cluster", SAMPLES / "dense_halfface.c3d", "--regions", tmp_path / "regions.json", "--method",
+                   "paper", "--formats", "none", "--step", "20", "--out", tmp_path / "out", "-q")
+    warnings_ = [line for line in done.stderr.splitlines() if line.startswith("mocaptk: warning: ")]
+    assert done.exit_code == 0 and warnings_, done.stderr[-500:]
+    assert all(len(line) <= len("mocaptk: warning: ") + MAX_LINE for line in warnings_)
+    assert any("has only 1 marker" in line for line in warnings_)
+    summary = (tmp_path / "out" / "summary.txt").read_text().splitlines()
+    assert all(len(line) <= len("warning: ") + MAX_LINE for line in summary if line.startswith("warning: "))

@@ -9,12 +9,12 @@ Extension points for later issues:
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
 
 from mocaptk.atomic import claim_output, staged_folder
+from mocaptk.errors import shorten, warn
 
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels, session_reading
@@ -44,9 +44,9 @@ def warn_unless_face(traj, session: Path, *, regions_given: bool, neutral=None) 
                    "these markers anyway")
         if not regions_given:
             raise InputFileError(session, problem)
-        print(f"mocaptk: warning: {session}: {problem}", file=sys.stderr)
+        warn(f"{session}: {problem}")
     if check.units_warning:
-        print(f"mocaptk: warning: {session}: {check.units_warning}", file=sys.stderr)
+        warn(f"{session}: {check.units_warning}")
 
 
 def _followed_elsewhere(layout) -> list[str]:
@@ -109,7 +109,7 @@ def summary_text(result) -> str:
     if note:
         lines.append(f"note: {note}")
     for note in result.notes:
-        lines.append(f"warning: {note}")
+        lines.append(f"warning: {shorten(note)}")
     return "\n".join(lines) + "\n"
 
 
@@ -263,7 +263,7 @@ def cluster(
             result = cluster_session(traj, options=options, source=source, neutral=neutral,
                                      progress=lambda text: status.update(text))
     for note in result.notes:
-        print(f"mocaptk: warning: {note}", file=sys.stderr)
+        warn(note)
     with staged_folder(out_dir, force=force) as folder:
         write_cluster_outputs(result, folder, pictures=False)
         pictures = parse_formats(formats) != ("none",)

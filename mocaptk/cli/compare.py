@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mocaptk.errors import OptionError
+from mocaptk.errors import OptionError, warn
 
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
@@ -161,7 +161,7 @@ def finish(rows, table: str, wrote: str, *, quiet: bool) -> None:
     """A warning per row a method could not produce, then the table and what was written."""
     for row in rows:
         if row.error is not None:
-            typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)
+            warn(f"{row.method} at {row.count} markers: {row.error}")
     if not quiet:
         typer.echo(table, nl=False)
         typer.echo(wrote)
