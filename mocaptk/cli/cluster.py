@@ -129,13 +129,27 @@ def write_cluster_outputs(result, folder: Path, *, pictures: bool = True) -> lis
 
 def write_cluster_pictures(result, folder: Path) -> list[Path]:
     """correlation_<region>.png per region, layout.png and regions.png in ``folder``."""
+    import numpy as np
+
     from mocaptk.clustering.figures import correlation_heatmap, layout_picture, regions_picture
 
     layout = result.layout
     written = []
+    # boxes: the layout's influence regions (the paper's clusters only with --method paper)
+    influence = {m: k for k, c in enumerate(layout.clusters) if c.mirrored_from is None for m in c.members}
+    representatives = [c.representative for c in layout.clusters]
     for name, region in result.matrices.items():
-        written.append(correlation_heatmap(region.labels, region.matrix, region.clusters,
-                                           title=f"{name}: consolidated correlation (by cluster)",
+        boxes = np.array([influence.get(label, len(layout.clusters)) for label in region.labels])
+        foreign = [f"{label} by {layout.clusters[k].representative} ({layout.clusters[k].region})"
+                   for label, k in zip(region.labels, boxes) if k < len(layout.clusters)
+                   and layout.clusters[k].region != name]
+        pairs = [", ".join(foreign[i:i + 2]) for i in range(0, min(len(foreign), 4), 2)]  # fits a 2-marker map
+        elsewhere = "\nfollowed from another region:\n" + "\n".join(pairs) + (" ..." if len(foreign) > 4 else "")
+        written.append(correlation_heatmap(region.labels, region.matrix, boxes,
+                                           title=f"{name}: consolidated correlation, boxed by the layout's\n"
+                                                 "influence regions (representatives in bold)"
+                                                 + (elsewhere if foreign else ""),
+                                           representatives=representatives,
                                            path=folder / f"correlation_{name}.png"))
     traj = result.trajectories
     frame = result.frame
