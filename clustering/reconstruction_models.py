@@ -975,8 +975,10 @@ def load_model(path: str | os.PathLike[str], *, session: Mapping[str, Any] | Non
         if trained.get(key) != value:
             raise InputFileError(path, f"the model was trained on another session ({key} "
                                  f"{quoted(trained.get(key))}, expected {quoted(value)})")
-    # float16 / float32 arrays: linalg refuses float16, and small types overflow in the solve
-    arrays = {k: v.astype(np.float64) if v.dtype.kind == "f" else v for k, v in arrays.items()}
+    # numbers as float64 (index arrays stay integers): linalg refuses float16, and an int8 cov
+    # cannot take the ridge added in place
+    arrays = {k: v.astype(np.float64) if v.dtype.kind == "f" or (v.dtype.kind in "iu" and k not in _INDEX_ARRAYS)
+              else v for k, v in arrays.items()}
     try:
         _check_model(header, arrays, labelled=labelled)
     except _BadModel as exc:
@@ -999,6 +1001,8 @@ _KIND_ARRAYS = {"ridge": ("mean", "cov", "frames", "ridge"),
                 "thin-shell": ("faces",)}
 _PDM_ARRAYS = ("faces", "pdm_neighbours", "pdm_neighbour_counts", "pdm_tangents", "pdm_mean", "pdm_axes",
                "pdm_bounds", "pdm_coef", "pdm_vertex_bounds")
+#: Arrays of marker / triangle indices (kept integer when a model file is read).
+_INDEX_ARRAYS = ("layout", "faces", "pdm_neighbours", "pdm_neighbour_counts")
 #: Largest coordinate (mm) of a stored position: beyond it, squares overflow.
 _REACH_MM = 1e6
 

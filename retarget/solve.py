@@ -143,6 +143,11 @@ def _extra_problem(header: Mapping[str, Any], extra: Mapping[str, np.ndarray]) -
         finite = np.isfinite(value) | (name == "solver_training_consistency")  # NaN: not measured
         if not (finite.all() and (np.abs(np.nan_to_num(value)) < 1e12).all()):
             return f"{name} has values out of range"
+    if "solver_cov" in extra:
+        try:  # the ghost screen inverts it: a fitted Gaussian's (ridge added) is positive definite
+            np.linalg.cholesky(extra["solver_cov"].astype(np.float64))
+        except np.linalg.LinAlgError:
+            return "solver_cov is not a covariance (not positive definite)"
     return None
 
 

@@ -413,6 +413,7 @@ def solver_parts(session, tmp_path_factory) -> tuple[dict, dict]:
     (lambda a, h: a.update(solver_training_consistency=np.zeros(2)), "solver_training_consistency must be ()"),
     (lambda a, h: h.update(fallback_labels=[["x"]]), "fallback_labels must be among its layout_labels"),
     (lambda a, h: a.update(solver_mean=np.full(a["solver_mean"].shape, np.inf, np.float16)), "solver_mean has values"),
+    (lambda a, h: a.update(solver_cov=np.zeros_like(a["solver_cov"])), "solver_cov is not a covariance"),  # seed 6
 ])
 def test_solve_model_arrays_that_crashed_solve_are_refused(tmp_path, solver_parts, change, problem):
     """Fuzz findings (seed 4): IndexError in the ridge-cv pattern solve and in the head poses,
@@ -470,3 +471,15 @@ def test_warning_lines_are_cut_like_error_lines(run_cli, tmp_path):
     assert any("has only 1 marker" in line for line in warnings_)
     summary = (tmp_path / "out" / "summary.txt").read_text().splitlines()
     assert all(len(line) <= len("warning: ") + MAX_LINE for line in summary if line.startswith("warning: "))
+
+
+def test_integer_model_arrays_are_read_as_numbers(tmp_path, solver_parts):
+    """Fuzz seed 6: an int8 cov reached the in-place ridge (UFuncOutputCastingError traceback)."""
+    from mocaptk.retarget.solve import load_solver
+
+    arrays = {k: (np.clip(v, -100, 100).astype(np.int8) if k == "cov" else v) for k, v in solver_parts[0].items()}
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": np.frombuffer(
+        json.dumps(solver_parts[1]).encode(), np.uint8)})
+    solver = load_solver(path)
+    assert solver.model.cov.dtype == np.float64 and solver.model.layout.dtype.kind in "iu"
+    assert np.isfinite(solver.model.predict_positions(solver.model.neutral[solver.model.layout][None])).all()
