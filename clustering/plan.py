@@ -125,34 +125,41 @@ def plan_picture(plan: dict[str, Any], neutral: dict[str, np.ndarray], layout_po
         finite = values[np.isfinite(values)]
         worst_value = (finite.min() if key == "visibility_percent" else finite.max()) if finite.size else np.nan
         low, high = (50.0, 100.0) if floor is None else (0.0, _round_ceiling(worst_value, floor))
-        ax.scatter(dense[:, 0], dense[:, 1], s=8, c="lightgrey", label="dense marker")
-        for shape, chosen, name in (("o", ~mirrored, "layout marker"), ("s", mirrored, "mirrored twin")):
+        ax.scatter(dense[:, 0], dense[:, 1], s=8, c="lightgrey")
+        for shape, chosen in (("o", ~mirrored), ("s", mirrored)):
             if chosen.any():
                 drawn = ax.scatter(xy[chosen, 0], xy[chosen, 1], c=np.nan_to_num(values[chosen], nan=high),
                                    cmap=cmap, vmin=low, vmax=high, s=120, marker=shape, edgecolors="k",
-                                   linewidths=0.8, zorder=3, label=name)
+                                   linewidths=0.8, zorder=3)
         fig.colorbar(drawn, ax=ax, shrink=0.8, extend="min" if floor is None else "max")
         order = np.argsort(values if key == "visibility_percent" else -np.nan_to_num(values, nan=-np.inf),
                            kind="stable")
-        for i in order[:PLAN_NAMED]:  # name the worst markers of this panel
+        middle = np.nanmedian(xy[:, 0]) if np.isfinite(xy[:, 0]).any() else 0.0
+        for n, i in enumerate(order[:PLAN_NAMED]):  # name the worst markers of this panel, outwards
             if np.isfinite(values[i]) and np.isfinite(xy[i]).all():
-                ax.annotate(_legend_text(rows[i]["label"], width=24), xy[i], xytext=(7, 7),
-                            textcoords="offset points", fontsize=7, zorder=4,
+                right = xy[i, 0] >= middle
+                ax.annotate(_legend_text(rows[i]["label"], width=24), xy[i], xytext=(-8 if right else 8, 8 - 5 * (n % 2)),
+                            textcoords="offset points", fontsize=7, zorder=4, ha="right" if right else "left",
+                            annotation_clip=False,
                             bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
-        ax.set_title(f"{title}\nworst: {worst_value:.3g}" + ("" if floor is None else f"; scale 0-{high:g}"))
+        intact = f" (intact {plan['intact_rmse_mm']:.3g})" if key == "lost_rmse_mm" else ""
+        ax.set_title(f"{title}\nworst: {worst_value:.3g}{intact}" + ("" if floor is None else f"; scale 0-{high:g}"))
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-    handles, names = axes[0, 0].get_legend_handles_labels()
-    for handle in handles[1:]:  # the legend shows the shapes, not one value's colour
-        handle.set_facecolor("white")
-    fig.legend(handles, names, loc="lower center", ncol=3, frameon=False,
+    from matplotlib.lines import Line2D
+
+    shapes = [Line2D([], [], ls="", marker="o", ms=4, mfc="lightgrey", mec="none", label="dense marker"),
+              Line2D([], [], ls="", marker="o", ms=10, mfc="white", mec="k", label="layout marker"),
+              Line2D([], [], ls="", marker="s", ms=10, mfc="white", mec="k",
+                     label="mirrored twin (placed like its source)")]
+    fig.legend(handles=shapes, loc="lower center", ncol=3, frameon=False,
                title=f"named: the {PLAN_NAMED} worst markers of each panel (plan.json lists all)")
     worst = max(rows, key=lambda m: m["risk_mm"])
     fig.suptitle(f"{len(rows)} layout markers through the {plan['rig']['name']} rig "
                  f"({len(plan['rig']['cameras'])} cameras); highest risk {_legend_text(worst['label'])} "
                  f"(+{worst['risk_mm']:.3f} mm); intact face RMSE {plan['intact_rmse_mm']:.3f} mm")
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97), h_pad=3.0)
     return _save(fig, path)
 
 

@@ -30,6 +30,7 @@ REGION_COLOURS: dict[str, tuple[float, float, float]] = {
     "cheek": (0.20, 0.65, 0.35),
     "mouth": (0.85, 0.20, 0.25),
     "chin": (0.60, 0.45, 0.25),
+    "stabilization": (0.20, 0.20, 0.20),  # head markers: dark, as the report's black squares
 }
 #: The face outside every region ("other").
 OTHER_COLOUR = (0.40, 0.50, 0.60)

@@ -310,13 +310,16 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     pdf.set_font("helvetica", "", 7)
     pdf.set_xy(bx + SCALE_BAR_MM + 8, by - 2)
     pair = next((m.name[:-1] for m in markers if m.name.endswith("L") and m.region != STABILIZATION), None)
-    mirror = f"A marker and its mirror share a number ({pair}L / {pair}R); C: on the midline. " if pair else ""
-    pdf.multi_cell(width - bx - SCALE_BAR_MM - 8 - MARGIN, 3.5, _ascii(
+    middle = next((m.name for m in markers if m.name.isdigit()), None)
+    mirror = (f"A marker and its mirror share a number ({pair}L / {pair}R)" if pair else "") + \
+        (f"{'; a' if pair else 'A'} number alone ({middle}) sits on the midline" if middle else "") + \
+        (". " if pair or middle else "")
+    pdf.multi_cell(width - bx - SCALE_BAR_MM - 8 - MARGIN, 3.5, align="L", text=_ascii(
         "Front projection, true size: markers on the sides of the face sit further apart on the "
         "skin than on paper. Dashed: face outline and midline. Character's left is on the "
         f"right, as seen facing the performer. {mirror}"
         "Squares H1, H2 ...: head (stabilization) markers on skin that does not move, placed like "
-        "the others; every capture needs them. Check both bars before cutting a mask."))
+        "the others; every capture needs them. Check both bars before cutting a mask."))  # left-aligned: even spacing
 
 
 def _scale_bars(pdf, bx: float, by: float) -> None:

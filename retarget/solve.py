@@ -143,6 +143,12 @@ def _extra_problem(header: Mapping[str, Any], extra: Mapping[str, np.ndarray]) -
         finite = np.isfinite(value) | (name == "solver_training_consistency")  # NaN: not measured
         if not (finite.all() and (np.abs(np.nan_to_num(value)) < 1e12).all()):
             return f"{name} has values out of range"
+    for name in ("solver_rigid_reference", "solver_fallback_reference"):
+        points = extra.get(name)
+        if points is not None and len(points) >= 3:  # head poses are fitted to them
+            spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+            if spread[1] < 1e-3 * max(spread[0], 1.0):
+                return f"{name}: its markers coincide or lie on one line"
     if "solver_cov" in extra:
         try:  # the ghost screen inverts it: a fitted Gaussian's (ridge added) is positive definite
             np.linalg.cholesky(extra["solver_cov"].astype(np.float64))

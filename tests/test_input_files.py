@@ -414,6 +414,7 @@ def solver_parts(session, tmp_path_factory) -> tuple[dict, dict]:
     (lambda a, h: h.update(fallback_labels=[["x"]]), "fallback_labels must be among its layout_labels"),
     (lambda a, h: a.update(solver_mean=np.full(a["solver_mean"].shape, np.inf, np.float16)), "solver_mean has values"),
     (lambda a, h: a.update(solver_cov=np.zeros_like(a["solver_cov"])), "solver_cov is not a covariance"),  # seed 6
+    (lambda a, h: a.update(solver_rigid_reference=np.zeros((3, 3))), "coincide or lie on one line"),  # seeds 5, 6
 ])
 def test_solve_model_arrays_that_crashed_solve_are_refused(tmp_path, solver_parts, change, problem):
     """Fuzz findings (seed 4): IndexError in the ridge-cv pattern solve and in the head poses,

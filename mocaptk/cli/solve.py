@@ -141,7 +141,7 @@ def solve(
     from mocaptk.jsonio import write_json
     from mocaptk.retarget.build import check_surface
     from mocaptk.retarget.solve import load_solver, train_solver
-    from mocaptk.retarget.solve_outputs import write_solve_outputs
+    from mocaptk.retarget.solve_outputs import SOLVE_FORMATS, write_solve_outputs
     from .cluster import staged_folder
     from mocaptk.clustering.layout import layout_rigid_set
     from .report import write_solve_report
@@ -194,22 +194,35 @@ def solve(
             raise OptionError("--bake-rig needs the session (it builds the rig on it): leave out --model")
         if rest is not None and rest.stop > traj.n_frames:
             raise OptionError(f"--neutral {neutral}: the capture has {traj.n_frames} frames")
+        unknown = [f for f in chosen if f not in SOLVE_FORMATS]
+        if unknown:
+            raise OptionError(f"unknown --formats {', '.join(unknown)} (choose from {', '.join(SOLVE_FORMATS)})")
         with staged_folder(out, force=force) as staging:
-            summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
-                                          subdivisions=subdivisions, mesh_path=mesh,
-                                          layout=lay, surface=surface,
-                                          stabilize=not no_stabilize,
-                                          adapt=adapt_neutral or rest is not None,
-                                          rest_frames=None if rest is None else list(rest),
-                                          save_trained=model is None, notes=notes, progress=say)
+            try:
+                summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
+                                              subdivisions=subdivisions, mesh_path=mesh,
+                                              layout=lay, surface=surface,
+                                              stabilize=not no_stabilize,
+                                              adapt=adapt_neutral or rest is not None,
+                                              rest_frames=None if rest is None else list(rest),
+                                              save_trained=model is None, notes=notes, progress=say)
+            except OptionError as exc:  # the options were checked: with --model, the model's markers
+                if model is None:
+                    raise
+                raise InputFileError(model, str(exc)) from None
             if rig:
                 say("building the rig and baking the solve onto it")
                 bake_solved_rig(lay, dense, staging, capture.stem, rigid=rigid, progress=say)
                 summary["outputs"].append("rig/")
             say("writing report.html")
-            report = write_solve_report(staging / "report.html", lay, solver, solved=staging / "dense.c3d",
-                                        rigid=rigid, training=dense if model is None else None,
-                                        summary=summary, text=summary_text(summary))
+            try:
+                report = write_solve_report(staging / "report.html", lay, solver, solved=staging / "dense.c3d",
+                                            rigid=rigid, training=dense if model is None else None,
+                                            summary=summary, text=summary_text(summary))
+            except OptionError as exc:  # e.g. a model that solves no frame of some markers
+                if model is None:
+                    raise
+                raise InputFileError(model, str(exc)) from None
             summary["outputs"] = sorted([*summary["outputs"], "report.html"])
             write_json(staging / "solve.json", summary)  # again: it lists rig/ and report.html now
     if not quiet:

@@ -156,8 +156,8 @@
   // numbers are SVG drawn over the WebGL scene, so they would float over the mesh. Set by placeNumbers().
   let hidden = {};
 
-  // Does the ray from p along d (unit) hit a triangle of the face (Moller-Trumbore)? t > 0.2 mm:
-  // the marker's own skin lies 1.5 mm behind its lifted dot.
+  // Does the ray from p along d (unit) hit a triangle of the face (Moller-Trumbore) more than 4 mm
+  // away? Nearer hits are the marker's own skin (1.5 mm behind its lifted dot) and grazing bumps.
   function rayHitsFace(p, d, mv, faces) {
     for (let f = 0; f < faces.length; f++) {
       const a = faces[f][0], b = faces[f][1], c = faces[f][2];
@@ -172,7 +172,7 @@
       const qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
       const v = (d[0] * qx + d[1] * qy + d[2] * qz) / det;
       if (v < 0 || u + v > 1) continue;
-      if ((e2x * qx + e2y * qy + e2z * qz) / det > 0.2) return true;
+      if ((e2x * qx + e2y * qy + e2z * qz) / det > 4.0) return true;
     }
     return false;
   }
@@ -490,6 +490,7 @@
 
   window.mocaptkReport = {data: data, state: state, setFrame: setFrame, setClip: setClip, pick: pick,
                           markerPositions: markerPositions, ready: false, loadMs: null,
+                          hidden: function () { return Object.keys(hidden).map(Number); },
                           view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(placeNumbers).then(function () { return true; }); },
                           settled: function () { return drawing || Promise.resolve(); }};
   setClip(0).then(placeNumbers).then(function () {
