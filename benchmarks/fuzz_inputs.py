@@ -593,6 +593,18 @@ def run_kinds(kinds: list[str], seeds: dict[str, Path], labels: list[str], cases
     return summary()
 
 
+def print_merged(runs: list[dict]) -> None:
+    """Cases and outcomes per kind, summed over ``runs`` (summaries of disjoint case ranges)."""
+    for kind in KINDS:
+        tally = Counter()
+        for run in runs:
+            tally.update(run.get(kind, {}).get("outcomes", {}))
+        findings = [f for run in runs for f in run.get(kind, {}).get("findings", [])]
+        print(f"{kind:13s} {sum(tally.values()):6d} cases  " + "  ".join(f"{k}={v}" for k, v in sorted(tally.items()))
+              + "".join(f"\n    case {f['case']}: {f['outcome']} {(f['stderr'] or str(f['warnings']))[-160:]!r}"
+                        for f in findings))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=2000, help="cases per kind")
@@ -603,7 +615,12 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--memory", type=int, default=6 << 30, help="address-space limit per worker (bytes)")
     parser.add_argument("--json", type=Path, help="write the summary here (every 50 cases and at the end)")
+    parser.add_argument("--merge", type=Path, nargs="+", help="only add up the summaries of runs over "
+                        "disjoint case ranges (--start/--cases) and print the table")
     args = parser.parse_args()
+    if args.merge:
+        print_merged([json.loads(path.read_text()) for path in args.merge])
+        return
     seed_dir = Path(tempfile.mkdtemp(prefix="fz_seeds_"))
     seeds = make_seeds(seed_dir)
     from mocaptk.acquisition.formats import read_trajectories
