@@ -310,7 +310,7 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     pdf.set_font("helvetica", "", 7)
     pdf.set_xy(bx + SCALE_BAR_MM + 8, by - 2)
     pair = next((m.name[:-1] for m in markers if m.name.endswith("L") and m.region != STABILIZATION), None)
-    middle = next((m.name for m in markers if m.name.isdigit()), None)
+    middle = next((m.name for m in markers if m.name.isdigit() and m.side == "C"), None)
     mirror = (f"A marker and its mirror share a number ({pair}L / {pair}R)" if pair else "") + \
         (f"{'; a' if pair else 'A'} number alone ({middle}) sits on the midline" if middle else "") + \
         (". " if pair or middle else "")
