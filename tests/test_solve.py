@@ -399,4 +399,3 @@ def test_clean_reference_stabilizes_into_the_sessions_head_frame(workspace, tmp_
     done = mocaptk("clean", tmp_path / "moving.c3d", tmp_path / "x.c3d", "--reference",
                    root / "layout" / "layout.json", "--rigid", "NOSE_02_C,EYE_12_L,CHIN_01_C")
     assert done.returncode == 2 and "--reference" in done.stderr and not (tmp_path / "x.c3d").exists()
-
