@@ -170,6 +170,7 @@ class CameraRig:
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate camera names: {names}")
         object.__setattr__(self, "cameras", cameras)
+        object.__setattr__(self, "name", " ".join(str(self.name).split()))  # a tab broke plan.png's title
 
     def __len__(self) -> int:
         return len(self.cameras)

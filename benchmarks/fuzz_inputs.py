@@ -3,11 +3,13 @@ that read them (``benchmarks/fuzz_readers.py`` covers the marker files byte by b
 
 Kinds and the commands each case runs (in-process ``mocaptk.cli.main`` in an isolated worker):
 
-- ``layout``: layout.json -> ``solve --model`` (14 of 16 cases), ``plan``, ``evaluate``;
-- ``model``: model.npz (header and arrays) -> ``solve --model``;
+- ``layout``: layout.json -> ``solve --model`` (38 of 40 cases), ``plan``, ``evaluate``;
+- ``model``: model.npz (header and arrays) -> ``solve --model`` (solve's mesh: the marker
+  surface, the default face on 1 case in 100: fitting it costs 5 CPU-s and reads no input);
 - ``takes``: a takes JSON -> ``cluster --takes`` (3 of 4 cases), ``evaluate --takes``;
 - ``regions_json``, ``regions_csv``: a regions file -> ``cluster --regions``;
-- ``rig``: a camera rig JSON -> ``plan --rig`` (9 of 10 cases), ``cluster --rig``;
+- ``rig``: a camera rig JSON -> ``triangulate`` (17 of 20 cases), ``plan --rig`` (1 of 10),
+  ``cluster --rig`` (1 of 20);
 - ``sidecar``: a batch sidecar ``<stem>.mocaptk.json`` -> batch's per-session preparation
   (``session_argv``, ``input_files``), then the command it makes (every 20th case);
 - ``session``: header values of a session (C3D parameters POINT:RATE/UNITS/SCALE/LABELS, TRC
@@ -21,7 +23,8 @@ a 5,000-character or control-character string, an empty or wrong-typed container
 key removed, an item duplicated; or the text is cut. Each case must end in exit 0 or in one line
 ``mocaptk: error: ...`` (exit 2) of at most 300 characters that names a file; anything else is a
 finding: a traceback (another exception), a Python warning, a crash, a hang (no answer within the
-time bound), a longer or unnamed error line.
+time bound), a longer or unnamed error line, a ``mocaptk: warning:`` / ``note:`` line over 300
+characters.
 
 Usage::
 
@@ -38,6 +41,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from collections import Counter
@@ -130,7 +134,15 @@ def make_seeds(folder: Path) -> dict[str, Path]:
     regions = json.loads((folder / "regions.json").read_text())
     (folder / "regions.csv").write_text("label,region\n" + "".join(
         f"{label},{name}\n" for name, labels in regions.items() for label in labels))
-    save_rig(cara_rig(), folder / "rig.json")
+    rig = cara_rig()
+    save_rig(rig, folder / "rig.json")
+    import numpy as np
+
+    from mocaptk.acquisition.projection import project_points
+
+    points = perf.positions[:20, ::4]  # 20 frames of 35 markers: triangulate reads the rig cheaply
+    np.savez(folder / "obs.npz", points2d=np.stack([project_points(c, points)[0] for c in rig.cameras]),
+             labels=np.array(perf.labels[::4]), rate=np.array(perf.rate), camera_names=np.array(rig.names))
     for argv in (["cluster", str(folder / "session.c3d"), "--formats", "none", "--out", str(folder / "lay"),
                   "-q", "--force"],
                  ["solve", str(folder / "lay" / "layout.json"), str(folder / "capture.c3d"), "--out",
@@ -145,7 +157,7 @@ def make_seeds(folder: Path) -> dict[str, Path]:
     return {"session": folder / "session.c3d", "trc": folder / "session.trc", "capture": folder / "capture.c3d",
             "layout": folder / "lay" / "layout.json", "model": folder / "solved" / "model.npz",
             "takes": folder / "takes.json", "regions_json": folder / "regions.json",
-            "regions_csv": folder / "regions.csv", "rig": folder / "rig.json",
+            "regions_csv": folder / "regions.csv", "rig": folder / "rig.json", "obs": folder / "obs.npz",
             "sidecar": folder / "session.mocaptk.json"}
 
 
@@ -393,13 +405,26 @@ def mutate_session(seeds: dict[str, Path], out_dir: Path, rng: random.Random, la
                 [rng.choice([0, 65535, 1]), rng.choice([0, 65535])], dtype=np.int64)}} \
                 if rng.random() < 0.5 else c3d["parameters"].get("TRIAL", {})
     path = out_dir / "case.c3d"
-    try:
-        c3d.write(str(path))
-    except Exception:  # ezc3d refuses some values: write the seed with a patched header word instead
+    if not _write_in_child(c3d, path):  # ezc3d refuses (or aborts on) some values: patch a header word
         data = bytearray(seeds["session"].read_bytes())
         data[rng.randrange(0, 40)] = rng.randrange(256)
         path.write_bytes(bytes(data))
     return path
+
+
+def _write_in_child(c3d, path: Path) -> bool:
+    """``c3d.write(path)`` in a forked child: ezc3d aborts the whole process on some values (it
+    stopped the harness once), so only the child dies."""
+    pid = os.fork()
+    if pid == 0:
+        try:
+            c3d.write(str(path))
+            code = 0
+        except BaseException:
+            code = 1
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0 and path.exists()
 
 
 # -- cases -------------------------------------------------------------------------------------------
@@ -436,17 +461,21 @@ def make_case(kind: str, seeds: dict[str, Path], labels: list[str], seed: int, i
     evaluate = ["evaluate", s, "--layout", lay, "--seeds", "1", "--folds", "2", "--out", out + "/e.json", "-q"]
     # the paper's method (0.15 CPU-s) for most cluster runs; the default hybrid (1-2 CPU-s) on 1 in 20
     cluster = ["cluster", s, "--formats", "none", "--out", out, "-q", *(["--method", "paper"] if i % 20 else [])]
+    # solve's mesh: the default face (5 CPU-s to fit) on 1 case in 100, the marker surface otherwise
+    mesh = [] if i % 100 == 1 else ["--surface", "markers", "--subdivisions", "0"]
     if kind == "layout":
-        case["argv"] = ({0: [*plan[:1], p, *plan[2:]], 8: [*evaluate[:3], p, *evaluate[4:]]}.get(i % 16)
-                        or ["solve", p, cap, "--model", model, "--out", out, "--formats", "npz", "-q"])
+        case["argv"] = ({0: [*plan[:1], p, *plan[2:]], 20: [*evaluate[:3], p, *evaluate[4:]]}.get(i % 40)
+                        or ["solve", p, cap, "--model", model, "--out", out, "--formats", "npz", "-q", *mesh])
     elif kind == "model":
-        case["argv"] = ["solve", lay, cap, "--model", p, "--out", out, "--formats", "npz", "-q"]
+        case["argv"] = ["solve", lay, cap, "--model", p, "--out", out, "--formats", "npz", "-q", *mesh]
     elif kind == "takes":
         case["argv"] = [*cluster, "--takes", p] if i % 4 else [*evaluate, "--takes", p]
     elif kind in ("regions_json", "regions_csv"):
         case["argv"] = [*cluster, "--regions", p]
     elif kind == "rig":
-        case["argv"] = [*plan[:5], p, *plan[6:]] if i % 10 else [*cluster[:7], "--rig", p]  # hybrid: weighs the rig
+        triangulate = ["triangulate", p, str(seeds["obs"]), out + "/t.c3d", "-q"]
+        case["argv"] = ([*cluster[:7], "--rig", p] if i % 20 == 0  # hybrid: weighs the rig
+                        else [*plan[:5], p, *plan[6:]] if i % 10 == 1 else triangulate)
     elif kind == "sidecar":
         session = case_dir / "session.c3d"
         session.symlink_to(seeds["session"])
@@ -471,6 +500,9 @@ def classify(answer: dict, case: dict) -> str:
     errors = [line for line in lines if line.startswith("mocaptk: error: ")]
     others = [line for line in lines if not line.startswith(("mocaptk: error: ", "mocaptk: warning: ",
                                                                   "mocaptk: note: "))]
+    notes = [line.split(": ", 2)[2] for line in lines if line.startswith(("mocaptk: warning: ", "mocaptk: note: "))]
+    if any(len(note) > MAX_LINE for note in notes):  # warnings are cut like errors
+        return "long_line"
     if answer["code"] == 0:
         return "ok" if not others else "stray_output"
     if answer["code"] != 2 or len(errors) != 1 or others:
@@ -479,6 +511,7 @@ def classify(answer: dict, case: dict) -> str:
     if len(message) > MAX_LINE:
         return "long_line"
     names = [case["case"], Path(case["case"]).name, "session.c3d", "capture.c3d", "layout.json", "model.npz",
+             "obs.npz",
              str(Path(case["cwd"]) / "out"), "--",  # the case, another input, the output, or an option
              *(f"{Path(case['cwd'])}/" for _ in (0,))]  # a file a sidecar names (relative to its folder)
     return "error" if any(n in message for n in names) else "unnamed"
@@ -523,9 +556,17 @@ def run_kinds(kinds: list[str], seeds: dict[str, Path], labels: list[str], cases
                        "findings": findings[kind][:40]} for kind in kinds} | {
             "seconds": round(time.perf_counter() - began, 1), "load": os.getloadavg()[0], "seed": seed}
 
+    queue = iter(order)  # each worker takes the next case: the kinds stay even whatever each costs
+    lock = threading.Lock()
+
+    def next_case() -> tuple[int, str] | None:
+        with lock:
+            return next(queue, None)
+
     def share(w: int) -> None:
         worker = Worker(memory_limit)
-        for i, kind in order[w::workers]:
+        while (item := next_case()) is not None:
+            i, kind = item
             case_dir = Path(tempfile.mkdtemp(prefix=f"fz_{kind}_{i}_"))
             try:
                 case = make_case(kind, seeds, labels, seed, i, case_dir)
@@ -552,6 +593,18 @@ def run_kinds(kinds: list[str], seeds: dict[str, Path], labels: list[str], cases
     return summary()
 
 
+def print_merged(runs: list[dict]) -> None:
+    """Cases and outcomes per kind, summed over ``runs`` (summaries of disjoint case ranges)."""
+    for kind in KINDS:
+        tally = Counter()
+        for run in runs:
+            tally.update(run.get(kind, {}).get("outcomes", {}))
+        findings = [f for run in runs for f in run.get(kind, {}).get("findings", [])]
+        print(f"{kind:13s} {sum(tally.values()):6d} cases  " + "  ".join(f"{k}={v}" for k, v in sorted(tally.items()))
+              + "".join(f"\n    case {f['case']}: {f['outcome']} {(f['stderr'] or str(f['warnings']))[-160:]!r}"
+                        for f in findings))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=2000, help="cases per kind")
@@ -562,7 +615,12 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--memory", type=int, default=6 << 30, help="address-space limit per worker (bytes)")
     parser.add_argument("--json", type=Path, help="write the summary here (every 50 cases and at the end)")
+    parser.add_argument("--merge", type=Path, nargs="+", help="only add up the summaries of runs over "
+                        "disjoint case ranges (--start/--cases) and print the table")
     args = parser.parse_args()
+    if args.merge:
+        print_merged([json.loads(path.read_text()) for path in args.merge])
+        return
     seed_dir = Path(tempfile.mkdtemp(prefix="fz_seeds_"))
     seeds = make_seeds(seed_dir)
     from mocaptk.acquisition.formats import read_trajectories

@@ -285,7 +285,11 @@ class Worker:
     def close(self) -> None:
         if self.proc and self.proc.poll() is None:
             self.proc.stdin.close()
-            self.proc.wait(timeout=10)
+            try:
+                self.proc.wait(timeout=60)  # a loaded machine: an interpreter's exit can take a while
+            except subprocess.TimeoutExpired:  # it stopped the campaign's summary once
+                self.proc.kill()
+                self.proc.wait()
 
 
 def make_case(fmt: str, blobs: list[tuple[Path, bytes]], seed: int, i: int) -> tuple[Path, str, bytes]:

@@ -11,6 +11,7 @@ import numpy as np
 from mocaptk.atomic import atomic_path
 
 from .layout import Layout
+from .regions import region_colour
 
 
 def _pyplot():
@@ -37,9 +38,10 @@ HEATMAP_MAX_CELLS = 512
 
 
 def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.ndarray, *, title: str,
-                        path: str | os.PathLike[str]) -> Path:
+                        path: str | os.PathLike[str], representatives: Sequence[str] = ()) -> Path:
     """Heatmap of one region's consolidated correlation (−3..3), markers ordered by cluster
-    (block means for more than :data:`HEATMAP_MAX_CELLS` markers; axes in marker positions)."""
+    (``clusters`` (N,) ints: one box each; block means for more than :data:`HEATMAP_MAX_CELLS`
+    markers; axes in marker positions); ``representatives`` are labelled in bold."""
     plt = _pyplot()
     order = np.argsort(clusters, kind="stable")
     n = len(labels)
@@ -50,6 +52,9 @@ def correlation_heatmap(labels: Sequence[str], matrix: np.ndarray, clusters: np.
     if n <= 60:
         ax.set_xticks(range(n), [labels[i] for i in order], rotation=90, fontsize=6)
         ax.set_yticks(range(n), [labels[i] for i in order], fontsize=6)
+        for tick in [*ax.get_xticklabels(), *ax.get_yticklabels()]:
+            if tick.get_text() in representatives:
+                tick.set_fontweight("bold")
     bounds = np.flatnonzero(np.diff(clusters[order])) + 0.5
     if 0 < len(bounds) <= HEATMAP_MAX_CELLS:  # more cluster lines than cells would be a black square
         ax.hlines(bounds, -0.5, n - 0.5, color="k", lw=0.6)  # one artist for all lines: cheap to draw
@@ -140,13 +145,13 @@ def regions_picture(regions: Mapping[str, Sequence[str]], neutral: Mapping[str, 
                     frame: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """Front view of the markers coloured by region."""
     plt = _pyplot()
-    cmap = plt.get_cmap("tab10")
     fig, ax = plt.subplots(figsize=(8, 9), layout="constrained")  # room for the legend and both labels
-    for k, (name, members) in enumerate(regions.items()):
+    for name, members in regions.items():
         pts = np.array([neutral[m] for m in members if m in neutral])
-        if pts.size:
+        if pts.size:  # the region's colour in the guide and the report
             xy = _front(pts, frame)
-            ax.scatter(xy[:, 0], xy[:, 1], s=30, color=cmap(k % 10), label=f"{_legend_text(name)} ({len(pts)})")
+            ax.scatter(xy[:, 0], xy[:, 1], s=30, color=region_colour(name),
+                       label=f"{_legend_text(name)} ({len(pts)})")
     ax.set_aspect("equal")
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)  # off the markers
     ax.set_xlabel("lateral (mm, + = subject's left)")

@@ -307,8 +307,8 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         elif idx.size >= 2 and result.unreachable:
             notes.append(f"region {name!r}: threshold {result.threshold:.3f} (factor {factor:g} x mean "
                          f"correlation {result.mean_correlation:.3f}) is not below its largest correlation "
-                         f"{result.max_correlation:.3f}, so the paper's rule makes every marker its own "
-                         f"cluster (counted in the layout's size{'' if options.method == 'paper' else f'; --method {options.method} places the measured markers'}); "
+                         f"{result.max_correlation:.3f}, so the paper's rule makes each of its {idx.size} markers "
+                         f"its own cluster (counted in the layout's size{'' if options.method == 'paper' else f'; --method {options.method} places the measured markers, see the table'}); "
                          f"--factor {result.clustering_factor():.3f} or lower clusters it")
         member_labels = regions[name]
         reps = [member_labels[r] for r in result.representatives]

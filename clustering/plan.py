@@ -25,7 +25,7 @@ from mocaptk.trajectories import Take, Trajectories
 
 from .camera_cost import DEFAULT_NOISE_MM, MIRROR_PREFIX, session_costs
 from .evaluation import holdout_splits
-from .figures import _front, _pyplot, _save
+from .figures import _front, _legend_text, _pyplot, _save
 from .layout import Layout, measured_indices
 from .lost_marker import heldout_folds, lost_marker_rmse
 from .symmetry import SagittalPlane
@@ -91,43 +91,75 @@ def marker_risk(intact: float, lost: float, visibility: float, error: float, n_p
     return float(np.sqrt(intact ** 2 + lost_term + noise_term) - intact)
 
 
+#: Colour scales of plan.png: fixed where a value has a meaning of its own (visibility), else from 0
+#: to a round ceiling no lower than the floor, so that trivial spreads (0.001-0.003 mm) stay green.
+PLAN_SCALES = {"risk_mm": ("risk: added face RMSE (mm)", "RdYlGn_r", 0.1),
+               "visibility_percent": ("seen by ≥ 2 cameras (% of frames)", "RdYlGn", None),
+               "triangulation_error_mm": ("triangulation error (mm RMS)", "RdYlGn_r", 0.5),
+               "lost_rmse_mm": ("face RMSE with this marker lost (mm)", "RdYlGn_r", 1.0)}
+#: Markers named in each panel: the worst few by its value.
+PLAN_NAMED = 5
+
+
+def _round_ceiling(value: float, floor: float) -> float:
+    """The smallest of 1, 2, 5 x 10^k at or above ``value`` (at least ``floor``)."""
+    if not np.isfinite(value) or value <= floor:
+        return floor
+    power = 10.0 ** np.floor(np.log10(value))
+    return float(next(m * power for m in (1, 2, 5, 10) if m * power >= value))
+
+
 def plan_picture(plan: dict[str, Any], neutral: dict[str, np.ndarray], layout_positions: dict[str, np.ndarray],
                  *, frame: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """Front views (``frame``: rows lateral, up, forward) of the layout markers coloured by risk,
-    visibility, triangulation error and lost-marker RMSE (dense markers grey; mirrored twins
-    drawn as squares)."""
+    visibility, triangulation error and lost-marker RMSE on the scales of :data:`PLAN_SCALES`
+    (dense markers grey; mirrored twins drawn as squares; the worst markers of each panel named)."""
     plt = _pyplot()
     dense = _front(np.array(list(neutral.values())), frame)
     rows = plan["markers"]
     xy = _front(np.array([layout_positions[m["label"]] for m in rows]), frame)
     mirrored = np.array([m["mirrored_from"] is not None for m in rows])
-    panels = [("risk_mm", "risk: added face RMSE (mm)", "RdYlGn_r"),
-              ("visibility_percent", "seen by ≥ 2 cameras (% of frames)", "RdYlGn"),
-              ("triangulation_error_mm", "triangulation error (mm RMS)", "RdYlGn_r"),
-              ("lost_rmse_mm", "face RMSE with this marker lost (mm)", "RdYlGn_r")]
-    fig, axes = plt.subplots(2, 2, figsize=(12, 12))
-    for ax, (key, title, cmap) in zip(axes.ravel(), panels):
+    fig, axes = plt.subplots(2, 2, figsize=(12, 12.6))
+    for ax, (key, (title, cmap, floor)) in zip(axes.ravel(), PLAN_SCALES.items()):
         values = np.array([m[key] for m in rows], dtype=np.float64)
         finite = values[np.isfinite(values)]
-        low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-        if high - low < 1e-9:  # one value for all: draw it at the good end of the colours
-            low, high = (low - 1.0, low) if not cmap.endswith("_r") else (low, low + 1.0)
+        worst_value = (finite.min() if key == "visibility_percent" else finite.max()) if finite.size else np.nan
+        low, high = (50.0, 100.0) if floor is None else (0.0, _round_ceiling(worst_value, floor))
         ax.scatter(dense[:, 0], dense[:, 1], s=8, c="lightgrey")
         for shape, chosen in (("o", ~mirrored), ("s", mirrored)):
             if chosen.any():
                 drawn = ax.scatter(xy[chosen, 0], xy[chosen, 1], c=np.nan_to_num(values[chosen], nan=high),
                                    cmap=cmap, vmin=low, vmax=high, s=120, marker=shape, edgecolors="k",
                                    linewidths=0.8, zorder=3)
-        fig.colorbar(drawn, ax=ax, shrink=0.8)
-        ax.set_title(title)
+        fig.colorbar(drawn, ax=ax, shrink=0.8, extend="min" if floor is None else "max")
+        order = np.argsort(values if key == "visibility_percent" else -np.nan_to_num(values, nan=-np.inf),
+                           kind="stable")
+        middle = np.nanmedian(xy[:, 0]) if np.isfinite(xy[:, 0]).any() else 0.0
+        for n, i in enumerate(order[:PLAN_NAMED]):  # name the worst markers of this panel, outwards
+            if np.isfinite(values[i]) and np.isfinite(xy[i]).all():
+                right = xy[i, 0] >= middle
+                ax.annotate(_legend_text(rows[i]["label"], width=24), xy[i], xytext=(-8 if right else 8, 8 - 5 * (n % 2)),
+                            textcoords="offset points", fontsize=7, zorder=4, ha="right" if right else "left",
+                            annotation_clip=False,
+                            bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
+        intact = f" (intact {plan['intact_rmse_mm']:.3g})" if key == "lost_rmse_mm" else ""
+        ax.set_title(f"{title}\nworst: {worst_value:.3g}{intact}" + ("" if floor is None else f"; scale 0-{high:g}"))
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
+    from matplotlib.lines import Line2D
+
+    shapes = [Line2D([], [], ls="", marker="o", ms=4, mfc="lightgrey", mec="none", label="dense marker"),
+              Line2D([], [], ls="", marker="o", ms=10, mfc="white", mec="k", label="layout marker"),
+              Line2D([], [], ls="", marker="s", ms=10, mfc="white", mec="k",
+                     label="mirrored twin (placed like its source)")]
+    fig.legend(handles=shapes, loc="lower center", ncol=3, frameon=False,
+               title=f"named: the {PLAN_NAMED} worst markers of each panel (plan.json lists all)")
     worst = max(rows, key=lambda m: m["risk_mm"])
     fig.suptitle(f"{len(rows)} layout markers through the {plan['rig']['name']} rig "
-                 f"({len(plan['rig']['cameras'])} cameras); highest risk {worst['label']} "
+                 f"({len(plan['rig']['cameras'])} cameras); highest risk {_legend_text(worst['label'])} "
                  f"(+{worst['risk_mm']:.3f} mm); intact face RMSE {plan['intact_rmse_mm']:.3f} mm")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97), h_pad=3.0)
     return _save(fig, path)
 
 

@@ -975,6 +975,10 @@ def load_model(path: str | os.PathLike[str], *, session: Mapping[str, Any] | Non
         if trained.get(key) != value:
             raise InputFileError(path, f"the model was trained on another session ({key} "
                                  f"{quoted(trained.get(key))}, expected {quoted(value)})")
+    # numbers as float64 (index arrays stay integers): linalg refuses float16, and an int8 cov
+    # cannot take the ridge added in place
+    arrays = {k: v.astype(np.float64) if v.dtype.kind == "f" or (v.dtype.kind in "iu" and k not in _INDEX_ARRAYS)
+              else v for k, v in arrays.items()}
     try:
         _check_model(header, arrays, labelled=labelled)
     except _BadModel as exc:
@@ -997,6 +1001,8 @@ _KIND_ARRAYS = {"ridge": ("mean", "cov", "frames", "ridge"),
                 "thin-shell": ("faces",)}
 _PDM_ARRAYS = ("faces", "pdm_neighbours", "pdm_neighbour_counts", "pdm_tangents", "pdm_mean", "pdm_axes",
                "pdm_bounds", "pdm_coef", "pdm_vertex_bounds")
+#: Arrays of marker / triangle indices (kept integer when a model file is read).
+_INDEX_ARRAYS = ("layout", "faces", "pdm_neighbours", "pdm_neighbour_counts")
 #: Largest coordinate (mm) of a stored position: beyond it, squares overflow.
 _REACH_MM = 1e6
 
@@ -1050,7 +1056,7 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
     shape("error_drop", n_layout)
     finite("error_base", low=0, high=_REACH_MM, nan=True)
     finite("error_drop", low=0, high=_REACH_MM, nan=True)
-    if kind in ("ridge", "local-ridge", "tapered-ridge"):
+    if kind in ("ridge", "local-ridge", "tapered-ridge", "ridge-cv"):
         shape("mean", 3 * m)
         shape("cov", 3 * m, 3 * m)
         for name in ("frames", "ridge"):
@@ -1067,6 +1073,10 @@ def _check_model(header: dict, a: Mapping[str, np.ndarray], *, labelled: bool) -
         if not a["taper_mm"] > 1e-6:  # inf: no taper (a length the CV may choose)
             raise _BadModel("taper_mm has values out of range")
         for name in ("cv_lengths_mm", "cv_rmse_mm"):
+            if a[name].ndim != 1:
+                raise _BadModel(f"{name} must be a list of numbers")
+    if kind == "ridge-cv":
+        for name in ("cv_ridges", "cv_rmse_mm"):
             if a[name].ndim != 1:
                 raise _BadModel(f"{name} must be a list of numbers")
     if "faces" in names:

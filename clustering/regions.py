@@ -5,9 +5,11 @@ A region map is ``{region name: [marker labels]}`` with every label in at most o
 
 from __future__ import annotations
 
+import colorsys
 import csv
 import os
 import re
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -20,6 +22,30 @@ from mocaptk.jsonio import parse_json, read_input_bytes
 
 #: The six facial regions of the paper, top to bottom.
 FACIAL_REGIONS = ("forehead_brow", "eye", "nose", "cheek", "mouth", "chin")
+#: RGB (0-1) of the six facial regions: the same in regions.png, the guide and the report.
+REGION_COLOURS: dict[str, tuple[float, float, float]] = {
+    "forehead_brow": (0.20, 0.45, 0.85),
+    "eye": (0.55, 0.30, 0.80),
+    "nose": (0.90, 0.55, 0.10),
+    "cheek": (0.20, 0.65, 0.35),
+    "mouth": (0.85, 0.20, 0.25),
+    "chin": (0.60, 0.45, 0.25),
+    "stabilization": (0.20, 0.20, 0.20),  # head markers: dark, as the report's black squares
+}
+#: The face outside every region ("other").
+OTHER_COLOUR = (0.40, 0.50, 0.60)
+#: Colours of regions of other names (a user's regions file), picked by the name: stable everywhere.
+_MORE_COLOURS = ((0.10, 0.60, 0.65), (0.80, 0.40, 0.60), (0.45, 0.55, 0.15), (0.95, 0.75, 0.15),
+                 (0.35, 0.25, 0.55), (0.70, 0.30, 0.10), (0.25, 0.35, 0.45), (0.55, 0.75, 0.85))
+
+
+def region_colour(region: str, *, tint: float = 0.0) -> tuple[float, float, float]:
+    """RGB of a region; ``tint`` in [-1, 1] lightens (>0) or darkens (<0) it."""
+    base = REGION_COLOURS.get(region) or (OTHER_COLOUR if region == "other" else
+                                          _MORE_COLOURS[zlib.crc32(region.encode("utf-8", "replace")) % 8])
+    h, light, s = colorsys.rgb_to_hls(*base)
+    light = light + tint * (1.0 - light) if tint > 0 else light * (1.0 + tint)
+    return colorsys.hls_to_rgb(h, min(max(light, 0.0), 1.0), s)
 
 #: ``MOUTH_03``, ``FOREHEAD_BROW_05_L``, ``Anna:NOSE_1_C``: region words, a number, optional side tag.
 _PREFIX_LABEL = re.compile(r"^(?:.*:)?([A-Za-z]+(?:_[A-Za-z]+)*)_\d+(?:_[LRCM])?$")

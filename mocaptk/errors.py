@@ -31,6 +31,14 @@ def quoted(value: object, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit - 4] + " ..." + text[-1:]
 
 
+def warn(message: str, *, kind: str = "warning") -> None:
+    """Print ``mocaptk: warning: <message>`` (or ``note``) on stderr: one line, at most
+    :data:`MAX_LINE` characters like an error line."""
+    import sys
+
+    print(f"mocaptk: {kind}: {shorten(message)}", file=sys.stderr)
+
+
 class MocaptkError(Exception):
     """A problem the user can fix (bad input, bad option); printed as one line."""
 

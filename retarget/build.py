@@ -608,8 +608,9 @@ def skinning_check(build: RigBuild, cloud: DenseCloud | None = None
     """
     cloud = build.cloud if cloud is None else cloud
     dist, labels, frames = _marker_distances(build, cloud, None)  # (F_used, N)
-    region_of = {m: r.name for r in build.layout.regions for m in r.markers}
-    region_of.update({m: c.region for c in build.layout.clusters for m in c.members})
+    # a marker's own region (as cluster's table counts it), not that of the layout marker it follows
+    region_of = {m: c.region for c in build.layout.clusters for m in c.members}
+    region_of.update({m: r.name for r in build.layout.regions for m in r.markers})
     names = [region_of.get(label, "") for label in labels]
     regions = {}
     for region in sorted(set(names)):

@@ -309,12 +309,17 @@ def _scale_page(pdf, title: str, markers: list[GuideMarker], outline: np.ndarray
     _scale_bars(pdf, bx, by)
     pdf.set_font("helvetica", "", 7)
     pdf.set_xy(bx + SCALE_BAR_MM + 8, by - 2)
-    pdf.multi_cell(width - bx - SCALE_BAR_MM - 8 - MARGIN, 3.5, _ascii(
+    pair = next((m.name[:-1] for m in markers if m.name.endswith("L") and m.region != STABILIZATION), None)
+    middle = next((m.name for m in markers if m.name.isdigit() and m.side == "C"), None)
+    mirror = (f"A marker and its mirror share a number ({pair}L / {pair}R)" if pair else "") + \
+        (f"{'; a' if pair else 'A'} number alone ({middle}) sits on the midline" if middle else "") + \
+        (". " if pair or middle else "")
+    pdf.multi_cell(width - bx - SCALE_BAR_MM - 8 - MARGIN, 3.5, align="L", text=_ascii(
         "Front projection, true size: markers on the sides of the face sit further apart on the "
         "skin than on paper. Dashed: face outline and midline. Character's left is on the "
-        "right, as seen facing the performer. A marker and its mirror share a number (16L / 16R). "
+        f"right, as seen facing the performer. {mirror}"
         "Squares H1, H2 ...: head (stabilization) markers on skin that does not move, placed like "
-        "the others; every capture needs them. Check both bars before cutting a mask."))
+        "the others; every capture needs them. Check both bars before cutting a mask."))  # left-aligned: even spacing
 
 
 def _scale_bars(pdf, bx: float, by: float) -> None:
@@ -338,8 +343,13 @@ def _scale_bars(pdf, bx: float, by: float) -> None:
 
 
 def _table_pages(pdf, title: str, markers: list[GuideMarker], landmark: str) -> None:
-    cols = [("#", 8), ("joint", 8), ("label", 31), ("region", 19), ("side", 6), ("from midline", 16),
-            ("vs nose tip" if landmark == "nose tip" else "vs front pt", 16), ("depth", 16), ("replaces: count, dense markers of its cluster", 66)]
+    pdf.set_font("helvetica", "", 7)
+    # the label and region columns as wide as their longest text (labels were cut: "FOREHEAD_BROW_18...")
+    label_w = min(max(31.0, max(pdf.get_string_width(_ascii(m.label)) for m in markers) + 2.0), 60.0)
+    region_w = min(max(19.0, max(pdf.get_string_width(_ascii(m.region)) for m in markers) + 2.0), 40.0)
+    cols = [("#", 8), ("joint", 8), ("label", label_w), ("region", region_w), ("side", 6), ("from midline", 16),
+            ("vs nose tip" if landmark == "nose tip" else "vs front pt", 16), ("depth", 16),
+            ("replaces: count, dense markers of its cluster", 116 - label_w - region_w)]
     line_h = 3.4
     width, height = A4
     # pairs together (16L, 16R), in number order

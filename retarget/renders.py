@@ -9,7 +9,6 @@ every label shown (VTK's own label placer hides overlapping ones), none overlapp
 
 from __future__ import annotations
 
-import colorsys
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,22 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from mocaptk.atomic import atomic_path
+from mocaptk.clustering.regions import REGION_COLOURS, region_colour
 
 __all__ = ["REGION_COLOURS", "VIEWS", "region_colour", "render_view"]
 
 #: Pixels per label-placement unit: the guide's placer works in page mm (dot radius 1.5).
 LABEL_UNIT_PX = 3.0
 
-#: RGB (0-1) of the six facial regions of the method; other region names get a fixed grey-blue.
-REGION_COLOURS: dict[str, tuple[float, float, float]] = {
-    "forehead_brow": (0.20, 0.45, 0.85),
-    "eye": (0.55, 0.30, 0.80),
-    "nose": (0.90, 0.55, 0.10),
-    "cheek": (0.20, 0.65, 0.35),
-    "mouth": (0.85, 0.20, 0.25),
-    "chin": (0.60, 0.45, 0.25),
-}
-OTHER_COLOUR = (0.40, 0.50, 0.60)
 #: Camera direction (from the face towards the camera) and up vector per view, rig frame.
 VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
     "front": ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
@@ -43,14 +33,6 @@ VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] 
 #: A view with more layout markers than this shows them as dots without numbers: on a
 #: 1050 x 1200 px view their labels overlap into a blot (and cost ~50 ms of matplotlib each).
 MAX_NUMBERED = 200
-
-
-def region_colour(region: str, *, tint: float = 0.0) -> tuple[float, float, float]:
-    """RGB of a region; ``tint`` in [-1, 1] lightens (>0) or darkens (<0) it."""
-    r, g, b = REGION_COLOURS.get(region, OTHER_COLOUR)
-    h, light, s = colorsys.rgb_to_hls(r, g, b)
-    light = light + tint * (1.0 - light) if tint > 0 else light * (1.0 + tint)
-    return colorsys.hls_to_rgb(h, min(max(light, 0.0), 1.0), s)
 
 
 def cluster_shades(regions: list[str]) -> np.ndarray:

@@ -121,10 +121,47 @@ def load_solver(path: str | os.PathLike[str], *, session: Mapping[str, Any] | No
     model, header = load_model(path, session=session, labelled=True)
     with np.load(path, allow_pickle=False) as data:  # readable: load_model just read it
         extra = {k: data[k] for k in data.files if k.startswith("solver_")}
+    problem = _extra_problem(header, extra)
+    if problem:
+        raise InputFileError(path, f"malformed model file: {problem}")
     try:
         return FaceSolver.from_header(model, header, extra)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputFileError(path, f"malformed model header ({exc})") from None
+
+
+def _extra_problem(header: Mapping[str, Any], extra: Mapping[str, np.ndarray]) -> str | None:
+    """What is wrong with the ``solver_*`` arrays of a model file (shapes against the header's
+    labels, real finite numbers), or None."""
+    fallback = header.get("fallback_labels") or []
+    if not isinstance(fallback, list) or not all(isinstance(v, str) for v in fallback) \
+            or not set(fallback) <= set(header["layout_labels"]):
+        return "header fallback_labels must be among its layout_labels"
+    n = len(header["layout_labels"])
+    expected = {"solver_rigid_reference": (len(header.get("rigid_labels") or ()), 3),
+                "solver_fallback_reference": (len(fallback), 3),
+                "solver_mean": (3 * n,), "solver_cov": (3 * n, 3 * n), "solver_training_consistency": ()}
+    for name, value in extra.items():
+        if name not in expected:
+            continue
+        if value.dtype.kind not in "iuf" or value.shape != expected[name]:
+            return f"{name} must be {expected[name]} numbers, not {value.shape} {value.dtype}"
+        value = value.astype(np.float64)  # a float16 compared with 1e12 overflows
+        finite = np.isfinite(value) | (name == "solver_training_consistency")  # NaN: not measured
+        if not (finite.all() and (np.abs(np.nan_to_num(value)) < 1e12).all()):
+            return f"{name} has values out of range"
+    for name in ("solver_rigid_reference", "solver_fallback_reference"):
+        points = extra.get(name)
+        if points is not None and len(points) >= 3:  # head poses are fitted to them
+            spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+            if spread[1] < 1e-3 * max(spread[0], 1.0):
+                return f"{name}: its markers coincide or lie on one line"
+    if "solver_cov" in extra:
+        try:  # the ghost screen inverts it: a fitted Gaussian's (ridge added) is positive definite
+            np.linalg.cholesky(extra["solver_cov"].astype(np.float64))
+        except np.linalg.LinAlgError:
+            return "solver_cov is not a covariance (not positive definite)"
+    return None
 
 
 def train_solver(layout: Layout, session: Trajectories, source: Mapping[str, Any], *,

@@ -117,3 +117,22 @@ def test_cluster_on_bundled_sample(run_cli, tmp_path):
     data = json.loads((tmp_path / "s" / "layout.json").read_text())
     assert data["parameters"]["regions_from"] == "label prefixes"
     assert len(data["layout"]) > 10
+
+
+@pytest.mark.slow
+def test_blenderface_region_bookkeeping_agrees(run_cli, tmp_path):
+    """Issue 33: the table said eye 2 dense / 0 measured beside a warning that every eye marker is
+    its own cluster, and the per-region RMSE lines counted the eye's markers under cheek (8)."""
+    import re
+
+    csv = shared_path("facial_mocap", "blenderface", "Subject_01.csv")
+    done = run_cli("cluster", csv, "--rate", "25", "--units", "187.6", "--no-stabilize", "--formats", "json",
+                   "--out", tmp_path / "bf")
+    assert done.exit_code == 0, done.stderr
+    table = dict(re.findall(r"^(\w+)\s+(\d+)\s+\d+\s+\d+\s+\d+$", done.stdout, re.M))
+    table.pop("total")
+    checked = dict(re.findall(r"^  (\w+)\s+RMSE [\d.]+ mm, max [\d.]+ mm \((\d+) markers?\)$", done.stdout, re.M))
+    assert checked == table  # the same regions, the same dense marker counts
+    assert "(1 markers)" not in done.stdout
+    assert "eye: no layout marker of its own; its 2 markers follow" in done.stdout
+    assert "each of its 2 markers its own cluster" in done.stderr and "see the table" in done.stderr

@@ -118,6 +118,20 @@ def f(tmp_path_factory) -> dict[str, Path]:
     rng = np.random.default_rng(0)
     cloud = rng.uniform(-18, 18, (1, session.n_markers, 3)) + rng.normal(0, 0.3, (60, session.n_markers, 3))
     write_trajectories(Trajectories(cloud, [f"*{k}" for k in range(session.n_markers)], 100.0), d / "other_face.c3d")
+    cams = json.loads((d / "cameras.json").read_text())
+    cams["cameras"][0]["image_size"] = "@@"
+    (d / "cam_values.json").write_text(json.dumps(cams).replace('"@@"', "[1e400, 720]"))
+    (d / "deep.json").write_text('{"takes": ' + "[" * 5000 + "]" * 5000 + "}")
+    (d / "bigint.json").write_text('{"takes": ' + "9" * 5000 + "}")
+    (d / "nul.json").write_bytes(b'{"takes": \x00\x01}')
+    (d / "takes_short.json").write_text(json.dumps({"takes": [{"name": "t", "start": 0, "end": 1}]}))
+    from mocaptk.clustering.reconstruction_models import MODEL_FORMAT
+
+    identity = {"sha256": json.loads((d / "layout.json").read_text())["source"].get("sha256")}
+    for name, header in (("model_version.npz", {"format": MODEL_FORMAT, "version": 999, "session": identity}),
+                         ("model_malformed.npz", {"format": MODEL_FORMAT, "version": 1, "kind": "ridge",
+                                                  "session": identity})):
+        np.savez(d / name, header=np.frombuffer(json.dumps(header).encode(), np.uint8))
     (d / "existing.trc").write_text("keep")
     (d / "full").mkdir()
     (d / "full" / "keep.txt").write_text("keep")
@@ -362,9 +376,36 @@ CATALOGUE = [
                                        f["good.c3d"]], "is not the session layout.json was made from"),
     ("E-SOLVE-MODEL-FILE", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s4", "--model",
                                       f["binary.dat"]], "binary.dat: not a mocaptk model file"),
+    ("E-MODEL-VERSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s6", "--model",
+                                   f["model_version.npz"]], "model version 999 is not supported"),
+    ("E-MODEL-MALFORMED", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s7", "--model",
+                                     f["model_malformed.npz"]], "model_malformed.npz: malformed model file: no "),
+    # -- any JSON input (takes, regions, layout, camera rig, sidecar, a model's header)
+    ("E-JSON-DEEP", lambda f: ["cluster", S(f), "--takes", f["deep.json"], "--out", f["dir"] / "j1"],
+     "deep.json: invalid JSON: nested deeper than 64 levels"),
+    ("E-JSON-NUMBER", lambda f: ["cluster", S(f), "--takes", f["bigint.json"], "--out", f["dir"] / "j2"],
+     "bigint.json: invalid JSON: a number too long"),
+    ("E-JSON-BINARY", lambda f: ["cluster", S(f), "--takes", f["nul.json"], "--out", f["dir"] / "j3"],
+     "nul.json: binary content (NUL bytes)"),
+    ("E-EVAL-FOLDS-TAKES", lambda f: ["evaluate", S(f), "--layout", f["layout.json"], "--takes",
+                                      f["takes_short.json"], "--folds", "2", "--out", f["dir"] / "e9.json"],
+     "takes_short.json: too few frames"),
+    ("E-CAM-VALUES", lambda f: ["triangulate", f["cam_values.json"], f["obs_none.npz"], f["dir"] / "t.trc"],
+     "cam_values.json: malformed camera rig: camera 'cara_upper_left': image size must be 2 whole numbers"),
+    # -- plan, label, retarget, reconstruct, detect, calibrate: their options checked before any work
+    ("E-PLAN-NOISE", lambda f: ["plan", f["layout.json"], "--rig", "cara", "--noise", "-1", "--out",
+                                f["dir"] / "p1"], "--noise must be >= 0 mm"),
+    ("E-RETARGET-FORMATS", lambda f: ["retarget", f["layout.json"], S(f), "--character", "arkit", "--formats", "xyz", "--out",
+                                      f["dir"] / "r1"], "unknown --formats xyz"),
+    ("E-RECON-OPTIONS", lambda f: ["reconstruct", f["cameras.json"], f["obs_none.npz"], "--tolerance", "0",
+                                   "--out", f["dir"] / "rc.c3d"], "--tolerance, --link and --rate must be > 0"),
+    ("E-DETECT-AREA", lambda f: ["detect", f["dir"], "--min-area", "0", "--out", f["dir"] / "d.npz"],
+     "--min-area must be >= 1"),
+    ("E-CAL-CORNERS", lambda f: ["calibrate", f["dir"], "--corners", "abc", "--out", f["dir"] / "c.json"],
+     "--corners must be COLSxROWS inner corners"),
     ("E-SOLVE-MODEL-SESSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s5", "--model",
                                          f["other_model.npz"]], "the model was trained on another session"),
-    ("E-SOLVE-UNLABELLED", lambda f: ["solve", f["layout.json"], f["unlabelled.c3d"], "--out", f["dir"] / "s6"],
+    ("E-SOLVE-UNLABELLED", lambda f: ["solve", f["layout.json"], f["unlabelled.c3d"], "--out", f["dir"] / "s8"],
      "its points are unlabelled (*N): give --label"),
     # -- label
     ("E-LABEL-MODE", lambda f: ["label", S(f), "--template", S(f), "--out", f["dir"] / "l.c3d", "--mode", "x"],

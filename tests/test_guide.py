@@ -228,3 +228,23 @@ def test_view_with_too_many_markers_draws_every_dot_unnumbered(tmp_path):
     # and no numbers: the black digits would sit up and right of each dot
     dark = [(drawn[y - 16:y - 6, x + 8:x + 22] < 0.3).all(axis=2).sum() for x, y in grid.astype(int)]
     assert max(dark) == 0
+
+
+def test_long_labels_and_the_mirror_example_read_right(tmp_path, guide):
+    """Issue 33: the table cut "FOREHEAD_BROW_18..." (R labels are wider than L), and the 1:1 page's
+    example named "16L / 16R" even where 16 is a midline marker."""
+    folder, _, rows = guide
+    names = ["1L", "1R", "2"] + [f"{k + 3}" for k in range(len(rows) - 3)]
+    sides = ["L", "R", "C"] + ["L"] * (len(rows) - 3)
+    renamed = [dataclasses.replace(r, name=n, side=s, label=f"FOREHEAD_BROW_{k:02d}_{s}")
+               for k, (r, n, s) in enumerate(zip(rows, names, sides))]
+    pdf = write_guide_pdf(tmp_path / "g.pdf", renamed, front_png=folder / "front.png",
+                          profile_png=folder / "profile.png", outline=np.array([r.position for r in rows]),
+                          title="labels")
+    if shutil.which("pdftotext") is None:
+        pytest.skip("poppler-utils (pdftotext) not installed")
+    text = subprocess.run(["pdftotext", str(pdf), "-"], capture_output=True, text=True, check=True).stdout
+    assert "FOREHEAD_BROW_01_R" in text and "FOREHEAD_BROW_01..." not in text
+    flat = " ".join(text.split())
+    assert "(1L / 1R)" in flat and "A number alone" not in flat and "number alone (2) sits on the midline" in flat
+    assert "16L / 16R" not in flat

@@ -375,3 +375,112 @@ def test_camera_names_with_a_tab_are_read_as_spaces(tmp_path):
     doc["cameras"][0]["name"] = "cam\tone"
     path.write_text(json.dumps(doc))
     assert load_rig(path).cameras[0].name == "cam one"
+
+
+def test_rig_names_with_a_tab_are_read_as_spaces(tmp_path):
+    """Fuzz seed 5: a rig named "cara\t" drew plan.png's title with "Glyph 9 missing"."""
+    path = save_rig(cara_rig(), tmp_path / "rig.json")
+    doc = json.loads(path.read_text())
+    doc["name"] = "cara\t"
+    path.write_text(json.dumps(doc))
+    assert load_rig(path).name == "cara"
+
+
+@pytest.fixture(scope="module")
+def solver_parts(session, tmp_path_factory) -> tuple[dict, dict]:
+    """(arrays, header) of a real solve model file (ridge-cv, 12 layout markers, 3 rigid markers)."""
+    from types import SimpleNamespace
+
+    from mocaptk.retarget.solve import train_solver
+
+    short = Trajectories(session.positions[::20], session.labels, session.rate / 20, 1, None, {"takes": []})
+    labels = [session.labels[i] for i in range(0, session.n_markers, 12)]
+    solver = train_solver(SimpleNamespace(labels=labels), short, {"path": "dense_halfface.c3d"},
+                          rigid_labels=labels[:3])
+    path = save_model(solver.model, tmp_path_factory.mktemp("solver") / "model.npz", header=solver.header(),
+                      extra=solver.extra_arrays())
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    return arrays, json.loads(bytes(arrays.pop("header")).decode())
+
+
+@pytest.mark.parametrize("change, problem", [
+    (lambda a, h: a.update(cov=np.zeros((0, 3))), "cov has shape (0, 3)"),  # ridge-cv was not checked
+    (lambda a, h: a.update(cv_ridges=np.array(1.0)), "cv_ridges must be a list of numbers"),
+    (lambda a, h: a.update(solver_rigid_reference=np.zeros((0, 3))), "solver_rigid_reference must be (3, 3)"),
+    (lambda a, h: a.update(solver_cov=a["solver_cov"].astype(np.complex128)), "solver_cov must be"),
+    (lambda a, h: a.update(solver_mean=a["solver_mean"] * np.inf), "solver_mean has values out of range"),
+    (lambda a, h: a.update(solver_training_consistency=np.zeros(2)), "solver_training_consistency must be ()"),
+    (lambda a, h: h.update(fallback_labels=[["x"]]), "fallback_labels must be among its layout_labels"),
+    (lambda a, h: a.update(solver_mean=np.full(a["solver_mean"].shape, np.inf, np.float16)), "solver_mean has values"),
+    (lambda a, h: a.update(solver_cov=np.zeros_like(a["solver_cov"])), "solver_cov is not a covariance"),  # seed 6
+    (lambda a, h: a.update(solver_rigid_reference=np.zeros((3, 3))), "coincide or lie on one line"),  # seeds 5, 6
+])
+def test_solve_model_arrays_that_crashed_solve_are_refused(tmp_path, solver_parts, change, problem):
+    """Fuzz findings (seed 4): IndexError in the ridge-cv pattern solve and in the head poses,
+    ComplexWarning in the layout Gaussian."""
+    from mocaptk.retarget.solve import load_solver
+
+    arrays = {k: v.copy() for k, v in solver_parts[0].items()}
+    header = json.loads(json.dumps(solver_parts[1]))
+    change(arrays, header)
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": np.frombuffer(json.dumps(header).encode(), np.uint8)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputFileError) as info:
+            load_solver(path)
+    assert problem in one_line(info.value, path)
+
+
+def test_the_real_solve_model_still_loads(tmp_path, solver_parts):
+    from mocaptk.retarget.solve import load_solver
+
+    arrays, header = solver_parts
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": np.frombuffer(json.dumps(header).encode(), np.uint8)})
+    solver = load_solver(path)
+    assert solver.model.kind == "ridge-cv" and len(solver.rigid_labels) == 3 and solver.gaussian is not None
+
+
+def test_float16_model_arrays_are_read_as_float64(tmp_path, solver_parts):
+    """Fuzz seed 5: a float16 cov reached np.linalg.solve (TypeError: float16 is unsupported)."""
+    from mocaptk.retarget.solve import load_solver
+
+    arrays = {k: v.astype(np.float16) if k in ("cov", "mean") else v for k, v in solver_parts[0].items()}
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": np.frombuffer(
+        json.dumps(solver_parts[1]).encode(), np.uint8)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            solver = load_solver(path)
+        except InputFileError as exc:  # float16 rounding may make the cov out of range: one line is fine
+            one_line(exc, path)
+        else:
+            assert solver.model.cov.dtype == np.float64
+
+
+def test_warning_lines_are_cut_like_error_lines(run_cli, tmp_path):
+    """A 5,000-character region name was quoted whole in cluster's warnings (lines of > 4,000
+    characters); warnings keep the 300-character bound of error lines."""
+    regions = {"x" * 5000: ["NOSE_02_C"], "rest": [label for label in read_trajectories(
+        SAMPLES / "dense_halfface.c3d").labels if label != "NOSE_02_C"]}
+    (tmp_path / "regions.json").write_text(json.dumps(regions))
+    done = run_cli("cluster", SAMPLES / "dense_halfface.c3d", "--regions", tmp_path / "regions.json", "--method",
+                   "paper", "--formats", "none", "--step", "20", "--out", tmp_path / "out", "-q")
+    warnings_ = [line for line in done.stderr.splitlines() if line.startswith("mocaptk: warning: ")]
+    assert done.exit_code == 0 and warnings_, done.stderr[-500:]
+    assert all(len(line) <= len("mocaptk: warning: ") + MAX_LINE for line in warnings_)
+    assert any("has only 1 marker" in line for line in warnings_)
+    summary = (tmp_path / "out" / "summary.txt").read_text().splitlines()
+    assert all(len(line) <= len("warning: ") + MAX_LINE for line in summary if line.startswith("warning: "))
+
+
+def test_integer_model_arrays_are_read_as_numbers(tmp_path, solver_parts):
+    """Fuzz seed 6: an int8 cov reached the in-place ridge (UFuncOutputCastingError traceback)."""
+    from mocaptk.retarget.solve import load_solver
+
+    arrays = {k: (np.clip(v, -100, 100).astype(np.int8) if k == "cov" else v) for k, v in solver_parts[0].items()}
+    path = write_npz(tmp_path / "model.npz", {**arrays, "header": np.frombuffer(
+        json.dumps(solver_parts[1]).encode(), np.uint8)})
+    solver = load_solver(path)
+    assert solver.model.cov.dtype == np.float64 and solver.model.layout.dtype.kind in "iu"
+    assert np.isfinite(solver.model.predict_positions(solver.model.neutral[solver.model.layout][None])).all()

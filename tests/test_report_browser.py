@@ -101,7 +101,8 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
 
     # the numbers as drawn cover no other number (before placeNumbers: 14 overlapping pairs)
     boxes = np.array(browser.evaluate(NUMBER_BOXES), float)
-    assert len(boxes) == len(layout["clusters"])
+    hidden = browser.evaluate("mocaptkReport.hidden()")  # behind the nose from this camera: not numbered
+    assert len(boxes) == len(layout["clusters"]) - len(hidden) and len(hidden) <= len(boxes) // 10
     apart = ((boxes[:, None, 2] <= boxes[None, :, 0]) | (boxes[None, :, 2] <= boxes[:, None, 0])
              | (boxes[:, None, 3] <= boxes[None, :, 1]) | (boxes[None, :, 3] <= boxes[:, None, 1]))
     np.fill_diagonal(apart, True)
@@ -128,6 +129,24 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
     assert clip == 2 and slider_max == (session.n_frames - 1) // 2  # 60 Hz replayed at 30 Hz
     _slider_moves_the_layout_markers(browser, layout, session, points)
     assert browser.console == []
+
+
+def test_numbers_of_markers_the_face_hides_are_not_drawn(sample_report, browser):
+    """Issue 33: in a profile view the numbers of the far side's markers floated over the mesh
+    (SVG annotations are drawn over the WebGL scene); they are now left out."""
+    browser.open(sample_report / "report.html", ready=READY, timeout=300)
+    front = len(browser.evaluate(NUMBER_BOXES))
+    browser.evaluate("mocaptkReport.view({x: 2.0, y: 0.1, z: 0.1})")  # the subject's left profile
+    browser.evaluate("mocaptkReport.settled()")
+    hidden = browser.evaluate("mocaptkReport.hidden()")
+    side = len(browser.evaluate(NUMBER_BOXES))
+    layout = browser.evaluate("mocaptkReport.data.clusters.length")
+    assert side == layout - len(hidden) and len(hidden) > layout / 4, (layout, front, side, len(hidden))
+    neutral = np.array(browser.evaluate("mocaptkReport.data.markers.neutral"), float)
+    assert np.median(neutral[hidden, 0]) < 0  # hidden: the subject's right (X = subject's left)
+    browser.evaluate("mocaptkReport.view({x: 0, y: 0.08, z: 1.25})")  # front again
+    browser.evaluate("mocaptkReport.settled()")
+    assert len(browser.evaluate(NUMBER_BOXES)) == front
 
 
 def test_toggles_hide_and_show_markers_and_hover_tells_the_cluster(sample_report, browser):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from mocaptk.errors import MocaptkError
 
@@ -48,8 +49,27 @@ def command_line(args: Sequence[str] | None = None):
         for param in [*sub.params, help_option]:
             if getattr(param, "is_flag", False) and param.metavar is None:
                 param.metavar = ""  # a flag takes no value: show none
+            _plain_type_label(param)
         install([*sub.params, help_option])
     return command
+
+
+def _plain_type_label(param) -> None:
+    """Help shows ``<path>...`` for a list and ``<int ≥ 0>`` for a bounded number, not Typer's
+    ``<list[Path]>`` / ``<int range> [x>=0]``."""
+    desc = getattr(param, "type_descriptor", None)
+    if desc is None or (param.param_type_name == "option" and param.metavar is not None):
+        return  # an option's own metavar wins (an argument's names it in the usage line)
+    if desc.is_list:
+        (item,) = getattr(desc.annotation, "__args__", (str,))
+        label = f"<{'path' if item is Path else getattr(item, '__name__', 'str')}>..."
+    elif desc.is_ranged:
+        bounds = [f"≥ {param.min}" if param.min is not None else "", f"≤ {param.max}" if param.max is not None else ""]
+        label = f"<{desc.ranged_type_name} {', '.join(b for b in bounds if b)}>"
+        param._get_number_range_help_str = lambda: None  # the bounds are in the label
+    else:
+        return
+    param.display_type_rich = lambda ctx: label
 
 
 def usage_line(exc) -> str:

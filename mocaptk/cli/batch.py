@@ -50,15 +50,16 @@ def batch(
                                "whose outputs are complete (default: skip them)."),
     quiet: Quiet = False,
 ) -> None:
-    """Run cluster / evaluate / compare / info / solve / label on every matching session (Dask; failures isolated).
+    """Run cluster / evaluate / compare / info / solve / label on every matching session (Dask).
 
-    With --do solve the matched files are captures, solved with the layout of --layout L.json (or
-    of "layout" in a capture's sidecar); with --do label they are raw captures labelled against
-    --template T (or "template" in a sidecar). A session's own options may sit beside it in <stem>.mocaptk.json (or mocaptk.json for its whole
-    folder), e.g. {"regions": "anna_regions.json", "rigid": ["HEAD_1", "HEAD_2", "HEAD_3"]}; they
-    override the batch line's. Exit code 0 when every session is done or skipped, 1 when some
-    failed (see batch.md), 2 for a mistake in the batch itself, 130 / 143 when Ctrl-C / SIGTERM
-    stopped it (its running sessions killed first). See docs/batch.md.
+    Failures are isolated. With --do solve the matched files are captures, solved with the layout
+    of --layout L.json (or of "layout" in a capture's sidecar); with --do label they are raw
+    captures labelled against --template T (or "template" in a sidecar). A session's own options
+    may sit beside it in <stem>.mocaptk.json (or mocaptk.json for its whole folder), e.g.
+    {"regions": "anna_regions.json", "rigid": ["HEAD_1", "HEAD_2", "HEAD_3"]}; they override the
+    batch line's. Exit code 0 when every session is done or skipped, 1 when some failed (see
+    batch.md), 2 for a mistake in the batch itself, 130 / 143 when Ctrl-C / SIGTERM stopped it
+    (its running sessions killed first). See docs/batch.md.
     """
     from rich.console import Console
 

@@ -9,12 +9,12 @@ Extension points for later issues:
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
 
 from mocaptk.atomic import claim_output, staged_folder
+from mocaptk.errors import shorten, warn
 
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels, session_reading
@@ -44,9 +44,23 @@ def warn_unless_face(traj, session: Path, *, regions_given: bool, neutral=None) 
                    "these markers anyway")
         if not regions_given:
             raise InputFileError(session, problem)
-        print(f"mocaptk: warning: {session}: {problem}", file=sys.stderr)
+        warn(f"{session}: {problem}")
     if check.units_warning:
-        print(f"mocaptk: warning: {session}: {check.units_warning}", file=sys.stderr)
+        warn(f"{session}: {check.units_warning}")
+
+
+def _followed_elsewhere(layout) -> list[str]:
+    """A line per region with markers but no layout marker of its own: which layout markers its
+    markers follow (their influence regions reach into it)."""
+    lines = []
+    for region in layout.regions:
+        if not region.markers or any(c.region == region.name for c in layout.clusters):
+            continue
+        inside = set(region.markers)
+        followed = [f"{c.representative} ({c.region})" for c in layout.clusters if inside & set(c.members)]
+        lines.append(f"{region.name}: no layout marker of its own; its {len(inside)} marker"
+                     f"{'' if len(inside) == 1 else 's'} follow " + (", ".join(followed) or "no layout marker"))
+    return lines
 
 
 def summary_text(result) -> str:
@@ -86,6 +100,7 @@ def summary_text(result) -> str:
         lines.append(f"{region.name:<16}{len(region.markers):>7}{own:>10}{mirrored:>10}{own + mirrored:>7}"
                      + (f"{region.mean_correlation:>9.3f}{region.threshold:>11.3f}" if paper else ""))
     lines.append(f"{'total':<16}{sums[0]:>7}{sums[1]:>10}{sums[2]:>10}{sums[1] + sums[2]:>7}")
+    lines += _followed_elsewhere(layout)
     stabilization = layout.extra.get("stabilization", {})
     rigid = stabilization.get("rigid_labels")
     if rigid and stabilization.get("applied"):
@@ -94,7 +109,7 @@ def summary_text(result) -> str:
     if note:
         lines.append(f"note: {note}")
     for note in result.notes:
-        lines.append(f"warning: {note}")
+        lines.append(f"warning: {shorten(note)}")
     return "\n".join(lines) + "\n"
 
 
@@ -114,13 +129,27 @@ def write_cluster_outputs(result, folder: Path, *, pictures: bool = True) -> lis
 
 def write_cluster_pictures(result, folder: Path) -> list[Path]:
     """correlation_<region>.png per region, layout.png and regions.png in ``folder``."""
+    import numpy as np
+
     from mocaptk.clustering.figures import correlation_heatmap, layout_picture, regions_picture
 
     layout = result.layout
     written = []
+    # boxes: the layout's influence regions (the paper's clusters only with --method paper)
+    influence = {m: k for k, c in enumerate(layout.clusters) if c.mirrored_from is None for m in c.members}
+    representatives = [c.representative for c in layout.clusters]
     for name, region in result.matrices.items():
-        written.append(correlation_heatmap(region.labels, region.matrix, region.clusters,
-                                           title=f"{name}: consolidated correlation (by cluster)",
+        boxes = np.array([influence.get(label, len(layout.clusters)) for label in region.labels])
+        foreign = [f"{label} by {layout.clusters[k].representative} ({layout.clusters[k].region})"
+                   for label, k in zip(region.labels, boxes) if k < len(layout.clusters)
+                   and layout.clusters[k].region != name]
+        pairs = [", ".join(foreign[i:i + 2]) for i in range(0, min(len(foreign), 4), 2)]  # fits a 2-marker map
+        elsewhere = "\nfollowed from another region:\n" + "\n".join(pairs) + (" ..." if len(foreign) > 4 else "")
+        written.append(correlation_heatmap(region.labels, region.matrix, boxes,
+                                           title=f"{name}: consolidated correlation, boxed by the layout's\n"
+                                                 "influence regions (representatives in bold)"
+                                                 + (elsewhere if foreign else ""),
+                                           representatives=representatives,
                                            path=folder / f"correlation_{name}.png"))
     traj = result.trajectories
     frame = result.frame
@@ -178,8 +207,10 @@ def cluster(
     animate: list[Path] = typer.Option(None, "--animate", help="A performance to bake onto the "
                                        "rig after the session's own motion (as in mocaptk rig)."),
 ) -> None:
-    """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra's
-    correlation clusters; markers chosen by the hybrid method unless --method paper).
+    """Dense session → minimal marker layout + influence regions (Will, De Martino & Bezerra).
+
+    The influence regions are the paper's correlation clusters; the measured markers are chosen
+    by the hybrid method unless --method paper.
 
     Writes the folder <session>_layout/ next to the session (or --out DIR): layout.json,
     summary.txt, report.html, pictures, rig files and guide.pdf (--formats none: the first three).
@@ -259,7 +290,7 @@ def cluster(
             result = cluster_session(traj, options=options, source=source, neutral=neutral,
                                      progress=lambda text: status.update(text))
     for note in result.notes:
-        print(f"mocaptk: warning: {note}", file=sys.stderr)
+        warn(note)
     with staged_folder(out_dir, force=force) as folder:
         write_cluster_outputs(result, folder, pictures=False)
         pictures = parse_formats(formats) != ("none",)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mocaptk.errors import OptionError
+from mocaptk.errors import OptionError, warn
 
 from .app import app
 from .options import Quiet, Rate, Rigid, Units, rigid_labels
@@ -50,7 +50,7 @@ def compare(
     force: bool = typer.Option(False, "--force", help="Overwrite files in an existing output folder."),
     quiet: Quiet = False,
 ) -> None:
-    """Held-out RMSE and p95 (mm), run time and layout statistics of every layout method at every count.
+    """Held-out RMSE and p95 (mm), run time and layout statistics of every method at every count.
 
     Layout statistics (Zell & McDonnell, ε = 0.3 and 0.7): % of layout markers where no extreme
     frame of the session moves ≥ ε, and how many extreme frames no layout marker sees move ≥ ε.
@@ -161,7 +161,7 @@ def finish(rows, table: str, wrote: str, *, quiet: bool) -> None:
     """A warning per row a method could not produce, then the table and what was written."""
     for row in rows:
         if row.error is not None:
-            typer.echo(f"mocaptk: warning: {row.method} at {row.count} markers: {row.error}", err=True)
+            warn(f"{row.method} at {row.count} markers: {row.error}")
     if not quiet:
         typer.echo(table, nl=False)
         typer.echo(wrote)

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from mocaptk.errors import warn
+
 from .app import app
 from .options import Quiet, Rate, Units
 
@@ -33,4 +35,4 @@ def convert(
     if not quiet:
         typer.echo(f"wrote {target} ({fmt}: {traj.n_markers} markers, {traj.n_frames} frames, {traj.rate:g} Hz)")
     if traj.takes and fmt == "trc":
-        typer.echo(f"mocaptk: warning: TRC has no place for takes; {len(traj.takes)} takes not written", err=True)
+        warn(f"TRC has no place for takes; {len(traj.takes)} takes not written")

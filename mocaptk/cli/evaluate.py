@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import typer
 
-from mocaptk.errors import OptionError
+from mocaptk.errors import OptionError, warn
 
 from .app import app
 from .options import Quiet, Rate, Units, recorded_reading
@@ -145,8 +144,8 @@ def evaluate(
     write_json(out_path, result, force=True)
     mirrored = len(lay.clusters) - len(measured)
     if mirrored:  # after everything that can fail: a note never precedes an error
-        print(f"mocaptk: note: {mirrored} mirrored layout markers are not in the session; "
-              f"evaluated the {len(measured)} measured ones", file=sys.stderr)
+        warn(f"{mirrored} mirrored layout markers are not in the session; "
+             f"evaluated the {len(measured)} measured ones", kind="note")
     if not quiet:
         typer.echo(evaluation_table(result), nl=False)
         typer.echo(f"wrote {out_path}\nwrote {out_path.parent}/{report}")  # the report line starts with its name

@@ -40,8 +40,10 @@ def plan(
     force: bool = typer.Option(False, "--force", help="Overwrite plan.json / plan.png in an existing folder."),
     quiet: Quiet = False,
 ) -> None:
-    """Per layout marker: % of frames seen by >= 2 cameras, expected triangulation error, the face's
-    held-out RMSE when that marker is lost, and the risk it brings (plan.json, plan.png)."""
+    """Per layout marker: cameras that see it, triangulation error, and the risk of losing it.
+
+    For each layout marker: % of frames seen by >= 2 cameras, expected triangulation error, the
+    face's held-out RMSE when that marker is lost, and the risk it brings (plan.json, plan.png)."""
     from rich.console import Console
 
     from mocaptk.atomic import claim_output

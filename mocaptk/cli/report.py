@@ -99,9 +99,14 @@ def write_solve_report(path: Path, layout, solver, *, solved: Path, rigid, train
     from mocaptk.clustering.pipeline import stabilize
     from mocaptk.retarget.report import per_marker_rmse, solve_report, write_report
 
+    from mocaptk.errors import OptionError
+
     motion = read_c3d(solved)
     if rigid:  # into the training session's head frame, the face's
-        motion = stabilize(motion, rigid=rigid, reference=solver.rigid_reference)[0]
+        try:
+            motion = stabilize(motion, rigid=rigid, reference=solver.rigid_reference)[0]
+        except OptionError:  # the model solves no frame of the rigid markers: the capture's frame
+            pass
     error = None if training is None else per_marker_rmse(solver.model.check_residuals(training.positions))
     model, frames, expected = summary["model"], summary["frames"], summary["expected_error_mm"]
     head = summary["head_motion"]

@@ -60,8 +60,9 @@ def retarget(
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
     quiet: Quiet = False,
 ) -> None:
-    """Blendshape weights of a character (ARKit 52 or its own shapes) from a capture, calibrated
-    on the actor's range of motion; Live Link Face CSV, glTF, USD and FBX out."""
+    """Blendshape weights of a character (ARKit 52 or its own shapes) from a capture.
+
+    Calibrated on the actor's range of motion; Live Link Face CSV, glTF, USD and FBX out."""
     from rich.console import Console
 
     from mocaptk.atomic import staged_folder

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
 
-from mocaptk.errors import InputFileError, OptionError
+from mocaptk.errors import InputFileError, OptionError, warn
 
 from .app import app
 from .options import Quiet, Rate, Units, recorded_reading
@@ -130,8 +129,7 @@ def rig(
     raw = traj
     expected = lay.source.get("sha256")
     if expected and expected != source["sha256"]:
-        print(f"mocaptk: warning: {session} is not the file the layout was computed from "
-              "(sha256 differs)", file=sys.stderr)
+        warn(f"{session} is not the file the layout was computed from (sha256 differs)")
     if lay.parameters.get("stabilized") and not no_stabilize:
         traj, _ = stabilize(traj, rigid=layout_rigid_set(lay))
     pairs = read_landmarks(landmarks) if landmarks else None

@@ -126,9 +126,10 @@ def solve(
     label: bool = typer.Option(False, "--label", help="CAPTURE is unlabelled (or its labels are not "
                                "trusted): label it first against the layout's markers in its session "
                                "(as mocaptk label --template layout.json)."),
-    rig: bool = typer.Option(False, "--rig", help="Also build the layout's rig and bake the solved "
-                             "capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
+    rig: bool = typer.Option(False, "--bake-rig", help="Also build the layout's face rig and bake the "
+                             "solved capture onto its joints (DIR/rig/: rig.json/.fbx/.glb as "
                              "'mocaptk rig --animate' writes them; needs the session)."),
+    rig_alias: bool = typer.Option(False, "--rig", hidden=True),  # the old spelling; --rig is a camera rig elsewhere
     rate: Rate = None,  # the capture's (default: the layout's session's, for a file of its kind)
     units: Units = None,
     force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty folder."),
@@ -144,11 +145,13 @@ def solve(
     from mocaptk.jsonio import write_json
     from mocaptk.retarget.build import check_surface
     from mocaptk.retarget.solve import load_solver, train_solver
-    from mocaptk.retarget.solve_outputs import write_solve_outputs
+    from mocaptk.retarget.solve_outputs import SOLVE_FORMATS, write_solve_outputs
     from .cluster import staged_folder
     from mocaptk.clustering.layout import layout_rigid_set
     from .report import write_solve_report
     from .rig import parse_formats
+
+    rig = rig or rig_alias
 
     if model_kind is not None and model_kind not in MODEL_KINDS:
         raise OptionError(f"unknown --model-kind {model_kind!r} (choose from {', '.join(MODEL_KINDS)})")
@@ -200,25 +203,38 @@ def solve(
                  f"half-face layout) take no part: {', '.join(uncaptured[:5])}"
                  + (" ..." if len(uncaptured) > 5 else "")] if uncaptured else []
         if rig and model is not None:
-            raise OptionError("--rig needs the session (it builds the rig on it): leave out --model")
+            raise OptionError("--bake-rig needs the session (it builds the rig on it): leave out --model")
         if rest is not None and rest.stop > traj.n_frames:
             raise OptionError(f"--neutral {neutral}: the capture has {traj.n_frames} frames")
+        unknown = [f for f in chosen if f not in SOLVE_FORMATS]
+        if unknown:
+            raise OptionError(f"unknown --formats {', '.join(unknown)} (choose from {', '.join(SOLVE_FORMATS)})")
         with staged_folder(out, force=force) as staging:
-            summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
-                                          subdivisions=subdivisions, mesh_path=mesh,
-                                          layout=lay, surface=surface,
-                                          stabilize=not no_stabilize,
-                                          adapt=adapt_neutral or rest is not None,
-                                          rest_frames=None if rest is None else list(rest),
-                                          save_trained=model is None, notes=notes, progress=say)
+            try:
+                summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
+                                              subdivisions=subdivisions, mesh_path=mesh,
+                                              layout=lay, surface=surface,
+                                              stabilize=not no_stabilize,
+                                              adapt=adapt_neutral or rest is not None,
+                                              rest_frames=None if rest is None else list(rest),
+                                              save_trained=model is None, notes=notes, progress=say)
+            except OptionError as exc:  # the options were checked: with --model, the model's markers
+                if model is None:
+                    raise
+                raise InputFileError(model, str(exc)) from None
             if rig:
                 say("building the rig and baking the solve onto it")
                 bake_solved_rig(lay, dense, staging, capture.stem, rigid=rigid, progress=say)
                 summary["outputs"].append("rig/")
             say("writing report.html")
-            report = write_solve_report(staging / "report.html", lay, solver, solved=staging / "dense.c3d",
-                                        rigid=rigid, training=dense if model is None else None,
-                                        summary=summary, text=summary_text(summary))
+            try:
+                report = write_solve_report(staging / "report.html", lay, solver, solved=staging / "dense.c3d",
+                                            rigid=rigid, training=dense if model is None else None,
+                                            summary=summary, text=summary_text(summary))
+            except OptionError as exc:  # e.g. a model that solves no frame of some markers
+                if model is None:
+                    raise
+                raise InputFileError(model, str(exc)) from None
             summary["outputs"] = sorted([*summary["outputs"], "report.html"])
             write_json(staging / "solve.json", summary)  # again: it lists rig/ and report.html now
     if not quiet:

@@ -177,6 +177,51 @@
                  [9, 7, "left", "bottom"], [-9, 7, "right", "bottom"], [9, -7, "left", "top"],
                  [-9, -7, "right", "top"]];
   let sideOf = {};  // layout marker -> SIDES index, chosen by placeNumbers() for the current view
+  // Layout markers the face hides from the current camera (behind it, or behind the nose...): their
+  // numbers are SVG drawn over the WebGL scene, so they would float over the mesh. Set by placeNumbers().
+  let hidden = {};
+
+  // Does the ray from p along d (unit) hit a triangle of the face (Moller-Trumbore) more than 4 mm
+  // away? Nearer hits are the marker's own skin (1.5 mm behind its lifted dot) and grazing bumps.
+  function rayHitsFace(p, d, mv, faces) {
+    for (let f = 0; f < faces.length; f++) {
+      const a = faces[f][0], b = faces[f][1], c = faces[f][2];
+      const e1x = mv.x[b] - mv.x[a], e1y = mv.y[b] - mv.y[a], e1z = mv.z[b] - mv.z[a];
+      const e2x = mv.x[c] - mv.x[a], e2y = mv.y[c] - mv.y[a], e2z = mv.z[c] - mv.z[a];
+      const hx = d[1] * e2z - d[2] * e2y, hy = d[2] * e2x - d[0] * e2z, hz = d[0] * e2y - d[1] * e2x;
+      const det = e1x * hx + e1y * hy + e1z * hz;
+      if (Math.abs(det) < 1e-12) continue;
+      const sx = p[0] - mv.x[a], sy = p[1] - mv.y[a], sz = p[2] - mv.z[a];
+      const u = (sx * hx + sy * hy + sz * hz) / det;
+      if (u < 0 || u > 1) continue;
+      const qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+      const v = (d[0] * qx + d[1] * qy + d[2] * qz) / det;
+      if (v < 0 || u + v > 1) continue;
+      if ((e2x * qx + e2y * qy + e2z * qz) / det > 4.0) return true;
+    }
+    return false;
+  }
+
+  // The layout markers hidden from the camera: the view direction in data space is the camera's eye
+  // (the scene box is the data scaled alike on every axis); returns whether the set changed.
+  function updateHidden() {
+    const camera = ((gd._fullLayout || {}).scene || {}).camera || plotLayout.scene.camera;
+    const e = camera.eye, length = Math.hypot(e.x, e.y, e.z) || 1;
+    const d = [e.x / length, e.y / length, e.z / length];
+    const pos = markerPositions();
+    const mv = meshVertices(pos);
+    const next = {};
+    if (state.show.face) {
+      shownLayout().forEach(function (entry) {
+        const i = entry.marker;
+        const p = [0, 1, 2].map(function (a) { return pos[i][a] + mesh.marker_lift[i][a]; });
+        if (p.every(isFinite) && rayHitsFace(p, d, mv, mesh.faces)) next[i] = true;
+      });
+    }
+    const changed = Object.keys(next).join() !== Object.keys(hidden).join();
+    hidden = next;
+    return changed;
+  }
   function traces() {
     const pos = markerPositions();
     const layoutEntries = shownLayout().filter(function (e) { return markerVisible(e.marker); });
@@ -269,7 +314,7 @@
       hovertemplate: "%{hovertext}<extra></extra>",
       marker: {size: 5.5, symbol: "square", color: "#202020"}});
     const numbered = !state.show.numbers ? [] : layoutEntries.map(function (e, k) { return k; })
-      .filter(function (k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null; });
+      .filter(function (k) { return lx3[k] !== null && ly3[k] !== null && lz3[k] !== null && !hidden[layoutEntries[k].marker]; });
     annotationMarkers = numbered.map(function (k) { return layoutEntries[k].marker; });
     annotations = numbered.map(function (k) {
       const side = SIDES[sideOf[layoutEntries[k].marker] || 0];
@@ -459,6 +504,7 @@
   // boxes are the drawn annotations, so the view's projection is plotly's own). Chosen after the
   // first draw, a toggle, a picked row and a camera move, never per frame: replay keeps them.
   function placeNumbers() {
+    if (updateHidden()) return redraw().then(placeNumbers);  // numbers of hidden markers go first
     const drawnBoxes = Array.prototype.slice.call(gd.querySelectorAll(".annotation-text-g"));
     if (!state.show.numbers || drawnBoxes.length !== annotations.length) return Promise.resolve();
     const placed = [];
@@ -496,6 +542,7 @@
 
   window.mocaptkReport = {data: data, state: state, setFrame: setFrame, setClip: setClip, pick: pick,
                           markerPositions: markerPositions, ready: false, loadMs: null,
+                          hidden: function () { return Object.keys(hidden).map(Number); },
                           view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(placeNumbers).then(function () { return true; }); },
                           settled: function () { return drawing || Promise.resolve(); }};
   setClip(0).then(placeNumbers).then(function () {
