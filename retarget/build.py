@@ -46,6 +46,7 @@ from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
+from .mesh_openings import cut_lip_line
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
 from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
@@ -440,11 +441,14 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     texcoords = None
     check_surface(options.surface)
     face = None
+    lip_cut = None  # the lip line cut on a user's mesh
+    mouth_corners = None  # vertices where the mouth's rims meet (default face, cut user mesh)
     if mesh is None and options.surface == "face":
         say("fitting the face")
         face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud))
     if face is not None:
         vertices, faces, texcoords = face.vertices, face.faces, face.uv
+        mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
         # anchored where the markers are: the fitted face before its lips close
         dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
         dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
@@ -487,6 +491,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                           landmarks=pairs)
         vertices = alignment.transform.apply(mesh.vertices)
         faces = np.asarray(mesh.faces, dtype=np.int64)
+        say("cutting the mouth opening")
+        lip_cut = cut_lip_line(vertices, faces, fit_template(cloud.neutral, spacing=spacing),
+                               up=np.array([0.0, 1.0, 0.0]))
+        if lip_cut is not None:  # the lips become two rims of one opening
+            vertices, faces = lip_cut.vertices, lip_cut.faces
+            mouth_corners = lip_cut.corners
         dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
                                             proximity=SurfaceProximity(vertices, faces))
         # a coarse mesh can put two layout markers on one vertex: give each its own
@@ -505,9 +515,9 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
                                                          falloff_mm=falloff,
                                                          members=member_vertices))
-    if face is not None:  # the mouth's corners
-        weights = blend_corners(weights, vertices, [face.upper_lip[0], face.upper_lip[-1]],
-                                reach_mm=MOUTH_CORNER_MM, pinned=joint_vertices)
+    if mouth_corners is not None:
+        weights = blend_corners(weights, vertices, mouth_corners, reach_mm=MOUTH_CORNER_MM,
+                                pinned=joint_vertices)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,
@@ -549,7 +559,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
                  "subdivisions": options.subdivisions if mesh_kind == "marker surface" else 0,
                  "chart": chart_kind,
-                 "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut],
+                 "opening_edges_cut": ([[cloud.labels[a], cloud.labels[b]] for a, b in cut]
+                                       if lip_cut is None else lip_cut.edges.tolist()),
                  "eye_openings": eye_cut},
         "alignment": None if alignment is None else {
             "method": alignment.method, "scale": alignment.transform.scale,

@@ -32,8 +32,8 @@ import numpy as np
 from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
-__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "default_face", "loop_area",
-           "template_openings"]
+__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "along_rim", "default_face",
+           "loop_area", "template_openings"]
 
 #: Rounds of the non-rigid fit (closest points move as the face does).
 FIT_ROUNDS = 3
@@ -200,8 +200,8 @@ def _closing(vertices: np.ndarray, faces: np.ndarray,
     fixed, values = [], []
     for upper, lower, line in rims:
         fixed += [upper, lower]
-        values += [_along(vertices, upper, lower, line) - vertices[upper],
-                   _along(vertices, lower, upper, 1.0 - line) - vertices[lower]]
+        values += [along_rim(vertices, upper, lower, line) - vertices[upper],
+                   along_rim(vertices, lower, upper, 1.0 - line) - vertices[lower]]
     rim, first = np.unique(np.concatenate(fixed), return_index=True)  # corners: in both rims
     moved = np.concatenate(values)[first]
     # the rims' last CORNER_FREE_MM to each corner are left to the field: pinned there, where
@@ -222,7 +222,7 @@ def _near_corners(vertices: np.ndarray, rim: np.ndarray) -> np.ndarray:
     return rim[np.minimum(run, run[-1] - run) < CORNER_FREE_MM]
 
 
-def _along(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:
+def along_rim(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:
     """Points (K, 3) on the curve ``other + line (rim - other)`` at the arc-length fractions of
     ``rim``'s vertices (both rims run corner to corner)."""
     own = _fractions(vertices[rim])
