@@ -47,6 +47,7 @@ from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .mesh_openings import cut_lip_line
+from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
 from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
@@ -781,14 +782,17 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
                       options: RigOptions = RigOptions(), formats: Sequence[str] = FORMATS,
                       title: str = "", force: bool = False, captures: Sequence[Capture] = (),
                       progress: Callable[[str], None] | None = None,
-                      neutral: np.ndarray | None = None) -> tuple[RigBuild, dict[str, Path]]:
+                      neutral: np.ndarray | None = None,
+                      keep_mesh_space: bool = False) -> tuple[RigBuild, dict[str, Path]]:
     """Build the rig and write ``rig.json``/``rig.fbx``/``rig.glb`` (as ``formats`` asks),
     ``guide.pdf``, ``guide_front.png``, ``guide_profile.png`` and ``rig_report.json`` into
     ``out_dir``. Existing files are refused unless ``force``.
 
     ``captures`` are baked onto the rig one after the other (their takes become clips) and
     keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
-    lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known."""
+    lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known.
+    ``keep_mesh_space``: the rig files in ``mesh_path``'s own coordinates (read as mm), the
+    motion scaled to it (:mod:`~mocaptk.retarget.mesh_space`); the guide stays on the actor."""
     from mocaptk.atomic import check_writable
 
     from .export_fbx import write_rig_fbx
@@ -796,6 +800,8 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     from .export_json import write_rig_json
     from .mesh_io import load_mesh
 
+    if keep_mesh_space and mesh_path is None:
+        raise OptionError("--keep-mesh-space needs --mesh (the default face has no space of its own)")
     unknown = [f for f in formats if f not in FORMATS]
     if unknown:
         raise OptionError(f"unknown rig format(s) {', '.join(unknown)} (choose from json, fbx, glb)")
@@ -827,6 +833,11 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     hierarchy = file_hierarchy(build)
     build.report["hierarchy"] = hierarchy.report()
     keyed = None if animation is None else hierarchical_animation(hierarchy, animation)
+    if keep_mesh_space and build.alignment is not None:  # the given mesh's own size and place
+        back = inverse(build.alignment.transform)
+        hierarchy = replace(hierarchy, rig=rig_in_space(hierarchy.rig, back))
+        keyed = None if keyed is None else animation_in_space(keyed, back)
+        build.report["mesh_space"] = {"kept": True, "motion_scale": back.scale}
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
 
     def write_rig_files() -> None:
