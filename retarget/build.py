@@ -46,7 +46,7 @@ from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
-from .mesh_openings import cut_lip_line
+from .mesh_openings import cut_lip_line, mesh_lids
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -443,6 +443,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     check_surface(options.surface)
     face = None
     lip_cut = None  # the lip line cut on a user's mesh
+    mesh_lid_set = ()  # the eyes' lids found on a user's mesh
     mouth_corners = None  # vertices where the mouth's rims meet (default face, cut user mesh)
     if mesh is None and options.surface == "face":
         say("fitting the face")
@@ -493,11 +494,17 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         vertices = alignment.transform.apply(mesh.vertices)
         faces = np.asarray(mesh.faces, dtype=np.int64)
         say("cutting the mouth opening")
-        lip_cut = cut_lip_line(vertices, faces, fit_template(cloud.neutral, spacing=spacing),
-                               up=np.array([0.0, 1.0, 0.0]))
+        template = fit_template(cloud.neutral, spacing=spacing)
+        lip_cut = cut_lip_line(vertices, faces, template, up=np.array([0.0, 1.0, 0.0]))
         if lip_cut is not None:  # the lips become two rims of one opening
             vertices, faces = lip_cut.vertices, lip_cut.faces
             mouth_corners = lip_cut.corners
+        say("opening the eyes")
+        before = len(faces)
+        faces, mesh_lid_set = mesh_lids(vertices, faces, template)
+        if mesh_lid_set:
+            eye_cut = {"method": "the mesh's edge paths nearest the ICT-FaceKit face's eye rims",
+                       "openings": len(mesh_lid_set), "triangles_removed": before - len(faces)}
         dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
                                             proximity=SurfaceProximity(vertices, faces))
         # a coarse mesh can put two layout markers on one vertex: give each its own
@@ -528,21 +535,22 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     regions_of = [c.region for c in layout.clusters]
     lids = None
     lid_rows = False  # the lids' vertices are capped continuously (their edges are tiny)
-    if face is not None and face.lids and options.max_influences > 1:
-        lids, weights = lid_joints(face, weights, joint_vertices=joint_vertices,
+    eye_lids = face.lids if face is not None else mesh_lid_set
+    if eye_lids and options.max_influences > 1:
+        lids, weights = lid_joints(vertices, eye_lids, weights, joint_vertices=joint_vertices,
                                    displacement=cloud.trajectories[:, rep_idx]
                                    - cloud.neutral[rep_idx])
         joint_positions = np.vstack([joint_positions, lids.positions])
-        labels += [LID_JOINT] * len(face.lids)
-        sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
-        regions_of += ["eye"] * len(face.lids)
+        labels += [LID_JOINT] * len(eye_lids)
+        sides += ["R", "L"] if len(eye_lids) == 2 else ["C"] * len(eye_lids)
+        regions_of += ["eye"] * len(eye_lids)
         lid_rows = weights[:, len(reps):].any(axis=1)
-        corners = [c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])]
+        corners = [c for lid in eye_lids for c in (lid.upper[0], lid.upper[-1])]
         weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
                                 pinned=joint_vertices)
         if mirror is not None:  # the right eye's lid is the left's mirror image
             n = len(reps)
-            lid_mirror = np.arange(n, n + len(face.lids))[::-1 if len(face.lids) == 2 else 1]
+            lid_mirror = np.arange(n, n + len(eye_lids))[::-1 if len(eye_lids) == 2 else 1]
             mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)

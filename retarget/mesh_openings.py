@@ -20,10 +20,11 @@ import numpy as np
 
 from mocaptk.surface_mesh import boundary_edges, mesh_edges
 
-from .default_face import along_rim, template_openings
+from .default_face import LID_REACH_MM, Lid, along_rim, closing_field, split_loop, template_openings
+from .eye_openings import eye_loops
 from .face_template import FittedTemplate
 
-__all__ = ["LipCut", "cut_lip_line", "lip_midcurve", "lip_path", "lips_joined", "split_along"]
+__all__ = ["LipCut", "cut_lip_line", "mesh_lids", "lip_midcurve", "lip_path", "lips_joined", "split_along"]
 
 #: An edge this far (mm) from the template's lip mid-curve costs twice its length on the path.
 LIP_PATH_MM = 1.5
@@ -163,3 +164,61 @@ def cut_lip_line(vertices: np.ndarray, faces: np.ndarray, template: FittedTempla
         return None
     path = lip_path(vertices, faces, curve)
     return None if path is None or len(path) < 3 else split_along(vertices, faces, path, up=up)
+
+
+def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None
+              ) -> tuple[np.ndarray, tuple[Lid, ...]]:
+    """``faces`` with eye openings and the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
+    (right eye first; each with its full blink, the upper rim onto the lower, as on the default
+    face). A mesh with its own eye holes keeps them; on a mesh whose eyes are covered, each
+    eye's rims are the mesh's edge paths nearest the fitted template's upper and lower rims
+    (:func:`lip_path`) and the triangles they enclose are removed. No lids (and ``faces``
+    unchanged) unless two eyes result."""
+    loops = eye_loops(vertices, faces)
+    opened = faces
+    if len(loops) != 2 and template is not None:
+        _, eyes, _ = template_openings()
+        for upper, lower in eyes:
+            opened = _eye_hole(vertices, opened, template.vertices[upper], template.vertices[lower])
+        loops = eye_loops(vertices, opened)
+    if len(loops) != 2:
+        return faces, ()
+    rims = [split_loop(vertices, loop) for loop in sorted(loops, key=lambda l: vertices[l, 0].mean())]
+    return opened, tuple(Lid(upper, lower, closing_field(vertices, opened, [(upper, lower, 0.0)],
+                                                         reach_mm=LID_REACH_MM))
+                         for upper, lower in rims)
+
+
+def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower: np.ndarray
+              ) -> np.ndarray:
+    """``faces`` without the triangles enclosed by the mesh's edge paths nearest the ``upper``
+    and ``lower`` rim curves (K, 3) mm (corner to corner); unchanged where the paths do not
+    enclose a piece of the mesh."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    top, bottom = lip_path(vertices, faces, upper), lip_path(vertices, faces, lower)
+    if top is None or bottom is None or set(top[1:-1].tolist()) & set(bottom[1:-1].tolist()):
+        return faces
+    rim = {tuple(sorted(e)) for path in (top, bottom) for e in zip(path[:-1].tolist(), path[1:].tolist())}
+    faces = np.asarray(faces, dtype=np.int64)
+    sides = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 3, 2), axis=2)  # (T, 3, 2)
+    edge_of = {}
+    links = []
+    for t, edges in enumerate(sides.tolist()):
+        for edge in map(tuple, edges):
+            if edge in rim:
+                continue
+            if edge in edge_of:
+                links.append((edge_of[edge], t))
+            else:
+                edge_of[edge] = t
+    pairs = np.array(links, dtype=np.int64).reshape(-1, 2)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(faces),) * 2)
+    _, part = connected_components(graph, directed=False)
+    touching = np.unique(part[[t for t, edges in enumerate(sides.tolist())
+                               if any(tuple(e) in rim for e in edges)]])
+    if len(touching) < 2:
+        return faces
+    inside = touching[int(np.argmin(np.bincount(part)[touching]))]
+    return faces[part != inside]

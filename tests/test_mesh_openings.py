@@ -1,5 +1,6 @@
-"""The mouth opening cut on a user's ``--mesh`` (issue 30): the MediaPipe canonical face has its
-lips joined; cut along the lip line, they stay closed at rest and part when the jaw opens."""
+"""Openings cut on a user's ``--mesh`` (issue 30): the MediaPipe canonical face has its lips
+joined and its eyes covered; cut along the lip line, the lips stay closed at rest and part when
+the jaw opens; its eyes opened, their lids close when the actor blinks."""
 
 from __future__ import annotations
 
@@ -37,15 +38,17 @@ def test_split_along_opens_a_path_between_its_ends():
 
 
 @pytest.mark.slow
-def test_mediapipe_face_gets_a_mouth_opening_that_parts_with_the_jaw():
+def test_mediapipe_face_gets_a_mouth_that_parts_and_eyes_that_blink():
     """On the sample performance (1,200 held-out frames): the mouth is closed at rest, open at
-    the widest jaw frame, and the largest edge stretch stays under 2x (3.05x before the cut)."""
+    the widest jaw frame, the largest edge stretch stays under 2x (3.05x before the cut), and
+    each eye's aperture at the fullest blink is under 20 % of rest."""
     from mocaptk.acquisition.formats import read_trajectories
     from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
     from mocaptk.retarget.animate import skin_vertices
     from mocaptk.retarget.build import Capture, bake_capture, build_rig, jaw_open_frame
     from mocaptk.retarget.default_face import loop_area
+    from mocaptk.retarget.eye_openings import eye_loops
     from mocaptk.retarget.mesh_io import load_mesh
 
     mesh = load_mesh(shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
@@ -70,4 +73,12 @@ def test_mediapipe_face_gets_a_mouth_opening_that_parts_with_the_jaw():
     edges = np.unique(np.sort(rig.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     length = np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1)
     stretch = np.linalg.norm(posed[:, edges[:, 0]] - posed[:, edges[:, 1]], axis=2) / length
-    assert stretch.max() < 2.0  # sample 1.86x (3.05x with the lips joined)
+    assert stretch.max() < 2.0  # sample 1.89x (3.05x with the lips joined)
+    # the covered eyes are opened along the mesh's own edges and get lids that blink
+    assert rig.joint_names[-2:] == ("upperLid_R", "upperLid_L")
+    eyes = eye_loops(rig.vertices, rig.faces)
+    assert len(eyes) == 2 and build.report["mesh"]["eye_openings"]["openings"] == 2
+    for loop in eyes:
+        rest = loop_area(rig.vertices[loop])
+        assert rest > 100.0  # mm²: sample 192
+        assert loop_area(posed[:, loop]).min() < 0.2 * rest  # sample 14 %
