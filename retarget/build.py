@@ -46,7 +46,7 @@ from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
-from .mesh_openings import cut_lip_line, mesh_lids
+from .mesh_openings import cut_lip_line, kept_out, mesh_lids
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -500,11 +500,14 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
             vertices, faces = lip_cut.vertices, lip_cut.faces
             mouth_corners = lip_cut.corners
         say("opening the eyes")
-        before = len(faces)
-        faces, mesh_lid_set = mesh_lids(vertices, faces, template)
+        before, count = len(faces), len(vertices)
+        vertices, faces, kept, mesh_lid_set = mesh_lids(vertices, faces, template)
         if mesh_lid_set:
             eye_cut = {"method": "the mesh's edge paths nearest the ICT-FaceKit face's eye rims",
-                       "openings": len(mesh_lid_set), "triangles_removed": before - len(faces)}
+                       "openings": len(mesh_lid_set), "triangles_removed": before - len(faces),
+                       "vertices_removed": kept_out(kept, count)}
+            if mouth_corners is not None:
+                mouth_corners = np.searchsorted(kept, mouth_corners)
         dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
                                             proximity=SurfaceProximity(vertices, faces))
         # a coarse mesh can put two layout markers on one vertex: give each its own

@@ -24,7 +24,7 @@ from .default_face import LID_REACH_MM, Lid, along_rim, closing_field, split_loo
 from .eye_openings import eye_loops
 from .face_template import FittedTemplate
 
-__all__ = ["LipCut", "cut_lip_line", "mesh_lids", "lip_midcurve", "lip_path", "lips_joined", "split_along"]
+__all__ = ["LipCut", "cut_lip_line", "kept_out", "mesh_lids", "lip_midcurve", "lip_path", "lips_joined", "split_along"]
 
 #: An edge this far (mm) from the template's lip mid-curve costs twice its length on the path.
 LIP_PATH_MM = 1.5
@@ -167,13 +167,16 @@ def cut_lip_line(vertices: np.ndarray, faces: np.ndarray, template: FittedTempla
 
 
 def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None
-              ) -> tuple[np.ndarray, tuple[Lid, ...]]:
-    """``faces`` with eye openings and the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[Lid, ...]]:
+    """``(vertices, faces, kept, lids)``: the mesh with eye openings, ``kept`` (V',) the given
+    vertex of each of its vertices, and the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
     (right eye first; each with its full blink, the upper rim onto the lower, as on the default
     face). A mesh with its own eye holes keeps them; on a mesh whose eyes are covered, each
     eye's rims are the mesh's edge paths nearest the fitted template's upper and lower rims
-    (:func:`lip_path`) and the triangles they enclose are removed. No lids (and ``faces``
-    unchanged) unless two eyes result."""
+    (:func:`lip_path`), the triangles they enclose are removed and so are the vertices no
+    triangle uses any more (a glTF reader drops them). No lids (and the mesh unchanged) unless
+    two eyes result."""
+    kept = np.arange(len(vertices))
     loops = eye_loops(vertices, faces)
     opened = faces
     if len(loops) != 2 and template is not None:
@@ -182,11 +185,17 @@ def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
             opened = _eye_hole(vertices, opened, template.vertices[upper], template.vertices[lower])
         loops = eye_loops(vertices, opened)
     if len(loops) != 2:
-        return faces, ()
+        return vertices, faces, kept, ()
+    used = np.unique(opened)
+    if len(used) < len(vertices):  # the covered eyes' inner vertices
+        new = np.full(len(vertices), -1, dtype=np.int64)
+        new[used] = np.arange(len(used))
+        vertices, opened, kept = vertices[used], new[opened], used
+        loops = [new[loop] for loop in loops]
     rims = [split_loop(vertices, loop) for loop in sorted(loops, key=lambda l: vertices[l, 0].mean())]
-    return opened, tuple(Lid(upper, lower, closing_field(vertices, opened, [(upper, lower, 0.0)],
-                                                         reach_mm=LID_REACH_MM))
-                         for upper, lower in rims)
+    return vertices, opened, kept, tuple(
+        Lid(upper, lower, closing_field(vertices, opened, [(upper, lower, 0.0)], reach_mm=LID_REACH_MM))
+        for upper, lower in rims)
 
 
 def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower: np.ndarray
@@ -222,3 +231,8 @@ def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower:
         return faces
     inside = touching[int(np.argmin(np.bincount(part)[touching]))]
     return faces[part != inside]
+
+
+def kept_out(kept: np.ndarray, count: int) -> list[int]:
+    """The vertices of ``range(count)`` not in ``kept`` (sorted), for the rig report."""
+    return np.setdiff1d(np.arange(count), kept).tolist()
