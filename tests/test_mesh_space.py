@@ -10,31 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import shared_path
+from test_retarget_rig import sample  # noqa: F401 (the sample's session and layout: a fixture)
+from test_rig_hierarchy import hierarchy_skinned
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_c3d"
-
-
-@pytest.fixture(scope="module")
-def sample():
-    from mocaptk.acquisition.synth_session import load_ground_truth
-    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
-
-    truth = load_ground_truth(SAMPLES / "dense_halfface_truth.npz")
-    session = truth.trajectories()
-    layout = cluster_session(session, options=ClusterOptions(
-        factor=1.1, stabilize=False, takes=truth.takes)).layout
-    return session, layout
-
-
-def _skinned(rig, animation, frames):
-    rotations, positions = animation.world_transforms(frames)
-    out = np.zeros((len(frames), rig.vertex_count, 3))
-    for k in range(rig.max_influences):
-        j, w = rig.weight_index[:, k], rig.weight_value[:, k]
-        out += w[None, :, None] * (np.einsum("fvij,vj->fvi", rotations[:, j],
-                                             rig.vertices - rig.joint_positions[j])
-                                   + positions[:, j])
-    return out
 
 
 @pytest.mark.slow
@@ -48,7 +27,7 @@ def test_the_mesh_space_rig_deforms_as_the_fitted_one_mapped_back(sample):
     from mocaptk.retarget.mesh_space import animation_in_space, inverse, rig_in_space
     from mocaptk.retarget.rig_hierarchy import hierarchical_animation
 
-    session, layout = sample
+    _, session, layout, _ = sample
     mesh = load_mesh(shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
     build = build_rig(layout, session, mesh=mesh, check=False)
     perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
@@ -60,8 +39,8 @@ def test_the_mesh_space_rig_deforms_as_the_fitted_one_mapped_back(sample):
     own = np.delete(mesh.vertices, build.report["mesh"]["eye_openings"]["vertices_removed"], axis=0)
     np.testing.assert_allclose(rig.vertices[:len(own)], own, atol=1e-9)  # the eyes' insides cut
     frames = np.arange(0, keyed.frame_count, 50)
-    fitted = _skinned(hierarchy.rig, keyed, frames)
-    kept = _skinned(rig, animation, frames)
+    fitted = hierarchy_skinned(hierarchy.rig, keyed, frames)
+    kept = hierarchy_skinned(rig, animation, frames)
     assert np.abs(back.apply(fitted) - kept).max() < 1e-9
     motion = np.abs(kept - kept[:1]).max()
     assert motion > 0.1  # cm: the jaw still opens, scaled to the mesh
@@ -73,7 +52,7 @@ def test_cli_rig_keep_mesh_space_writes_the_mesh_where_it_is(sample, tmp_path, r
     from mocaptk.retarget.export_json import read_rig_json
     from mocaptk.retarget.mesh_io import load_mesh
 
-    _, layout = sample
+    _, _, layout, _ = sample
     write_layout(layout, tmp_path / "layout.json")
     path = shared_path("face_mesh", "mediapipe", "canonical_face_model.obj")
     result = run_cli("rig", tmp_path / "layout.json", "--session",
