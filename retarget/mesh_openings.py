@@ -1,4 +1,4 @@
-"""The mouth opening cut on a user's ``--mesh`` (issue 30).
+"""The mouth and eye openings cut on a user's ``--mesh`` (issue 30).
 
 A production face often has its lips joined (the MediaPipe canonical face is one sheet over the
 mouth): skinned as it is, the lips stretch into a membrane when the jaw opens. The lip line is
@@ -10,6 +10,10 @@ that mid-curve. The path's inner vertices are duplicated, the triangles below th
 the copies: the lips become two rims of one opening, so no weight crosses it (weights follow
 the mesh's edges) and they part when the jaw opens. A mesh that already has its own mouth
 opening (a hole there, or lips that roll into a mouth socket) is left as it is.
+
+Covered eyes (MediaPipe's) are opened the same way: each eye's rims are the mesh's edge paths
+nearest the template's upper and lower eye rims, the triangles between them are removed, and
+the lids are made as the default face's (:func:`mesh_lids`).
 """
 
 from __future__ import annotations

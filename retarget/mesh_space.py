@@ -4,8 +4,8 @@ The rig is built in the markers' frame, the mesh brought onto the actor by a sim
 (:mod:`~mocaptk.retarget.align`). Kept in the mesh's space, every point goes through ``T⁻¹``:
 the mesh keeps its own size and place, the joints sit on it, and the motion is scaled to it.
 A joint's local motion changes frame as ``L⁻¹ [Q, t] L`` (``L`` the scale and rotation of
-``T⁻¹``'s inverse: rotations conjugated, translations rotated and scaled), the root's
-translation goes through the whole ``T⁻¹``, so the skinned mesh is exactly ``T⁻¹`` of the
+``T``: rotations conjugated, translations rotated and scaled), the root's translation goes
+through the whole ``T⁻¹``, so the skinned mesh is exactly ``T⁻¹`` of the
 marker-frame one (joints keep identity bind rotations and no scale).
 """
 
