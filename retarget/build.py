@@ -46,6 +46,8 @@ from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
+from .mesh_openings import cut_lip_line, kept_out, mesh_lids
+from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
 from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
@@ -440,11 +442,15 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     texcoords = None
     check_surface(options.surface)
     face = None
+    lip_cut = None  # the lip line cut on a user's mesh
+    mesh_lid_set = ()  # the eyes' lids found on a user's mesh
+    mouth_corners = None  # vertices where the mouth's rims meet (default face, cut user mesh)
     if mesh is None and options.surface == "face":
         say("fitting the face")
         face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud))
     if face is not None:
         vertices, faces, texcoords = face.vertices, face.faces, face.uv
+        mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
         # anchored where the markers are: the fitted face before its lips close
         dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
         dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
@@ -487,6 +493,21 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                           landmarks=pairs)
         vertices = alignment.transform.apply(mesh.vertices)
         faces = np.asarray(mesh.faces, dtype=np.int64)
+        say("cutting the mouth opening")
+        template = fit_template(cloud.neutral, spacing=spacing)
+        lip_cut = cut_lip_line(vertices, faces, template, up=np.array([0.0, 1.0, 0.0]))
+        if lip_cut is not None:  # the lips become two rims of one opening
+            vertices, faces = lip_cut.vertices, lip_cut.faces
+            mouth_corners = lip_cut.corners
+        say("opening the eyes")
+        before, count = len(faces), len(vertices)
+        vertices, faces, kept, mesh_lid_set = mesh_lids(vertices, faces, template)
+        if mesh_lid_set:
+            eye_cut = {"method": "the mesh's edge paths nearest the ICT-FaceKit face's eye rims",
+                       "openings": len(mesh_lid_set), "triangles_removed": before - len(faces),
+                       "vertices_removed": kept_out(kept, count)}
+            if mouth_corners is not None:
+                mouth_corners = np.searchsorted(kept, mouth_corners)
         dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
                                             proximity=SurfaceProximity(vertices, faces))
         # a coarse mesh can put two layout markers on one vertex: give each its own
@@ -505,9 +526,9 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = shape_by_regions(weights, region_masks(graph, regions, len(reps),
                                                          falloff_mm=falloff,
                                                          members=member_vertices))
-    if face is not None:  # the mouth's corners
-        weights = blend_corners(weights, vertices, [face.upper_lip[0], face.upper_lip[-1]],
-                                reach_mm=MOUTH_CORNER_MM, pinned=joint_vertices)
+    if mouth_corners is not None:
+        weights = blend_corners(weights, vertices, mouth_corners, reach_mm=MOUTH_CORNER_MM,
+                                pinned=joint_vertices)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,
@@ -517,21 +538,22 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     regions_of = [c.region for c in layout.clusters]
     lids = None
     lid_rows = False  # the lids' vertices are capped continuously (their edges are tiny)
-    if face is not None and face.lids and options.max_influences > 1:
-        lids, weights = lid_joints(face, weights, joint_vertices=joint_vertices,
+    eye_lids = face.lids if face is not None else mesh_lid_set
+    if eye_lids and options.max_influences > 1:
+        lids, weights = lid_joints(vertices, eye_lids, weights, joint_vertices=joint_vertices,
                                    displacement=cloud.trajectories[:, rep_idx]
                                    - cloud.neutral[rep_idx])
         joint_positions = np.vstack([joint_positions, lids.positions])
-        labels += [LID_JOINT] * len(face.lids)
-        sides += ["R", "L"] if len(face.lids) == 2 else ["C"] * len(face.lids)
-        regions_of += ["eye"] * len(face.lids)
+        labels += [LID_JOINT] * len(eye_lids)
+        sides += ["R", "L"] if len(eye_lids) == 2 else ["C"] * len(eye_lids)
+        regions_of += ["eye"] * len(eye_lids)
         lid_rows = weights[:, len(reps):].any(axis=1)
-        corners = [c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])]
+        corners = [c for lid in eye_lids for c in (lid.upper[0], lid.upper[-1])]
         weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
                                 pinned=joint_vertices)
         if mirror is not None:  # the right eye's lid is the left's mirror image
             n = len(reps)
-            lid_mirror = np.arange(n, n + len(face.lids))[::-1 if len(face.lids) == 2 else 1]
+            lid_mirror = np.arange(n, n + len(eye_lids))[::-1 if len(eye_lids) == 2 else 1]
             mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
@@ -549,7 +571,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                  "min_angle_deg": quality.min_angle_deg, "boundary_loops": quality.boundary_loops,
                  "subdivisions": options.subdivisions if mesh_kind == "marker surface" else 0,
                  "chart": chart_kind,
-                 "opening_edges_cut": [[cloud.labels[a], cloud.labels[b]] for a, b in cut],
+                 "opening_edges_cut": ([[cloud.labels[a], cloud.labels[b]] for a, b in cut]
+                                       if lip_cut is None else lip_cut.edges.tolist()),
                  "eye_openings": eye_cut},
         "alignment": None if alignment is None else {
             "method": alignment.method, "scale": alignment.transform.scale,
@@ -771,14 +794,17 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
                       options: RigOptions = RigOptions(), formats: Sequence[str] = FORMATS,
                       title: str = "", force: bool = False, captures: Sequence[Capture] = (),
                       progress: Callable[[str], None] | None = None,
-                      neutral: np.ndarray | None = None) -> tuple[RigBuild, dict[str, Path]]:
+                      neutral: np.ndarray | None = None,
+                      keep_mesh_space: bool = False) -> tuple[RigBuild, dict[str, Path]]:
     """Build the rig and write ``rig.json``/``rig.fbx``/``rig.glb`` (as ``formats`` asks),
     ``guide.pdf``, ``guide_front.png``, ``guide_profile.png`` and ``rig_report.json`` into
     ``out_dir``. Existing files are refused unless ``force``.
 
     ``captures`` are baked onto the rig one after the other (their takes become clips) and
     keyed into every rig file (rig.json: ``rig_animation.npz``); the report's ``animation``
-    lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known."""
+    lists the takes and every filled gap. ``neutral``: the session's neutral pose, if known.
+    ``keep_mesh_space``: the rig files in ``mesh_path``'s own coordinates (read as mm), the
+    motion scaled to it (:mod:`~mocaptk.retarget.mesh_space`); the guide stays on the actor."""
     from mocaptk.atomic import check_writable
 
     from .export_fbx import write_rig_fbx
@@ -786,6 +812,8 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     from .export_json import write_rig_json
     from .mesh_io import load_mesh
 
+    if keep_mesh_space and mesh_path is None:
+        raise OptionError("--keep-mesh-space needs --mesh (the default face has no space of its own)")
     unknown = [f for f in formats if f not in FORMATS]
     if unknown:
         raise OptionError(f"unknown rig format(s) {', '.join(unknown)} (choose from json, fbx, glb)")
@@ -817,6 +845,11 @@ def write_rig_outputs(layout: Layout, session: Trajectories, out_dir: str | os.P
     hierarchy = file_hierarchy(build)
     build.report["hierarchy"] = hierarchy.report()
     keyed = None if animation is None else hierarchical_animation(hierarchy, animation)
+    if keep_mesh_space and build.alignment is not None:  # the given mesh's own size and place
+        back = inverse(build.alignment.transform)
+        hierarchy = replace(hierarchy, rig=rig_in_space(hierarchy.rig, back))
+        keyed = None if keyed is None else animation_in_space(keyed, back)
+        build.report["mesh_space"] = {"kept": True, "motion_scale": back.scale}
     writers = {"json": write_rig_json, "fbx": write_rig_fbx, "glb": write_rig_glb}
 
     def write_rig_files() -> None:

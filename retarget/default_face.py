@@ -32,8 +32,8 @@ import numpy as np
 from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
-__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "default_face", "loop_area",
-           "template_openings"]
+__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "along_rim", "closing_field",
+           "default_face", "loop_area", "split_loop", "template_openings"]
 
 #: Rounds of the non-rigid fit (closest points move as the face does).
 FIT_ROUNDS = 3
@@ -119,10 +119,10 @@ def template_openings() -> tuple[tuple[np.ndarray, np.ndarray], tuple[tuple[np.n
     eyes = sorted((loop for loop in inner if vertices[loop, 1].mean() > nose_y),
                   key=lambda loop: vertices[loop, 0].mean())
     mirror = cKDTree(vertices).query(vertices * (-1.0, 1.0, 1.0))[1].astype(np.int64)
-    return _split(vertices, mouth), tuple(_split(vertices, eye) for eye in eyes), mirror
+    return split_loop(vertices, mouth), tuple(split_loop(vertices, eye) for eye in eyes), mirror
 
 
-def _split(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def split_loop(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An opening's loop split at its corners (smallest and largest X) into its upper and lower
     rims, each from the right corner to the left one (both corners in both)."""
     loop = np.roll(loop, -int(np.argmin(vertices[loop, 0])))
@@ -150,10 +150,10 @@ def default_face(points: np.ndarray, *, spacing: float,
     vertices = _nonrigid(template.vertices, faces, points, spacing=spacing)
     if plane is not None:
         vertices = _symmetric(vertices, mirror, *plane)
-    closed = vertices + _closing(vertices, faces, [(upper, lower, 0.5)], reach_mm=LIP_REACH_MM)
+    closed = vertices + closing_field(vertices, faces, [(upper, lower, 0.5)], reach_mm=LIP_REACH_MM)
     if plane is not None:
         closed = _symmetric(closed, mirror, *plane)
-    lids = [Lid(top, bottom, _closing(closed, faces, [(top, bottom, 0.0)], reach_mm=lid_reach_mm))
+    lids = [Lid(top, bottom, closing_field(closed, faces, [(top, bottom, 0.0)], reach_mm=lid_reach_mm))
             for top, bottom in eyes]
     if plane is not None:  # the other eye's blink: the mirror image of the first's
         normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
@@ -188,7 +188,7 @@ def _symmetric(vertices: np.ndarray, mirror: np.ndarray, point: np.ndarray,
     return (vertices + image) / 2
 
 
-def _closing(vertices: np.ndarray, faces: np.ndarray,
+def closing_field(vertices: np.ndarray, faces: np.ndarray,
              rims: list[tuple[np.ndarray, np.ndarray, float]], *, reach_mm: float) -> np.ndarray:
     """Displacements (V, 3) mm closing openings: each ``(upper, lower, line)`` rim pair meets on
     the curve ``lower + line (upper - lower)`` (at each rim vertex's arc-length fraction; line 0:
@@ -200,15 +200,17 @@ def _closing(vertices: np.ndarray, faces: np.ndarray,
     fixed, values = [], []
     for upper, lower, line in rims:
         fixed += [upper, lower]
-        values += [_along(vertices, upper, lower, line) - vertices[upper],
-                   _along(vertices, lower, upper, 1.0 - line) - vertices[lower]]
+        values += [along_rim(vertices, upper, lower, line) - vertices[upper],
+                   along_rim(vertices, lower, upper, 1.0 - line) - vertices[lower]]
     rim, first = np.unique(np.concatenate(fixed), return_index=True)  # corners: in both rims
     moved = np.concatenate(values)[first]
     # the rims' last CORNER_FREE_MM to each corner are left to the field: pinned there, where
     # the rims meet at an angle, the closing folded the corner's small triangles
     keep = ~np.isin(rim, np.concatenate([_near_corners(vertices, r) for r in fixed]))
     rim, moved = rim[keep], moved[keep]
-    far = np.flatnonzero(cKDTree(vertices[rim]).query(vertices)[0] > reach_mm)
+    far = cKDTree(vertices[rim]).query(vertices)[0] > reach_mm
+    far[np.setdiff1d(np.arange(len(vertices)), faces)] = True  # no triangle (a --mesh's eye cut)
+    far = np.flatnonzero(far & ~np.isin(np.arange(len(vertices)), rim))
     b = np.concatenate([rim, far]).astype(np.int64)
     bc = np.concatenate([moved, np.zeros((len(far), 3))])
     return np.asarray(igl.harmonic(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
@@ -222,7 +224,7 @@ def _near_corners(vertices: np.ndarray, rim: np.ndarray) -> np.ndarray:
     return rim[np.minimum(run, run[-1] - run) < CORNER_FREE_MM]
 
 
-def _along(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:
+def along_rim(vertices: np.ndarray, rim: np.ndarray, other: np.ndarray, line: float) -> np.ndarray:
     """Points (K, 3) on the curve ``other + line (rim - other)`` at the arc-length fractions of
     ``rim``'s vertices (both rims run corner to corner)."""
     own = _fractions(vertices[rim])

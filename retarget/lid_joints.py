@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .default_face import DefaultFace
+from .default_face import Lid
 
 __all__ = ["LidJoints", "lid_joints"]
 
@@ -87,9 +87,10 @@ class LidJoints:
         return follow + self.blink(displacement)[..., None] * self.closed
 
 
-def lid_joints(face: DefaultFace, weights: np.ndarray, *, joint_vertices: np.ndarray,
-               displacement: np.ndarray) -> tuple[LidJoints, np.ndarray]:
-    """The lid joints of ``face`` and the dense weights (V, L + E) with them, before capping:
+def lid_joints(vertices: np.ndarray, lids: tuple[Lid, ...], weights: np.ndarray, *,
+               joint_vertices: np.ndarray, displacement: np.ndarray) -> tuple[LidJoints, np.ndarray]:
+    """The joints of the ``lids`` of a face mesh (``vertices`` (V, 3) mm: the default face's, or a
+    ``--mesh`` with eye openings) and the dense weights (V, L + E) with them, before capping:
     ``weights`` (V, L) over the L layout joints (``joint_vertices`` (L,) their vertices; the
     session's ``displacement`` (F, L, 3) mm calibrates the full blink); the lid joints become
     joints L, L + 1... A vertex's lid weight is what its markers do not make of its full-blink
@@ -97,14 +98,14 @@ def lid_joints(face: DefaultFace, weights: np.ndarray, *, joint_vertices: np.nda
     (capped with the rest afterwards: no influence is dropped out of turn)."""
     dense = np.asarray(weights, dtype=float)
     sensors = [np.flatnonzero(np.linalg.norm(lid.blink[joint_vertices], axis=1) > SENSOR_MIN_MM)
-               for lid in face.lids]
-    uncalibrated = LidJoints(np.zeros((len(face.lids), 3)), np.zeros((len(face.lids), len(dense[0]))),
-                             np.zeros((len(face.lids), 3)), tuple(sensors),
-                             tuple(lid.blink[joint_vertices[s]] for lid, s in zip(face.lids, sensors)))
+               for lid in lids]
+    uncalibrated = LidJoints(np.zeros((len(lids), 3)), np.zeros((len(lids), len(dense[0]))),
+                             np.zeros((len(lids), 3)), tuple(sensors),
+                             tuple(lid.blink[joint_vertices[s]] for lid, s in zip(lids, sensors)))
     calibrated = uncalibrated.calibrated(displacement).full
-    lid_weight = np.zeros((len(face.vertices), len(face.lids)))
+    lid_weight = np.zeros((len(vertices), len(lids)))
     positions, follow, closed = [], [], []
-    for e, lid in enumerate(face.lids):
+    for e, lid in enumerate(lids):
         # the rim's farthest move: every vertex's lid weight stays within [0, 1]
         full = lid.blink[lid.upper][int(np.argmax(np.linalg.norm(lid.blink[lid.upper], axis=1)))]
         # what the markers make of a full blink (they show `calibrated` of the template's), and
@@ -115,7 +116,7 @@ def lid_joints(face: DefaultFace, weights: np.ndarray, *, joint_vertices: np.nda
         gap = full - own
         lid_weight[:, e] = np.clip(np.einsum("vk,vk->v", lid.blink - own, gap)
                                    / np.maximum(np.einsum("vk,vk->v", gap, gap), 1e-12), 0.0, 1.0)
-        positions.append(face.vertices[lid.upper].mean(axis=0))
+        positions.append(vertices[lid.upper].mean(axis=0))
         follow.append(dense[lid.upper].mean(axis=0))
         closed.append(full - follow[-1] @ markers)  # the lid follows the markers too
     lid_weight[lid_weight < MIN_LID_WEIGHT] = 0.0

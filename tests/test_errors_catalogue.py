@@ -309,6 +309,8 @@ CATALOGUE = [
                                  "--out", f["dir"] / "r2"], "unsupported mesh format '.xyz'"),
     ("E-MESH-EMPTY", lambda f: ["rig", f["layout.json"], "--session", S(f), "--mesh", f["mesh_empty.obj"],
                                 "--out", f["dir"] / "r3"], "the file holds no triangle mesh"),
+    ("E-MESH-SPACE", lambda f: ["rig", f["layout.json"], "--session", S(f), "--keep-mesh-space",
+                                "--out", f["dir"] / "r4"], "--keep-mesh-space needs --mesh"),
     # -- triangulate
     ("E-TRI-MINVIEWS", lambda f: ["triangulate", f["cameras.json"], f["obs_none.npz"], f["dir"] / "t.trc",
                                   "--min-views", "1"], "--min-views must be >= 2"),

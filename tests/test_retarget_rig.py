@@ -169,6 +169,7 @@ def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
     (["--mesh", "nothere.obj"], "mesh file not found"),
     (["--falloff", "-1"], "--falloff"),
     (["--surface", "bogus"], "unknown --surface 'bogus' (choose from face, markers)"),
+    (["--keep-mesh-space"], "--keep-mesh-space needs --mesh"),
 ])
 def test_cli_rig_bad_input_is_one_line_exit_2(sample, tmp_path, run_cli, args, message):
     from mocaptk.clustering.layout import write_layout

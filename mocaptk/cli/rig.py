@@ -87,6 +87,9 @@ def rig(
                                 "the whole face) or markers (a surface through the dense markers)."),
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
                                    "index} (>= 3) to start the mesh alignment (default: ICP)."),
+    keep_mesh_space: bool = typer.Option(False, "--keep-mesh-space", help="Write the rig in the "
+                                         "--mesh file's own coordinates (read as mm), the motion "
+                                         "scaled to it (default: the mesh fitted to the actor)."),
     max_influences: int = typer.Option(4, "--max-influences", help="Joints per vertex (1-8; 4 "
                                        "suits game engines; 8 changes little, see docs)."),
     formats: str = typer.Option("json,fbx,glb", "--formats", help="Comma-separated rig files to "
@@ -140,7 +143,8 @@ def rig(
         build, written = write_rig_outputs(
             lay, traj, out or layout.parent, mesh_path=mesh, landmarks=pairs, options=options,
             formats=chosen, title=f"{layout.name} + {session.name}", force=force,
-            captures=captures, progress=lambda text: status.update(text))
+            captures=captures, progress=lambda text: status.update(text),
+            keep_mesh_space=keep_mesh_space)
     if not quiet:
         check = build.check
         typer.echo(f"rig: {build.rig.joint_count - 1} joints under {build.rig.joint_names[0]}, "

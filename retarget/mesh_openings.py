@@ -1,0 +1,242 @@
+"""The mouth and eye openings cut on a user's ``--mesh`` (issue 30).
+
+A production face often has its lips joined (the MediaPipe canonical face is one sheet over the
+mouth): skinned as it is, the lips stretch into a membrane when the jaw opens. The lip line is
+found from the landmarks and the geometry: the bundled ICT-FaceKit face, fitted to the dense
+neutral markers (:func:`~mocaptk.retarget.face_template.fit_template`), gives the mouth's corners
+and the mid-curve between its inner-lip rims; the cut is the mesh's shortest edge path between
+the mesh vertices nearest those corners, each edge's length weighted up by its distance from
+that mid-curve. The path's inner vertices are duplicated, the triangles below the path taking
+the copies: the lips become two rims of one opening, so no weight crosses it (weights follow
+the mesh's edges) and they part when the jaw opens. A mesh that already has its own mouth
+opening (a hole there, or lips that roll into a mouth socket) is left as it is.
+
+Covered eyes (MediaPipe's) are opened the same way: each eye's rims are the mesh's edge paths
+nearest the template's upper and lower eye rims, the triangles between them are removed, and
+the lids are made as the default face's (:func:`mesh_lids`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocaptk.surface_mesh import boundary_edges, mesh_edges
+
+from .default_face import LID_REACH_MM, Lid, along_rim, closing_field, split_loop, template_openings
+from .eye_openings import eye_loops
+from .face_template import FittedTemplate
+
+__all__ = ["LipCut", "cut_lip_line", "kept_out", "mesh_lids", "lip_midcurve", "lip_path", "lips_joined", "split_along"]
+
+#: An edge this far (mm) from the template's lip mid-curve costs twice its length on the path.
+LIP_PATH_MM = 1.5
+#: Lips are joined when the surface path across them (from this far, mm, above the lip line to
+#: as far below) is under DETOUR times the straight distance (sample: MediaPipe 1.0x; the
+#: ICT-FaceKit head, whose lips roll into its mouth socket, no path: it is not cut).
+LIPS_ACROSS_MM = 4.0
+DETOUR = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class LipCut:
+    """A mesh cut along its lip line: ``vertices`` (V + K, 3) mm and ``faces`` (T, 3) with the
+    path's K inner vertices duplicated (the copies last, taken by the lower lip's triangles);
+    ``path`` (K + 2,) the original vertex indices from the right corner to the left one."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    path: np.ndarray
+
+    @property
+    def corners(self) -> np.ndarray:
+        return self.path[[0, -1]]
+
+    @property
+    def edges(self) -> np.ndarray:
+        """The cut edges (K + 1, 2) as original vertex index pairs."""
+        return np.stack([self.path[:-1], self.path[1:]], axis=1)
+
+
+def lip_midcurve(template: FittedTemplate) -> np.ndarray:
+    """The fitted template's lip mid-curve (K, 3) mm, right corner to left: midway between its
+    inner-lip rims at each upper-rim vertex's arc-length fraction."""
+    (upper, lower), _, _ = template_openings()
+    return along_rim(template.vertices, upper, lower, 0.5)
+
+
+def lip_path(vertices: np.ndarray, faces: np.ndarray, curve: np.ndarray, *,
+             tolerance_mm: float = LIP_PATH_MM) -> np.ndarray | None:
+    """Vertex path (K,) int64 through the mesh's interior from the vertex nearest ``curve[0]``
+    to the one nearest ``curve[-1]`` ((K, 3) mm), each edge's length times 1 + (d / tolerance)²
+    for d its midpoint's distance from the curve; None when no such path (or a corner on the
+    mesh's border)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, dtype=float)
+    curve = np.asarray(curve, dtype=float)
+    dense = np.concatenate([np.linspace(a, b, 8, endpoint=False) for a, b in zip(curve[:-1], curve[1:])]
+                           + [curve[-1:]])
+    edges, _ = mesh_edges(faces)
+    a, b = edges[:, 0], edges[:, 1]
+    border = np.zeros(len(vertices), bool)
+    border[boundary_edges(faces).ravel()] = True
+    inside = ~(border[a] | border[b])  # an opening's rim has no border vertex
+    a, b = a[inside], b[inside]
+    distance = cKDTree(dense).query((vertices[a] + vertices[b]) / 2)[0]
+    cost = np.linalg.norm(vertices[a] - vertices[b], axis=1) * (1.0 + (distance / tolerance_mm) ** 2)
+    graph = sp.coo_matrix((cost, (a, b)), shape=(len(vertices),) * 2).tocsr()
+    tree = cKDTree(vertices)
+    start, end = (int(tree.query(p)[1]) for p in (curve[0], curve[-1]))
+    if border[start] or border[end] or start == end:
+        return None
+    _, previous = dijkstra(graph, directed=False, indices=start, return_predecessors=True)
+    if previous[end] < 0:
+        return None
+    path = [end]
+    while path[-1] != start:
+        path.append(int(previous[path[-1]]))
+    return np.array(path[::-1], dtype=np.int64)
+
+
+def split_along(vertices: np.ndarray, faces: np.ndarray, path: np.ndarray, *,
+                up: np.ndarray) -> LipCut | None:
+    """The mesh opened along ``path`` (K,) (its ends stay joined): each inner vertex's triangles
+    on the ``up`` (3,) side keep it, the others take its copy. None where a path vertex's
+    triangles are not two fans split by the path (a non-manifold vertex)."""
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.array(faces, dtype=np.int64)
+    original = faces.copy()
+    copies = []
+    for k in range(1, len(path) - 1):
+        v, neighbours = int(path[k]), {int(path[k - 1]), int(path[k + 1])}
+        fan = np.flatnonzero((original == v).any(axis=1))
+        group = np.arange(len(fan))
+        changed = True
+        while changed:  # join triangles sharing an edge through v that is not on the path
+            changed = False
+            for i in range(len(fan)):
+                for j in range(i + 1, len(fan)):
+                    shared = (set(original[fan[i]].tolist()) & set(original[fan[j]].tolist())) - {v}
+                    if shared and not shared <= neighbours and group[i] != group[j]:
+                        group[group == group[j]] = group[i]
+                        changed = True
+        sides = np.unique(group)
+        if len(sides) != 2:
+            return None
+        height = [((vertices[original[fan[group == s]]].mean(axis=1) - vertices[v]) @ up).mean()
+                  for s in sides]
+        lower = fan[group == sides[int(np.argmin(height))]]
+        copy = len(vertices) + len(copies)
+        faces[lower] = np.where(original[lower] == v, copy, faces[lower])
+        copies.append(v)
+    return LipCut(np.concatenate([vertices, vertices[copies]]), faces, np.asarray(path, np.int64))
+
+
+def lips_joined(vertices: np.ndarray, faces: np.ndarray, curve: np.ndarray, *,
+                up: np.ndarray, across_mm: float = LIPS_ACROSS_MM) -> bool:
+    """Whether the mesh's lips are joined at the middle of the lip ``curve`` (K, 3) mm: the
+    surface path between the vertices nearest ``across_mm`` above and below it is under
+    :data:`DETOUR` times their distance. A mouth hole, or lips that roll into a mouth socket
+    (the ICT-FaceKit head), make it a long way round."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, dtype=float)
+    middle = curve[len(curve) // 2]
+    ends = cKDTree(vertices).query([middle + across_mm * up, middle - across_mm * up])[1]
+    straight = float(np.linalg.norm(vertices[ends[0]] - vertices[ends[1]]))
+    edges, _ = mesh_edges(faces)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    graph = sp.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(len(vertices),) * 2).tocsr()
+    around = dijkstra(graph, directed=False, indices=int(ends[0]), limit=DETOUR * straight)[ends[1]]
+    return bool(straight > 0 and around < DETOUR * straight)
+
+
+def cut_lip_line(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None, *,
+                 up: np.ndarray) -> LipCut | None:
+    """The mesh cut along its lip line (see the module), or None: no template fit, lips that
+    are not joined (:func:`lips_joined`), or no clean path."""
+    if template is None:
+        return None
+    curve = lip_midcurve(template)
+    if not lips_joined(vertices, faces, curve, up=up):
+        return None
+    path = lip_path(vertices, faces, curve)
+    return None if path is None or len(path) < 3 else split_along(vertices, faces, path, up=up)
+
+
+def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[Lid, ...]]:
+    """``(vertices, faces, kept, lids)``: the mesh with eye openings, ``kept`` (V',) the given
+    vertex of each of its vertices, and the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
+    (right eye first; each with its full blink, the upper rim onto the lower, as on the default
+    face). A mesh with its own eye holes keeps them; on a mesh whose eyes are covered, each
+    eye's rims are the mesh's edge paths nearest the fitted template's upper and lower rims
+    (:func:`lip_path`), the triangles they enclose are removed and so are the vertices no
+    triangle uses any more (a glTF reader drops them). No lids (and the mesh unchanged) unless
+    two eyes result."""
+    kept = np.arange(len(vertices))
+    loops = eye_loops(vertices, faces)
+    opened = faces
+    if len(loops) != 2 and template is not None:
+        _, eyes, _ = template_openings()
+        for upper, lower in eyes:
+            opened = _eye_hole(vertices, opened, template.vertices[upper], template.vertices[lower])
+        loops = eye_loops(vertices, opened)
+    if len(loops) != 2:
+        return vertices, faces, kept, ()
+    used = np.unique(opened)
+    if len(used) < len(vertices):  # the covered eyes' inner vertices
+        new = np.full(len(vertices), -1, dtype=np.int64)
+        new[used] = np.arange(len(used))
+        vertices, opened, kept = vertices[used], new[opened], used
+        loops = [new[loop] for loop in loops]
+    rims = [split_loop(vertices, loop) for loop in sorted(loops, key=lambda l: vertices[l, 0].mean())]
+    return vertices, opened, kept, tuple(
+        Lid(upper, lower, closing_field(vertices, opened, [(upper, lower, 0.0)], reach_mm=LID_REACH_MM))
+        for upper, lower in rims)
+
+
+def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower: np.ndarray
+              ) -> np.ndarray:
+    """``faces`` without the triangles enclosed by the mesh's edge paths nearest the ``upper``
+    and ``lower`` rim curves (K, 3) mm (corner to corner); unchanged where the paths do not
+    enclose a piece of the mesh."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    top, bottom = lip_path(vertices, faces, upper), lip_path(vertices, faces, lower)
+    if top is None or bottom is None or set(top[1:-1].tolist()) & set(bottom[1:-1].tolist()):
+        return faces
+    rim = {tuple(sorted(e)) for path in (top, bottom) for e in zip(path[:-1].tolist(), path[1:].tolist())}
+    faces = np.asarray(faces, dtype=np.int64)
+    sides = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 3, 2), axis=2)  # (T, 3, 2)
+    edge_of = {}
+    links = []
+    for t, edges in enumerate(sides.tolist()):
+        for edge in map(tuple, edges):
+            if edge in rim:
+                continue
+            if edge in edge_of:
+                links.append((edge_of[edge], t))
+            else:
+                edge_of[edge] = t
+    pairs = np.array(links, dtype=np.int64).reshape(-1, 2)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(faces),) * 2)
+    _, part = connected_components(graph, directed=False)
+    touching = np.unique(part[[t for t, edges in enumerate(sides.tolist())
+                               if any(tuple(e) in rim for e in edges)]])
+    if len(touching) < 2:
+        return faces
+    inside = touching[int(np.argmin(np.bincount(part)[touching]))]
+    return faces[part != inside]
+
+
+def kept_out(kept: np.ndarray, count: int) -> list[int]:
+    """The vertices of ``range(count)`` not in ``kept`` (sorted), for the rig report."""
+    return np.setdiff1d(np.arange(count), kept).tolist()
