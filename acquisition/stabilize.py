@@ -424,7 +424,7 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
             break  # the frame to land in is fixed: one round of outlier rejection is all
         # reference shape = mean head-relative position of each rigid marker over its inlier frames
         # (outliers are already out; a mean, unlike a per-axis median, does not depend on the axes)
-        rel = _to_head(rigid, rot, trans)
+        rel = in_head_frame(rigid, rot, trans)
         inlier = weights & ~np.isnan(rel).any(axis=2)
         for m in np.flatnonzero(inlier.any(axis=0)):
             reference[m] = rel[inlier[:, m], m].mean(axis=0)
@@ -441,7 +441,7 @@ def stabilize_head(traj: Trajectories, *, rigid_labels: Sequence[str] | None = N
         rot = np.einsum("fij,kj->fik", rot, r0)  # R_f R0^T
         trans = trans - np.einsum("fij,j->fi", rot, t0)
     bridge_poses(rot, trans, take_segments(traj), max_gap=max_pose_gap)
-    relative = _to_head(traj.positions, rot, trans)
+    relative = in_head_frame(traj.positions, rot, trans)
     meta = dict(traj.metadata)
     meta["stabilized"] = {"rigid_labels": list(labels), "reference_frame": ref_frame}
     return StabilizeResult(traj.replace(positions=relative, metadata=meta), rot, trans, labels, rms, ref_frame)
@@ -487,8 +487,9 @@ def _distances_consistent(rigid: np.ndarray, reference: np.ndarray, outlier_mm: 
     return (count > 0) & (lower_median <= max(outlier_mm, 3.0 * typical))
 
 
-def _to_head(points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
-    """``R_f^T (x - t_f)`` for points (F, M, 3); NaN where the pose or the point is unknown."""
+def in_head_frame(points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """``R_f^T (x - t_f)`` for points (F, M, 3) mm, rotations (F, 3, 3), translations (F, 3) mm;
+    NaN where the pose or the point is unknown."""
     return np.einsum("fji,fmj->fmi", rot, points - trans[:, None])
 
 

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from mocaptk.acquisition.filtering import lowpass
 from mocaptk.acquisition.runs import take_segments
-from mocaptk.acquisition.stabilize import POSE_CUTOFF_HZ, bridge_poses, kabsch
+from mocaptk.acquisition.stabilize import POSE_CUTOFF_HZ, bridge_poses, in_head_frame, kabsch
 from mocaptk.trajectories import Trajectories
 
 from .consistency import LayoutGaussian
@@ -167,7 +167,7 @@ def refine_poses(poses: HeadPoses, gaussian: LayoutGaussian, x: np.ndarray, *,
         present = np.isfinite(xs).all(axis=2) & np.isfinite(rot[rows, 0, 0])[:, None]
         r, t = rot[rows], trans[rows]
         for _ in range(iterations):
-            y = np.einsum("fji,fmj->fmi", r, xs - t[:, None])  # head frame
+            y = in_head_frame(xs, r, t)  # head frame
             e = np.where(present[..., None], y - mean, 0.0).reshape(len(xs), -1, 1)
             jac = np.zeros((len(xs), y.shape[1], 3, 6))  # d y / d (omega, tau): [-[y]x, I]
             jac[..., 0, 1], jac[..., 0, 2] = y[..., 2], -y[..., 1]

@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from mocaptk.acquisition.stabilize import in_head_frame
 from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.clustering.reconstruction_models import DEFAULT_RIDGE, batched_ridge
 from mocaptk.errors import OptionError
@@ -264,7 +265,7 @@ class MeshMap:
         solved = np.isfinite(dense).all(axis=2).any(axis=1)
         if poses is not None and (self.mirror is not None or self.blinks):
             rot, trans = poses
-            relative = np.einsum("fji,fmj->fmi", rot, dense - trans[:, None])
+            relative = in_head_frame(dense, rot, trans)
             verts = self.apply(relative)
             verts = np.einsum("fij,fvj->fvi", rot, verts) + trans[:, None]
             verts[~solved] = np.nan

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from mocaptk import __version__
+from mocaptk.acquisition.stabilize import in_head_frame
 from mocaptk.atomic import write_bytes, write_text
 from mocaptk.clustering.neutral import neutral_pose
 from mocaptk.errors import InputFileError
@@ -117,7 +118,7 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
             rotations[part], translations[part] = _joint_poses(
                 basis, neutral, world, rotations[part], translations[part], l1=l1, smooth=smooth,
                 previous=previous)
-        frames = world if poses is None else _in_head(world, rotations[part], translations[part])
+        frames = world if poses is None else in_head_frame(world, rotations[part], translations[part])
         solved = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous)
         weights[part], residual[part], lost[part] = solved.weights, solved.residual_mm, solved.lost
         previous = solved.weights[-1] if len(solved.weights) else previous
@@ -143,14 +144,9 @@ def _posed_fits_better(basis: np.ndarray, neutral: np.ndarray, x: np.ndarray, ro
     world = np.array(x[test], dtype=np.float64)
     rot, trans = _joint_poses(basis, neutral, world, rotations[test].copy(), translations[test].copy(),
                               l1=l1, smooth=0.0, previous=None)
-    posed = solve_weights(basis, _in_head(world, rot, trans) - neutral, l1=l1, smooth=0.0).residual_mm
+    posed = solve_weights(basis, in_head_frame(world, rot, trans) - neutral, l1=l1, smooth=0.0).residual_mm
     unposed = solve_weights(basis, world - neutral, l1=l1, smooth=0.0).residual_mm
     return bool(np.nanmedian(posed) < np.nanmedian(unposed))
-
-
-def _in_head(world: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-    """``R^T (x - t)`` per frame (f, L, 3); a frame without a pose: NaN (its markers lost)."""
-    return np.einsum("fji,fmj->fmi", rotations, world - translations[:, None])
 
 
 def _joint_poses(basis: np.ndarray, neutral: np.ndarray, world: np.ndarray, rotations: np.ndarray,
@@ -164,7 +160,7 @@ def _joint_poses(basis: np.ndarray, neutral: np.ndarray, world: np.ndarray, rota
 
     seen = np.isfinite(world).all(axis=2)
     for _ in range(JOINT_POSE_ROUNDS):
-        frames = _in_head(world, rotations, translations)
+        frames = in_head_frame(world, rotations, translations)
         w = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous).weights
         predicted = neutral + np.einsum("fs,smc->fmc", w, basis)
         rot, trans = kabsch(predicted, np.where(seen[..., None], world, 0.0), seen.astype(float))

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from mocaptk.acquisition.stabilize import in_head_frame
 from mocaptk.clustering.layout import Layout
 from mocaptk.clustering.pipeline import HEAD_RELATIVE_RMS_MM
 from mocaptk.clustering.reconstruction_models import DEFAULT_KIND, DEFAULT_RIDGE, FaceModel, fit_model, load_model
@@ -38,7 +39,7 @@ from .head_pose import HeadPoses, fixed_pose, least_moving_markers, refine_poses
 from .mesh_map import MeshMap
 
 __all__ = ["FaceSolver", "MeshMap", "SolvedChunk", "head_poses", "layout_frames", "solve_chunks",
-           "load_solver", "to_head_frame", "train_solver"]
+           "in_head_frame", "load_solver", "to_head_frame", "train_solver"]
 
 #: ``HeadPoses.source`` values: the layout's stabilization markers, or its least-moving markers.
 POSE_FROM_RIGID = "stabilization markers"
@@ -280,8 +281,7 @@ def to_head_frame(x: np.ndarray, poses: HeadPoses | None, rows: slice = slice(No
     """Capture points (f, K, 3) mm of frames ``rows`` in the head frame: ``R^T (x - t)``."""
     if poses is None:
         return np.array(x, dtype=np.float64)
-    rot, trans = poses.rotations[rows], poses.translations[rows]
-    return np.einsum("fji,fmj->fmi", rot, x - trans[:, None])
+    return in_head_frame(x, poses.rotations[rows], poses.translations[rows])
 
 
 def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray, poses: HeadPoses | None = None, *,
