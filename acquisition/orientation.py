@@ -51,6 +51,14 @@ def side_tag(label: str) -> str | None:
     return "C" if match.group(1) in "CM" else match.group(1)
 
 
+def mirror_label(label: str) -> str:
+    """Label of the mirror image: ``_L`` ↔ ``_R``; untagged labels get ``_mirror``."""
+    tag = side_tag(label)
+    if tag in ("L", "R"):
+        return label[:-1] + ("R" if tag == "L" else "L")
+    return f"{label}_mirror"
+
+
 def label_pairs(labels: Sequence[str]) -> list[tuple[int, int]]:
     """Mirror pairs named by the labels: ``(left index, right index)`` for labels equal but for one
     ``L`` ↔ ``R`` (``CL4``/``CR4``, ``MOUTH_03_L``/``MOUTH_03_R``, ``LEyeOuter``/``REyeOuter``)."""

@@ -176,7 +176,7 @@ class Actor:
 def accuracy() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
     from mocaptk.acquisition.synth_session import load_ground_truth
-    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.character_files import load_character
 
     generic = load_character("arkit")
     other, factor = stylized(generic)
@@ -222,7 +222,7 @@ def lost() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
     from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
-    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import retarget_capture
     from mocaptk.retarget.solve import train_solver
 
@@ -267,7 +267,7 @@ def speed() -> None:
     from mocaptk.retarget.weight_solve import solve_weights
 
     from mocaptk.acquisition.synth_session import load_ground_truth
-    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.character_files import load_character
 
     rng = np.random.default_rng(1)
     rig = load_character("arkit")
@@ -300,7 +300,7 @@ def memory() -> None:
 import resource, numpy as np, sys
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.clustering.layout import read_layout
-from mocaptk.retarget.character import load_character
+from mocaptk.retarget.character_files import load_character
 from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
 from mocaptk.retarget.solve import train_solver
 session = read_c3d(sys.argv[1]); capture = read_c3d(sys.argv[2])

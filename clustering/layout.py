@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from mocaptk.acquisition.orientation import mirror_label
 from mocaptk.errors import InputFileError, shorten
 from mocaptk.jsonio import read_json, write_json
 
@@ -291,8 +292,6 @@ def check_members(layout: Layout, labels: Sequence[str], *, layout_path: str | o
     """InputFileError naming the layout file when a cluster member is neither a marker of the
     session ``session_name`` (``labels``) nor the mirror image of one (a half-face layout's twin),
     or a stabilization marker is not one of the session's."""
-    from .symmetry import mirror_label
-
     known = set(labels)
     unknown = list(dict.fromkeys(m for c in layout.clusters for m in (c.representative, *c.members)
                                  if m not in known and mirror_label(m) not in known))

@@ -23,6 +23,7 @@ from mocaptk.errors import InputFileError, MocaptkError, OptionError, source_err
 from mocaptk.trajectories import Take, Trajectories
 
 from .correlation import consolidated_correlation
+from .cluster_result import ClusterResult, RegionMatrix
 from .layout import Cluster, Layout, RegionResult
 from .neutral import max_displacement, neutral_pose, seen_markers
 from .regions import default_regions, unassigned
@@ -66,27 +67,6 @@ class ClusterOptions:
     rig: str | None = None  # camera rig whose per-marker costs the layout method weighs (None: camera-blind)
     shapes: tuple[tuple[str, ...], np.ndarray] | None = None
     shapes_source: str | None = None
-
-
-@dataclass
-class RegionMatrix:
-    """The consolidated correlation of one region (for heatmaps): labels in matrix order."""
-
-    labels: list[str]
-    matrix: np.ndarray
-    clusters: np.ndarray  # (M,) cluster number of each marker
-
-
-@dataclass
-class ClusterResult:
-    """A computed layout plus what the figures and summary need."""
-
-    layout: Layout
-    trajectories: Trajectories  # the (stabilized) session the layout was computed on
-    neutral: np.ndarray  # (M, 3) mm, neutral pose of ``trajectories``
-    matrices: dict[str, RegionMatrix]
-    frame: np.ndarray  # (3, 3) rows lateral, up, forward of the face (for front views)
-    notes: list[str] = field(default_factory=list)
 
 
 #: A session whose automatically chosen rigid markers already stay this close (RMS, mm) to their

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocaptk.acquisition.orientation import face_axes
+from mocaptk.acquisition.orientation import face_axes, label_pairs
 from mocaptk.acquisition.text_io import UTF16_PROBLEM, looks_utf16
 from mocaptk.errors import InputFileError, quoted, shorten
 from mocaptk.jsonio import parse_json, read_input_bytes
@@ -133,11 +133,10 @@ def geometric_regions(labels: Sequence[str], neutral: np.ndarray, displacement: 
     u >= 0.75 forehead_brow; 0.55-0.75: nose if v < 0.1, eye if v < 0.35, else cheek;
     0.35-0.55: nose if v < 0.12, else cheek; 0.15-0.35: mouth if v < 0.25, else cheek;
     u < 0.15 chin. Mirror pairs named by the labels (``CL4``/``CR4``, see
-    :func:`~mocaptk.clustering.symmetry.label_pairs`) share their mean (u, v), so regions are
+    :func:`~mocaptk.acquisition.orientation.label_pairs`) share their mean (u, v), so regions are
     symmetric, and the midline lies halfway between them. Markers with a NaN neutral position are
     left out.
     """
-    from .symmetry import label_pairs
 
     valid = np.isfinite(neutral).all(axis=1)
     frame = face_frame(neutral[valid], displacement[valid]) if frame is None else frame

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocaptk.acquisition.orientation import infer_orientation, label_pairs, side_tag
+from mocaptk.acquisition.orientation import infer_orientation, label_pairs, mirror_label, side_tag
 from mocaptk.errors import OptionError
 
 from .layout import Cluster
@@ -15,14 +15,6 @@ from .regions import face_frame
 
 #: Markers closer than this to the sagittal plane count as midline when labels carry no side tag.
 MIDLINE_TOLERANCE_MM = 3.0
-
-
-def mirror_label(label: str) -> str:
-    """Label of the mirror image: ``_L`` ↔ ``_R``; untagged labels get ``_mirror``."""
-    tag = side_tag(label)
-    if tag in ("L", "R"):
-        return label[:-1] + ("R" if tag == "L" else "L")
-    return f"{label}_mirror"
 
 
 def is_half_capture(labels: Sequence[str]) -> bool:

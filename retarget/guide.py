@@ -35,7 +35,7 @@ import numpy as np
 
 from mocaptk.atomic import atomic_path
 
-from .renders import REGION_COLOURS, region_colour
+from mocaptk.clustering.regions import REGION_COLOURS, region_colour
 
 __all__ = ["GuideMarker", "guide_markers", "pair_names", "place_labels", "write_guide_pdf"]
 

@@ -187,7 +187,7 @@ def test_solve_finds_the_session_a_layout_records(tmp_path):
     import hashlib
     import shutil
 
-    from mocaptk.cli.solve import session_path
+    from mocaptk.cli.options import session_path
 
     tree = tmp_path / "project"
     (tree / "captures").mkdir(parents=True)

@@ -13,7 +13,7 @@ from conftest import SAMPLES
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.clustering.methods.set_cover import layout_statistics
 from mocaptk.clustering.neutral import neutral_pose
-from mocaptk.retarget.character import load_character
+from mocaptk.retarget.character_files import load_character
 from mocaptk.retarget.correspondence import correspond
 
 

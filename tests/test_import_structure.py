@@ -63,3 +63,39 @@ def test_imports_follow_the_data_flow_and_leave_a_stage_absolutely(path, package
         if here is not None and STAGES.index(there) > STAGES.index(here):
             problems.append(f"{rel}:{line}: {here} imports the later stage {module}")
     assert not problems, "\n".join(problems)
+
+
+def module_name(path: Path, package: list[str]) -> str:
+    return ".".join(package if path.stem == "__init__" else package + [path.stem])
+
+
+def test_no_module_imports_itself_through_others():
+    """No import cycle among the package's modules, counting imports inside functions: a cycle
+    hidden in a lazy import still ties the modules' jobs together (the brief's rule)."""
+    names = {module_name(path, package): (path, package) for path, package in MODULES}
+    graph: dict[str, set[str]] = {}
+    for name, (path, package) in names.items():
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                base = ".".join((package[:len(package) - node.level + 1] if node.level else [])
+                                + ([node.module] if node.module else []))
+                targets |= {base, *(f"{base}.{alias.name}" for alias in node.names)}
+            elif isinstance(node, ast.Import):
+                targets |= {alias.name for alias in node.names}
+        graph[name] = {t for t in targets if t in names and t != name}
+
+    def cycle_from(start: str) -> list[str] | None:
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, trail = stack.pop()
+            for nxt in sorted(graph[node]):
+                if nxt == start:
+                    return trail + [start]
+                if nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, trail + [nxt]))
+        return None
+
+    cycles = {frozenset(c): c for c in map(cycle_from, sorted(graph)) if c}
+    assert not cycles, "\n".join(" -> ".join(c) for c in cycles.values())

@@ -15,7 +15,8 @@ from readers import installed
 from mocaptk.acquisition.c3d_read import read_c3d
 from mocaptk.acquisition.c3d_write import write_c3d
 from mocaptk.acquisition.synth_session import load_ground_truth
-from mocaptk.retarget.character import ARKIT_NAMES, arkit_name, load_character
+from mocaptk.retarget.character import ARKIT_NAMES, arkit_name
+from mocaptk.retarget.character_files import load_character
 from mocaptk.retarget.livelink_csv import LIVELINK_COLUMNS, timecode
 from mocaptk.retarget.weight_solve import solve_weights
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from mocaptk.errors import OptionError
 
-from ..baselines import farthest_point_layout, kmeans_layout, random_layout
+from ..baselines import farthest_point_layout, random_layout
+from .kmeans import kmeans_points
 from .problem import LayoutProblem, layout_problem
 
 
@@ -48,16 +49,6 @@ def _farthest_point(problem: LayoutProblem, count: int, *, seed: int = 0) -> tup
 
 def _kmeans(problem: LayoutProblem, count: int, *, seed: int = 0) -> tuple[np.ndarray, dict]:
     return kmeans_points(problem, count, seed=seed), {}
-
-
-def kmeans_points(problem: LayoutProblem, count: int, *, seed: int = 0) -> np.ndarray:
-    """The k-means layout (sorted point indices), computed once per problem, count and seed."""
-    def compute() -> np.ndarray:
-        cand = problem.candidate_points()
-        # every point a candidate (sorted, unique): the displacements themselves, no (F, N, 3) copy
-        disp = problem.displacements if cand.size == problem.n_points else problem.displacements[:, cand]
-        return np.sort(cand[kmeans_layout(disp, count, seed=seed)])
-    return problem.cached(("kmeans", count, seed), compute)
 
 
 def _paper(problem: LayoutProblem, count: int, *, seed: int = 0, step: int = 5) -> tuple[np.ndarray, dict]:

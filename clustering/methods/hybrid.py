@@ -30,6 +30,7 @@ import numpy as np
 
 from mocaptk.errors import OptionError
 
+from .kmeans import kmeans_points
 from .local_fit import LocalError
 from .paper import paper_layout
 from .problem import LayoutProblem
@@ -158,7 +159,6 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
     if "greedy" in contenders and not large:
         layouts["greedy"] = problem.cached(("greedy", count), lambda: greedy_layout(problem, count))
     if "kmeans" in contenders:
-        from . import kmeans_points
         layouts["kmeans"] = kmeans_points(problem, count, seed=seed)
     if not layouts:
         raise OptionError("no hybrid contender could produce a layout")

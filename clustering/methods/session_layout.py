@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from ..layout import Cluster
-from ..pipeline import ClusterResult
+from ..cluster_result import ClusterResult
 from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
 from . import LayoutProblem, select_layout
 from .problem import camera_aware

@@ -271,7 +271,7 @@ def cluster(
     warn_unless_face(traj, session, regions_given=regions is not None, neutral=neutral)
     shapes = None
     if character is not None:  # the rig's shapes at the session's markers (retarget's correspondence)
-        from mocaptk.retarget.character import load_character
+        from mocaptk.retarget.character_files import load_character
         from mocaptk.retarget.correspondence import correspond
         rig_face = load_character(character)
         shapes = (tuple(traj.labels), correspond(rig_face, neutral).shape_basis(rig_face))

@@ -44,7 +44,7 @@ def load_template(path: Path, *, units: str | None, rate: float | None):
         from mocaptk.clustering.layout import read_layout
 
         from .options import recorded_reading
-        from .solve import session_path
+        from .options import session_path
 
         layout, layout_path = read_layout(path), path
         path = session_path(layout_path, layout.source, None)  # where solve finds it
@@ -79,7 +79,7 @@ def label_for_layout(layout, layout_path: Path, capture, *, session=None, given:
     from mocaptk.clustering.pipeline import load_session
 
     from .options import recorded_reading
-    from .solve import session_path
+    from .options import session_path
 
     if session is None:
         path = session_path(layout_path, layout.source, given)

@@ -1,4 +1,5 @@
-"""Options shared by every command that reads a marker file, so they mean and say the same."""
+"""Options shared by every command that reads a marker file, so they mean and say the same, and
+where a layout's recorded session is found."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from mocaptk.errors import InputFileError
 
 Units = Annotated[str | None, typer.Option(
     "--units", help="Units of the numbers in a text input (mm, cm, m, in, or mm per file unit), "
@@ -45,3 +48,32 @@ def recorded_reading(layout, file, *, rate: float | None, units: str | None) -> 
     if not same_kind:
         return rate, units
     return (reading.get("rate") if rate is None else rate), (reading.get("units") if units is None else units)
+
+
+def session_path(layout_path: Path, source: dict, given: Path | None) -> Path:
+    """The training session: ``--session``, else where layout.json's ``source`` records it:
+    relative to the layout, at its absolute path, then by file name beside the layout, in the
+    folder above it and in the working folder. Of several files found, the first with the
+    layout's sha256 (the caller refuses one whose hash differs)."""
+    if given is not None:
+        return given
+    recorded = source.get("path")
+    if not recorded:
+        raise InputFileError(layout_path, "records no session file; give --session")
+    folder = layout_path.parent
+    candidates = [folder / source["relative"]] if source.get("relative") else []
+    candidates += [Path(source["absolute"])] if source.get("absolute") else []
+    candidates += [folder / recorded, folder.parent / recorded, Path(recorded)]
+    found = [path for path in dict.fromkeys(candidates) if path.is_file()]
+    if len(found) > 1 and source.get("sha256"):
+        import hashlib
+
+        def digest(path: Path) -> str:
+            with open(path, "rb") as handle:
+                return hashlib.file_digest(handle, "sha256").hexdigest()
+        found = [path for path in found if digest(path) == source["sha256"]] or found
+    if found:
+        return found[0]
+    where = ", ".join(str(p) for p in candidates[:2]) if source.get("relative") else "beside it"
+    raise InputFileError(layout_path, f"its session {recorded} is not where it records it ({where}), "
+                         "beside it, in the folder above nor in the working folder; give --session")

@@ -68,7 +68,7 @@ def retarget(
     from mocaptk.atomic import staged_folder
     from mocaptk.clustering.layout import read_layout
     from mocaptk.clustering.pipeline import load_session, stabilize
-    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import (CHARACTER_FORMATS, fit_retargeter, load_calibration,
                                                    retarget_capture, write_renders, write_report_page,
                                                    write_retarget_outputs)
@@ -78,7 +78,7 @@ def retarget(
     from mocaptk.clustering.layout import layout_rigid_set
     from .report import report_line
     from .rig import parse_formats
-    from .solve import session_path
+    from .options import session_path
 
     options = {"l1": DEFAULT_L1 if l1 is None else l1, "smooth": DEFAULT_SMOOTH if smooth is None else smooth,
                "prior": DEFAULT_PRIOR if prior is None else prior}
