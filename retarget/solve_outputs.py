@@ -103,7 +103,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     mesh = None
     if mesh_path is not None:
         say(f"aligning {Path(mesh_path).name} to the dense neutral")
-        mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral)
+        mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral, layout=layout)
     elif surface == "face":
         say("fitting the face to the dense neutral")
         mesh = face_mesh(solver, layout)
@@ -191,18 +191,25 @@ def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
     return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored)
 
 
-def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray) -> tuple[MeshMap, dict[str, Any]]:
+def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layout | None = None,
+              corners: Mapping[str, int] | None = None) -> tuple[MeshMap, dict[str, Any]]:
     """The mesh file ``path`` (OBJ, PLY, glTF/GLB, STL, OFF; any unit, Y up, facing +Z) aligned
-    to the dense neutral (M, 3) mm and following the dense markers (:meth:`MeshMap.fitted`), and
-    its summary for ``solve.json``."""
+    to the dense neutral (M, 3) mm, opened as ``rig --mesh`` opens it (``corners``: its corner
+    landmarks) and following the dense markers (:meth:`MeshMap.fitted`), and its summary for
+    ``solve.json``."""
     from .mesh_io import load_mesh
 
     loaded = load_mesh(path)
-    mesh, alignment, pinned = MeshMap.fitted(loaded.vertices, loaded.faces, neutral)
+    plane = None if layout is None else layout.extra.get("sagittal_plane")
+    lateral = np.asarray(plane["normal"], float) if isinstance(plane, dict) else None
+    mesh, alignment, pinned, opened = MeshMap.fitted(loaded.vertices, loaded.faces, neutral,
+                                                     lateral=lateral, corners=corners)
     return mesh, {"kind": "user mesh", "source": str(path), "pinned_markers": pinned,
                   "alignment": {"method": alignment.method, "scale": alignment.transform.scale,
                                 "rms_residual_mm": alignment.rms_mm,
-                                "max_residual_mm": alignment.max_mm}}
+                                "max_residual_mm": alignment.max_mm},
+                  "opening_edges_cut": [] if opened.lip_cut is None else opened.lip_cut.edges.tolist(),
+                  "eye_openings": opened.eye_report}
 
 
 def _frames_csv(solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
