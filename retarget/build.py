@@ -543,8 +543,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         regions_of += ["eye"] * len(eye_lids)
         lid_rows = weights[:, len(reps):].any(axis=1)
         corners = [c for lid in eye_lids for c in (lid.upper[0], lid.upper[-1])]
-        weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
-                                pinned=joint_vertices)
+        weights = blend_corners(weights, vertices, corners, pinned=joint_vertices,
+                                reach_mm=EYE_CORNER_MM if opened is None else opened.eye_corner_mm)
         if mirror is not None:  # the right eye's lid is the left's mirror image
             n = len(reps)
             lid_mirror = np.arange(n, n + len(eye_lids))[::-1 if len(eye_lids) == 2 else 1]

@@ -134,12 +134,14 @@ class MeshMap:
         return replace(mesh, uv=face.uv, mirror=mirror)
 
     def _with_openings(self, rig_vertices: np.ndarray, mouth: np.ndarray | None, lids: tuple,
-                       anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray) -> MeshMap:
+                       anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray, *,
+                       eye_corner_mm: float | None = None) -> MeshMap:
         """This map with its openings' corners blended and its lids' blinks (the default face, a
         user's opened mesh): ``rig_vertices`` (V, 3) mm its vertices in the rig frame
         (``rotation`` session -> rig), ``mouth`` (2,) the mouth's corner vertices (None: no
-        mouth cut), ``lids`` the eyes' :class:`~mocaptk.retarget.default_face.Lid`, ``anchors``
-        (M,) and ``columns`` (M, 3) mm as :meth:`anchored`."""
+        mouth cut), ``lids`` the eyes' :class:`~mocaptk.retarget.default_face.Lid` (their corners
+        blended within ``eye_corner_mm``, default the default face's), ``anchors`` (M,) and
+        ``columns`` (M, 3) mm as :meth:`anchored`."""
         from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM
         from .lid_joints import SENSOR_MIN_MM
         from .weights import blend_corners
@@ -148,7 +150,7 @@ class MeshMap:
         matrix = self.matrix
         for corners, reach in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM),
                                ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
-                                EYE_CORNER_MM)):
+                                EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm)):
             if corners:
                 matrix = blend_corners(matrix, rig_vertices, corners, reach_mm=reach,
                                        pinned=anchors[anchors >= 0])
@@ -243,7 +245,7 @@ class MeshMap:
         anchors[seen[close]] = nearest[close]
         mesh = cls.anchored(placed, opened.faces, anchors, neutral)
         mesh = mesh._with_openings(opened.vertices, opened.mouth_corners, opened.lids, anchors,
-                                   neutral, rotation)
+                                   neutral, rotation, eye_corner_mm=opened.eye_corner_mm)
         return mesh, alignment, int(close.sum()), opened
 
     @classmethod
