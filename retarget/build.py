@@ -47,7 +47,7 @@ from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .mesh_openings import CORNERS, OpenedMesh, lip_midcurve, open_mesh
-from .mesh_parts import part_weights
+from .mesh_parts import beyond_markers, part_weights
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -550,7 +550,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
             lid_mirror = np.arange(n, n + len(eye_lids))[::-1 if len(eye_lids) == 2 else 1]
             mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
     if opened is not None:  # teeth, eyeballs, lashes: with the head, the jaw or the lids
-        weights = _part_weights(weights, opened, layout, cloud, rep_idx, template, options)
+        weights = _part_weights(weights, opened, layout, cloud, rep_idx, template, options, spacing)
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
@@ -594,13 +594,13 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
 
 
 def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud: DenseCloud,
-                  rep_idx: np.ndarray, template: FittedTemplate | None, options: RigOptions
-                  ) -> np.ndarray:
-    """The rows (:func:`~mocaptk.retarget.mesh_parts.part_weights`) of a user mesh's parts other
-    than the skin: the head's row is the layout joint that moves least in the session, the
-    jaw's the (up to ``max_influences``) lowest jaw joints, equally."""
-    if opened.skin == len(opened.faces):
-        return weights
+                  rep_idx: np.ndarray, template: FittedTemplate | None, options: RigOptions,
+                  spacing: float) -> np.ndarray:
+    """A user mesh's skin beyond the markers towards the head
+    (:func:`~mocaptk.retarget.mesh_parts.beyond_markers`) and the rows of its parts other than
+    the skin (:func:`~mocaptk.retarget.mesh_parts.part_weights`): the head's row is the layout
+    joint that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
+    joints, equally."""
     bind = cloud.neutral[rep_idx]
     moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
     head = np.zeros(weights.shape[1])
@@ -613,6 +613,7 @@ def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud
     nose_y = float(opened.vertices[skin[np.argmax(opened.vertices[skin, 2])], 1])
     mouth_y = (float(lip_midcurve(template)[:, 1].mean()) if template is not None
                else float(bind[lower, 1].max()))
+    weights = beyond_markers(weights, opened.vertices, cloud.neutral, head=head, spacing=spacing)
     return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
                         mouth_y=mouth_y, nose_y=nose_y)
 

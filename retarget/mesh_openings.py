@@ -55,6 +55,10 @@ LIP_PATH_MM = 1.5
 #: ICT-FaceKit head, whose lips roll into its mouth socket, no path: it is not cut).
 LIPS_ACROSS_MM = 4.0
 DETOUR = 2.0
+#: The piece of mesh an eye's rims enclose is a socket (the lids roll into it: not cut), not a
+#: film over the eye, when its area is over this many times the aperture's (the MediaPipe
+#: face: 1.0; the ICT-FaceKit head: its sockets, much more).
+SOCKET_AREA = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -216,19 +220,29 @@ def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
     eye's rims are the mesh's edge paths nearest the fitted template's upper and lower rims
     (:func:`lip_path`), the triangles they enclose are removed and so are the vertices no
     triangle uses any more (a glTF reader drops them). No lids (and the mesh unchanged) unless
-    two eyes result. ``corners`` (``eye_*`` of :data:`CORNERS`, (3,) mm) bend the template's rims
+    two eyes result. An eye whose lids are not joined (:func:`lips_joined` at the middle of its
+    aperture: lids that roll into a socket) is not cut: its rims are those edge paths, its lid
+    margins. ``corners`` (``eye_*`` of :data:`CORNERS`, (3,) mm) bend the template's rims
     onto them (:func:`bent`), and split an eye hole of the mesh's own at the loop vertices
     nearest them. Vertices ``faces`` does not use stay (another part's)."""
     kept = np.arange(len(vertices))
     loops = eye_loops(vertices, faces)
     opened = faces
     ends = (("eye_R_outer", "eye_R_inner"), ("eye_L_inner", "eye_L_outer"))
+    sockets = []  # the rims of eyes open into a socket (no hole: the ICT-FaceKit head's)
     if len(loops) != 2 and template is not None:
         _, eyes, _ = template_openings()
         for (upper, lower), (first, last) in zip(eyes, ends):
-            opened = _eye_hole(vertices, opened, bent(template.vertices[upper], corners, first, last),
-                               bent(template.vertices[lower], corners, first, last))
+            opened, socket = _eye_hole(vertices, opened,
+                                       bent(template.vertices[upper], corners, first, last),
+                                       bent(template.vertices[lower], corners, first, last))
+            if socket is not None:
+                sockets.append(socket)
         loops = eye_loops(vertices, opened)
+    if len(sockets) == 2:
+        return vertices, faces, kept, tuple(
+            Lid(upper, lower, closing_field(vertices, faces, [(upper, lower, 0.0)],
+                                            reach_mm=LID_REACH_MM)) for upper, lower in sockets)
     if len(loops) != 2:
         return vertices, faces, kept, ()
     gone = np.setdiff1d(np.unique(faces), np.unique(opened))
@@ -261,16 +275,18 @@ def _split_at(vertices: np.ndarray, loop: np.ndarray, corners: Mapping[str, np.n
 
 
 def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower: np.ndarray
-              ) -> np.ndarray:
-    """``faces`` without the triangles enclosed by the mesh's edge paths nearest the ``upper``
-    and ``lower`` rim curves (K, 3) mm (corner to corner); unchanged where the paths do not
-    enclose a piece of the mesh."""
+              ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """``(faces, socket)``: ``faces`` without the triangles enclosed by the mesh's edge paths
+    nearest the ``upper`` and ``lower`` rim curves (K, 3) mm (corner to corner), down to the
+    lid margin (:func:`_margin_band`); unchanged where the paths do not enclose a piece of the
+    mesh, or where it is a socket (:data:`SOCKET_AREA`): then ``socket`` is the two paths, the
+    lid margins."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
     top, bottom = lip_path(vertices, faces, upper), lip_path(vertices, faces, lower)
     if top is None or bottom is None or set(top[1:-1].tolist()) & set(bottom[1:-1].tolist()):
-        return faces
+        return faces, None
     rim = {tuple(sorted(e)) for path in (top, bottom) for e in zip(path[:-1].tolist(), path[1:].tolist())}
     faces = np.asarray(faces, dtype=np.int64)
     sides = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 3, 2), axis=2)  # (T, 3, 2)
@@ -290,9 +306,14 @@ def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower:
     touching = np.unique(part[[t for t, edges in enumerate(sides.tolist())
                                if any(tuple(e) in rim for e in edges)]])
     if len(touching) < 2:
-        return faces
+        return faces, None
     inside = part == touching[int(np.argmin(np.bincount(part)[touching]))]
-    return faces[~inside | _margin_band(vertices, faces, inside, top, bottom)]
+    corners = vertices[faces[inside]]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                                axis=1).sum()
+    if area > SOCKET_AREA * loop_area(vertices[np.concatenate([top, bottom[::-1][1:-1]])]):
+        return faces, (top, bottom)
+    return faces[~inside | _margin_band(vertices, faces, inside, top, bottom)], None
 
 
 def _margin_band(vertices: np.ndarray, faces: np.ndarray, inside: np.ndarray, top: np.ndarray,

@@ -12,17 +12,22 @@ stretch, 715 triangles facing backward). Instead every part moves with what it b
 - an open part around an eye (above the nose tip: lashes, the eye's wet rim) follows the skin:
   each vertex takes the weights of its nearest skin vertex (the lid's, for a lash);
 - an open part below the nose (gums and tongue, one piece on the ICT-FaceKit head) blends from
-  the head's row to the jaw's across the mouth's line, over :data:`JAW_BLEND_MM` of height.
+  the head's row at its top to the jaw's at its bottom, linearly in height (across a 6 mm band
+  at the mouth's line its edges stretched 10x);
+- skin beyond the markers (ears, the back of the head, the neck; :func:`beyond_markers`) blends
+  towards the head's row: thin-shell weights only extrapolate there, and an ear's small edges
+  stretched 3x.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["JAW_BLEND_MM", "part_weights", "skin_faces"]
+__all__ = ["BEYOND_SPACINGS", "beyond_markers", "part_weights", "skin_faces"]
 
-#: A part spanning the mouth's line blends from the head's row to the jaw's over this height (mm).
-JAW_BLEND_MM = 6.0
+#: Skin this many marker spacings from the nearest dense marker starts to blend towards the
+#: head's row, and follows it wholly at twice that.
+BEYOND_SPACINGS = 3.0
 
 
 def skin_faces(faces: np.ndarray) -> np.ndarray:
@@ -77,7 +82,21 @@ def part_weights(weights: np.ndarray, vertices: np.ndarray, faces: np.ndarray, s
         elif y.mean() > nose_y:  # lashes: with the lid
             weights[members] = weights[on[nearest[part == p]]]
             continue
-        else:
-            low = np.clip((mouth_y + JAW_BLEND_MM / 2 - y) / JAW_BLEND_MM, 0.0, 1.0)
+        else:  # gums and tongue: from the head's at its top to the jaw's at its bottom
+            low = (y.max() - y) / max(float(np.ptp(y)), 1e-9)
         weights[members] = (1.0 - low)[:, None] * head + low[:, None] * jaw
     return weights
+
+
+def beyond_markers(weights: np.ndarray, vertices: np.ndarray, markers: np.ndarray, *,
+                   head: np.ndarray, spacing: float) -> np.ndarray:
+    """``weights`` (V, J) blended towards the ``head`` row (J,) with each vertex's distance d
+    from the nearest of the dense ``markers`` (M, 3) mm: not at all within
+    :data:`BEYOND_SPACINGS` x ``spacing`` (mm), wholly at twice that, smoothly between."""
+    from scipy.spatial import cKDTree
+
+    near = BEYOND_SPACINGS * spacing
+    d = cKDTree(markers).query(vertices)[0]
+    t = np.clip((d - near) / near, 0.0, 1.0)
+    t = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the blend starts
+    return (1.0 - t)[:, None] * weights + t[:, None] * head

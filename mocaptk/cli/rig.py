@@ -18,7 +18,8 @@ def parse_formats(text: str) -> tuple[str, ...]:
 
 
 def read_landmarks(path: Path) -> dict[str, int]:
-    """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs)."""
+    """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs); the keys of
+    :data:`~mocaptk.retarget.mesh_openings.CORNERS` name the mesh's mouth and eye corners."""
     from mocaptk.jsonio import read_json
 
     data = read_json(path)
@@ -86,7 +87,9 @@ def rig(
                                 "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
                                 "the whole face) or markers (a surface through the dense markers)."),
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
-                                   "index} (>= 3) to start the mesh alignment (default: ICP)."),
+                                   "index} (>= 3) to start the mesh alignment (default: ICP); keys "
+                                   "mouth_R, mouth_L, eye_R_outer, eye_R_inner, eye_L_inner, "
+                                   "eye_L_outer name the mesh's corners the openings end on."),
     keep_mesh_space: bool = typer.Option(False, "--keep-mesh-space", help="Write the rig in the "
                                          "--mesh file's own coordinates (read as mm), the motion "
                                          "scaled to it (default: the mesh fitted to the actor)."),
