@@ -213,7 +213,8 @@ class MeshMap:
     @classmethod
     def fitted(cls, vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray, *,
                reach_mm: float = ANCHOR_REACH_MM, lateral: np.ndarray | None = None,
-               corners: Mapping[str, int] | None = None
+               corners: Mapping[str, int] | None = None,
+               landmarks: Mapping[int, int] | None = None
                ) -> tuple[MeshMap, Alignment, int, OpenedMesh]:
         """A user's mesh ``vertices`` (V, 3) (any unit, Y up, facing +Z), ``faces`` (T, 3) aligned
         onto the dense neutral ``neutral`` (M, 3) mm (NaN = unseen) by ICP with scale and opened
@@ -222,7 +223,8 @@ class MeshMap:
         each seen dense marker is pinned at the skin vertex nearest to its closest surface point
         unless it is more than ``reach_mm`` from the surface (beyond the mesh's border), then
         :meth:`anchored`, its openings' corners blended and its lids blinking. Returns the map,
-        the alignment, how many markers were pinned and the opened mesh (rig frame)."""
+        the alignment, how many markers were pinned and the opened mesh (rig frame).
+        ``landmarks`` {dense marker: vertex} start the alignment (``rig --landmarks``)."""
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
@@ -230,7 +232,11 @@ class MeshMap:
         from .mesh_openings import open_mesh
 
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
-        alignment = align_mesh_to_markers(vertices, faces, neutral[seen])
+        row = {int(m): i for i, m in enumerate(seen)}
+        if landmarks and any(m not in row for m in landmarks):
+            raise OptionError("--landmarks names a dense marker the session never saw")
+        alignment = align_mesh_to_markers(vertices, faces, neutral[seen], landmarks=None if not landmarks
+                                          else {row[m]: v for m, v in landmarks.items()})
         rotation = rig_frame_rotation(neutral[seen], np.zeros(seen.size), lateral=lateral)
         points = neutral[seen] @ rotation.T  # the rig frame, where the template fits
         template = fit_template(points, spacing=marker_spacing(points))

@@ -76,15 +76,15 @@ def test_mediapipe_face_gets_a_mouth_that_parts_and_eyes_that_blink():
     edges = np.unique(np.sort(rig.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     length = np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1)
     stretch = np.linalg.norm(posed[:, edges[:, 0]] - posed[:, edges[:, 1]], axis=2) / length
-    assert stretch.max() < 2.0  # sample 1.89x (3.05x with the lips joined)
+    assert stretch.max() < 2.0  # sample 1.86x (3.05x with the lips joined)
     # the covered eyes are opened along the mesh's own edges and get lids that blink
     assert rig.joint_names[-2:] == ("upperLid_R", "upperLid_L")
     eyes = eye_loops(rig.vertices, rig.faces)
     assert len(eyes) == 2 and build.report["mesh"]["eye_openings"]["openings"] == 2
     for loop in eyes:
         rest = loop_area(rig.vertices[loop])
-        assert rest > 100.0  # mm²: sample 192
-        assert loop_area(posed[:, loop]).min() < 0.2 * rest  # sample 14 %
+        assert rest > 100.0  # mm²: sample 111 (192 when the holes ran one ring outside the lid margin)
+        assert loop_area(posed[:, loop]).min() < 0.2 * rest  # sample 19 %
 
 
 def test_eyes_open_at_the_lid_margin_and_corner_landmarks_steer_the_cuts():

@@ -21,11 +21,12 @@ def read_landmarks(path: Path) -> dict[str, int]:
     """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs); the keys of
     :data:`~mocaptk.retarget.mesh_openings.CORNERS` name the mesh's mouth and eye corners."""
     from mocaptk.jsonio import read_json
+    from mocaptk.retarget.mesh_openings import CORNERS
 
     data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, int) and v >= 0 for v in data.values()):
         raise InputFileError(path, "expected {\"marker label\": vertex index, ...}")
-    if len(data) < 3:
+    if len([k for k in data if k not in CORNERS]) in (1, 2) or not data:  # corners alone: ICP
         raise InputFileError(path, "need at least 3 marker/vertex pairs")
     return {str(k): int(v) for k, v in data.items()}
 
