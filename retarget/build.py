@@ -613,7 +613,8 @@ def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud
     nose_y = float(opened.vertices[skin[np.argmax(opened.vertices[skin, 2])], 1])
     mouth_y = (float(lip_midcurve(template)[:, 1].mean()) if template is not None
                else float(bind[lower, 1].max()))
-    weights = beyond_markers(weights, opened.vertices, cloud.neutral, head=head, spacing=spacing)
+    weights = beyond_markers(weights, opened.vertices, cloud.neutral, head=head, spacing=spacing,
+                             mouth_y=mouth_y)
     return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
                         mouth_y=mouth_y, nose_y=nose_y)
 

@@ -14,9 +14,9 @@ stretch, 715 triangles facing backward). Instead every part moves with what it b
 - an open part below the nose (gums and tongue, one piece on the ICT-FaceKit head) blends from
   the head's row at its top to the jaw's at its bottom, linearly in height (across a 6 mm band
   at the mouth's line its edges stretched 10x);
-- skin beyond the markers (ears, the back of the head, the neck; :func:`beyond_markers`) blends
-  towards the head's row: thin-shell weights only extrapolate there, and an ear's small edges
-  stretched 3x.
+- skin beyond the markers and above the mouth (ears, the back of the head;
+  :func:`beyond_markers`) blends towards the head's row: thin-shell weights only extrapolate
+  there, and an ear's small edges stretched 3x.
 """
 
 from __future__ import annotations
@@ -89,14 +89,21 @@ def part_weights(weights: np.ndarray, vertices: np.ndarray, faces: np.ndarray, s
 
 
 def beyond_markers(weights: np.ndarray, vertices: np.ndarray, markers: np.ndarray, *,
-                   head: np.ndarray, spacing: float) -> np.ndarray:
+                   head: np.ndarray, spacing: float, mouth_y: float) -> np.ndarray:
     """``weights`` (V, J) blended towards the ``head`` row (J,) with each vertex's distance d
     from the nearest of the dense ``markers`` (M, 3) mm: not at all within
-    :data:`BEYOND_SPACINGS` x ``spacing`` (mm), wholly at twice that, smoothly between."""
+    :data:`BEYOND_SPACINGS` x ``spacing`` (mm), wholly at twice that, smoothly between; and
+    only above the mouth's line ``mouth_y`` (mm, Y up), fading out over that distance below it
+    (the skin under the chin follows the jaw: held with the head, it folded as the jaw opened)."""
     from scipy.spatial import cKDTree
 
     near = BEYOND_SPACINGS * spacing
     d = cKDTree(markers).query(vertices)[0]
-    t = np.clip((d - near) / near, 0.0, 1.0)
-    t = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the blend starts
+    t = _smooth((d - near) / near) * _smooth((vertices[:, 1] - mouth_y + near) / near)
     return (1.0 - t)[:, None] * weights + t[:, None] * head
+
+
+def _smooth(x: np.ndarray) -> np.ndarray:
+    """Smoothstep of ``x`` clipped to [0, 1]: no kink where a blend starts or ends."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
