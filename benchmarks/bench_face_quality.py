@@ -1,7 +1,8 @@
 """Skin quality of the issue-30 faces over the sample's held-out performance (1,200 frames):
 the most triangles facing backward against the rest pose in one frame, and the largest edge
 stretch (and its 99.9th percentile over the edges), for the default rig and rigs on the
-MediaPipe canonical face and the ICT-FaceKit head given with ``--mesh``. Usage (repository
+MediaPipe canonical face and the ICT-FaceKit head given with ``--mesh``: on the face surface
+(the skin, the mesh's largest part), and apart on its other parts (teeth, eyeballs, lashes). Usage (repository
 root, with ../shared/data or $MOCAPTK_SHARED_DATA):
 
     python benchmarks/bench_face_quality.py
@@ -42,6 +43,7 @@ def main() -> None:
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
     from mocaptk.retarget.build import build_rig
     from mocaptk.retarget.mesh_io import load_mesh
+    from mocaptk.retarget.mesh_parts import skin_faces
 
     truth = load_ground_truth(SAMPLE / "dense_halfface_truth.npz")
     session = truth.trajectories()
@@ -53,9 +55,13 @@ def main() -> None:
                                                      in user_meshes(Path(tmp))]:
             build = build_rig(layout, session, mesh=None if path is None else load_mesh(path),
                               check=False)
-            back, worst, p999 = quality(skinned(build, perf), build.rig.vertices, build.rig.faces)
-            print(f"{name}: most backward triangles in a frame {back}, max edge stretch "
-                  f"{worst:.2f}x (99.9th percentile {p999:.2f}x)")
+            posed, faces = skinned(build, perf), build.rig.faces
+            skin = skin_faces(faces)
+            for part, chosen in (("", skin), (" (its other parts)", ~skin)):
+                if chosen.any():
+                    back, worst, p999 = quality(posed, build.rig.vertices, faces[chosen])
+                    print(f"{name}{part}: most backward triangles in a frame {back}, max edge "
+                          f"stretch {worst:.2f}x (99.9th percentile {p999:.2f}x)")
 
 
 if __name__ == "__main__":

@@ -42,11 +42,12 @@ from .animate import SkinningError, distance_error, skin_vertices, skinning_erro
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, default_face
 from .eye_openings import cut_eye_openings, template_eye_loops
-from .face_template import fit_template
+from .face_template import FittedTemplate, fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
-from .mesh_openings import cut_lip_line, kept_out, mesh_lids
+from .mesh_openings import CORNERS, OpenedMesh, lip_midcurve, open_mesh
+from .mesh_parts import beyond_markers, part_weights
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -445,6 +446,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     lip_cut = None  # the lip line cut on a user's mesh
     mesh_lid_set = ()  # the eyes' lids found on a user's mesh
     mouth_corners = None  # vertices where the mouth's rims meet (default face, cut user mesh)
+    opened = None  # a user's mesh with its openings
     if mesh is None and options.surface == "face":
         say("fitting the face")
         face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud))
@@ -487,29 +489,21 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     else:
         say("aligning the mesh")
         pairs = None
-        if landmarks:
-            pairs = {int(cloud.index([label])[0]): int(v) for label, v in landmarks.items()}
+        corners = {k: v for k, v in (landmarks or {}).items() if k in CORNERS}
+        markers = {k: v for k, v in (landmarks or {}).items() if k not in CORNERS}
+        if markers:
+            pairs = {int(cloud.index([label])[0]): int(v) for label, v in markers.items()}
         alignment = align_mesh_to_markers(mesh.vertices, mesh.faces, cloud.neutral,
                                           landmarks=pairs)
-        vertices = alignment.transform.apply(mesh.vertices)
-        faces = np.asarray(mesh.faces, dtype=np.int64)
-        say("cutting the mouth opening")
+        say("cutting the mouth and eye openings")
         template = fit_template(cloud.neutral, spacing=spacing)
-        lip_cut = cut_lip_line(vertices, faces, template, up=np.array([0.0, 1.0, 0.0]))
-        if lip_cut is not None:  # the lips become two rims of one opening
-            vertices, faces = lip_cut.vertices, lip_cut.faces
-            mouth_corners = lip_cut.corners
-        say("opening the eyes")
-        before, count = len(faces), len(vertices)
-        vertices, faces, kept, mesh_lid_set = mesh_lids(vertices, faces, template)
-        if mesh_lid_set:
-            eye_cut = {"method": "the mesh's edge paths nearest the ICT-FaceKit face's eye rims",
-                       "openings": len(mesh_lid_set), "triangles_removed": before - len(faces),
-                       "vertices_removed": kept_out(kept, count)}
-            if mouth_corners is not None:
-                mouth_corners = np.searchsorted(kept, mouth_corners)
-        dense_vertices, _ = anchor_vertices(vertices, faces, cloud.neutral,
-                                            proximity=SurfaceProximity(vertices, faces))
+        opened = open_mesh(alignment.transform.apply(mesh.vertices), mesh.faces, template,
+                           corners=corners)
+        vertices, faces, mouth_corners = opened.vertices, opened.faces, opened.mouth_corners
+        lip_cut, mesh_lid_set, eye_cut = opened.lip_cut, opened.lids, opened.eye_report
+        skin = faces[:opened.skin]  # markers sit on the skin, not on a lash or a tooth
+        dense_vertices, _ = anchor_vertices(vertices, skin, cloud.neutral,
+                                            proximity=SurfaceProximity(vertices, skin))
         # a coarse mesh can put two layout markers on one vertex: give each its own
         dense_vertices[rep_idx] = distinct_vertices(vertices, cloud.neutral[rep_idx],
                                                     dense_vertices[rep_idx])
@@ -549,12 +543,14 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         regions_of += ["eye"] * len(eye_lids)
         lid_rows = weights[:, len(reps):].any(axis=1)
         corners = [c for lid in eye_lids for c in (lid.upper[0], lid.upper[-1])]
-        weights = blend_corners(weights, vertices, corners, reach_mm=EYE_CORNER_MM,
-                                pinned=joint_vertices)
+        weights = blend_corners(weights, vertices, corners, pinned=joint_vertices,
+                                reach_mm=EYE_CORNER_MM if opened is None else opened.eye_corner_mm)
         if mirror is not None:  # the right eye's lid is the left's mirror image
             n = len(reps)
             lid_mirror = np.arange(n, n + len(eye_lids))[::-1 if len(eye_lids) == 2 else 1]
             mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
+    if opened is not None:  # teeth, eyeballs, lashes: with the head, the jaw or the lids
+        weights = _part_weights(weights, opened, layout, cloud, rep_idx, template, options, spacing)
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
@@ -595,6 +591,32 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         return build
     say("checking by animation")
     return with_check(build, *skinning_check(build))
+
+
+def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud: DenseCloud,
+                  rep_idx: np.ndarray, template: FittedTemplate | None, options: RigOptions,
+                  spacing: float) -> np.ndarray:
+    """A user mesh's skin beyond the markers towards the head
+    (:func:`~mocaptk.retarget.mesh_parts.beyond_markers`) and the rows of its parts other than
+    the skin (:func:`~mocaptk.retarget.mesh_parts.part_weights`): the head's row is the layout
+    joint that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
+    joints, equally."""
+    bind = cloud.neutral[rep_idx]
+    moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
+    head = np.zeros(weights.shape[1])
+    head[int(np.argmin(np.nan_to_num(moved, nan=np.inf)))] = 1.0
+    lower = np.flatnonzero(jaw_members([c.region for c in layout.clusters], bind))
+    lower = lower[np.argsort(bind[lower, 1], kind="stable")[:options.max_influences]]
+    jaw = np.zeros(weights.shape[1])
+    jaw[lower] = 1.0 / len(lower)
+    skin = np.unique(opened.faces[:opened.skin])
+    nose_y = float(opened.vertices[skin[np.argmax(opened.vertices[skin, 2])], 1])
+    mouth_y = (float(lip_midcurve(template)[:, 1].mean()) if template is not None
+               else float(bind[lower, 1].max()))
+    weights = beyond_markers(weights, opened.vertices, cloud.neutral, head=head, spacing=spacing,
+                             mouth_y=mouth_y)
+    return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
+                        mouth_y=mouth_y, nose_y=nose_y)
 
 
 def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:

@@ -47,7 +47,8 @@ def eye_loops(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
     if len(loops) < 2:
         return []
     border = max(range(len(loops)), key=lambda i: len(loops[i]))
-    nose_y = vertices[int(np.argmax(vertices[:, 2])), 1]
+    used = np.unique(faces)  # the nose of these triangles, not of another part
+    nose_y = vertices[used[int(np.argmax(vertices[used, 2]))], 1]
     return [loop for i, loop in enumerate(loops)
             if i != border and vertices[loop, 1].mean() > nose_y and len(loop) >= 4]
 

@@ -15,7 +15,8 @@ blink gives exactly the lid's shape.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,6 +30,7 @@ from mocaptk.surface_mesh import marker_surface_mesh
 
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .influence import anchor_vertices
+from .mesh_openings import OpenedMesh
 
 __all__ = ["Blink", "MeshMap", "Mirror"]
 
@@ -101,9 +103,7 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, SOLVE_LID_REACH_MM, default_face
-        from .weights import blend_corners
-        from .lid_joints import SENSOR_MIN_MM
+        from .default_face import SOLVE_LID_REACH_MM, default_face
 
         neutral = np.asarray(neutral, dtype=np.float64)
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
@@ -129,26 +129,43 @@ class MeshMap:
         anchors[used[close]] = nearest[close]
         vertices = face.vertices @ rotation  # back to the session frame
         mesh = cls.anchored(vertices, face.faces, anchors, columns)
+        mesh = mesh._with_openings(face.vertices, np.array([face.upper_lip[0], face.upper_lip[-1]]),
+                                   face.lids, anchors, columns, rotation)
+        return replace(mesh, uv=face.uv, mirror=mirror)
+
+    def _with_openings(self, rig_vertices: np.ndarray, mouth: np.ndarray | None, lids: tuple,
+                       anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray, *,
+                       eye_corner_mm: float | None = None) -> MeshMap:
+        """This map with its openings' corners blended and its lids' blinks (the default face, a
+        user's opened mesh): ``rig_vertices`` (V, 3) mm its vertices in the rig frame
+        (``rotation`` session -> rig), ``mouth`` (2,) the mouth's corner vertices (None: no
+        mouth cut), ``lids`` the eyes' :class:`~mocaptk.retarget.default_face.Lid` (their corners
+        blended within ``eye_corner_mm``, default the default face's), ``anchors`` (M,) and
+        ``columns`` (M, 3) mm as :meth:`anchored`."""
+        from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM
+        from .lid_joints import SENSOR_MIN_MM
+        from .weights import blend_corners
+
         # the openings part like lenses, not cracks whose tips fold (as the rig's weights)
-        matrix = mesh.matrix
-        for corners, reach in (([face.upper_lip[0], face.upper_lip[-1]], MOUTH_CORNER_MM),
-                               ([c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])],
-                                EYE_CORNER_MM)):
-            matrix = blend_corners(matrix, face.vertices, corners, reach_mm=reach,
-                                   pinned=anchors[anchors >= 0])
-        matrix = matrix.astype(np.float32)
-        mesh = cls(mesh.vertices, mesh.faces, matrix,
-                   mesh.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))
+        matrix = self.matrix
+        for corners, reach in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM),
+                               ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
+                                EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm)):
+            if corners:
+                matrix = blend_corners(matrix, rig_vertices, corners, reach_mm=reach,
+                                       pinned=anchors[anchors >= 0])
+        matrix = np.asarray(matrix).astype(np.float32)
+        mesh = replace(self, matrix=matrix,
+                       offset=self.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))
         blinks = []
-        for lid in face.lids:
+        for lid in lids:
             shape = lid.blink @ rotation
             full = np.where((anchors >= 0)[:, None], shape[np.maximum(anchors, 0)], 0.0)
             sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > SENSOR_MIN_MM)  # as the rig
             if sensors.size:
                 made = mesh.matrix @ full  # what the map already makes of the sensors' blink
                 blinks.append(Blink(sensors, columns[sensors], full[sensors], shape - made))
-        return cls(mesh.vertices, mesh.faces, mesh.matrix, mesh.offset, face.uv, mirror,
-                   tuple(blinks))
+        return replace(mesh, blinks=tuple(blinks))
 
     @classmethod
     def marker_surface(cls, neutral: np.ndarray, *, subdivisions: int = 0) -> MeshMap:
@@ -195,22 +212,47 @@ class MeshMap:
 
     @classmethod
     def fitted(cls, vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray, *,
-               reach_mm: float = ANCHOR_REACH_MM) -> tuple[MeshMap, Alignment, int]:
+               reach_mm: float = ANCHOR_REACH_MM, lateral: np.ndarray | None = None,
+               corners: Mapping[str, int] | None = None,
+               landmarks: Mapping[int, int] | None = None
+               ) -> tuple[MeshMap, Alignment, int, OpenedMesh]:
         """A user's mesh ``vertices`` (V, 3) (any unit, Y up, facing +Z), ``faces`` (T, 3) aligned
-        onto the dense neutral ``neutral`` (M, 3) mm (NaN = unseen) by ICP with scale, as
-        ``mocaptk rig --mesh`` does; each seen dense marker is pinned at the vertex nearest to
-        its closest surface point unless it is more than ``reach_mm`` from the surface (beyond
-        the mesh's border), then :meth:`anchored`. Returns the map, the alignment and how many
-        markers were pinned."""
+        onto the dense neutral ``neutral`` (M, 3) mm (NaN = unseen) by ICP with scale and opened
+        (:func:`~mocaptk.retarget.mesh_openings.open_mesh`, ``corners`` its corner landmarks) as
+        ``mocaptk rig --mesh`` does (in the rig frame, ``lateral`` the subject's left if known);
+        each seen dense marker is pinned at the skin vertex nearest to its closest surface point
+        unless it is more than ``reach_mm`` from the surface (beyond the mesh's border), then
+        :meth:`anchored`, its openings' corners blended and its lids blinking. Returns the map,
+        the alignment, how many markers were pinned and the opened mesh (rig frame).
+        ``landmarks`` {dense marker: vertex} start the alignment (``rig --landmarks``)."""
+        from mocaptk.surface_mesh import marker_spacing
+
+        from .build import rig_frame_rotation
+        from .face_template import fit_template
+        from .mesh_openings import open_mesh
+
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
-        alignment = align_mesh_to_markers(vertices, faces, neutral[seen])
-        placed = alignment.transform.apply(vertices)
-        nearest, dist = anchor_vertices(placed, faces, neutral[seen],
-                                        proximity=SurfaceProximity(placed, faces))
+        row = {int(m): i for i, m in enumerate(seen)}
+        if landmarks and any(m not in row for m in landmarks):
+            raise OptionError("--landmarks names a dense marker the session never saw")
+        alignment = align_mesh_to_markers(vertices, faces, neutral[seen], landmarks=None if not landmarks
+                                          else {row[m]: v for m, v in landmarks.items()})
+        rotation = rig_frame_rotation(neutral[seen], np.zeros(seen.size), lateral=lateral)
+        points = neutral[seen] @ rotation.T  # the rig frame, where the template fits
+        template = fit_template(points, spacing=marker_spacing(points))
+        opened = open_mesh(alignment.transform.apply(vertices) @ rotation.T, faces, template,
+                           corners=corners)
+        placed = opened.vertices @ rotation
+        skin = opened.faces[:opened.skin]  # markers sit on the skin, not on a lash or a tooth
+        nearest, dist = anchor_vertices(placed, skin, neutral[seen],
+                                        proximity=SurfaceProximity(placed, skin))
         anchors = np.full(len(neutral), -1, dtype=np.intp)
         close = dist <= reach_mm
         anchors[seen[close]] = nearest[close]
-        return cls.anchored(placed, faces, anchors, neutral), alignment, int(close.sum())
+        mesh = cls.anchored(placed, opened.faces, anchors, neutral)
+        mesh = mesh._with_openings(opened.vertices, opened.mouth_corners, opened.lids, anchors,
+                                   neutral, rotation, eye_corner_mm=opened.eye_corner_mm)
+        return mesh, alignment, int(close.sum()), opened
 
     @classmethod
     def learned(cls, vertices: np.ndarray, faces: np.ndarray, markers: np.ndarray,

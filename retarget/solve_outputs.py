@@ -46,6 +46,7 @@ CONSISTENCY_WEIGHT = 1.0
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
                         staging: Path, *, formats: Sequence[str] = SOLVE_FORMATS,
                         subdivisions: int = 0, mesh_path: str | os.PathLike[str] | None = None,
+                        landmarks: Mapping[str, int] | None = None,
                         layout: Layout | None = None, surface: str = "face",
                         stabilize: bool = True, save_trained: bool = True,
                         chunk: int = CHUNK_FRAMES, notes: Sequence[str] = (),
@@ -103,7 +104,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     mesh = None
     if mesh_path is not None:
         say(f"aligning {Path(mesh_path).name} to the dense neutral")
-        mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral)
+        mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral, layout=layout,
+                                    landmarks=landmarks, labels=solver.labels)
     elif surface == "face":
         say("fitting the face to the dense neutral")
         mesh = face_mesh(solver, layout)
@@ -191,18 +193,35 @@ def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
     return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored)
 
 
-def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray) -> tuple[MeshMap, dict[str, Any]]:
+def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layout | None = None,
+              landmarks: Mapping[str, int] | None = None, labels: Sequence[str] = ()
+              ) -> tuple[MeshMap, dict[str, Any]]:
     """The mesh file ``path`` (OBJ, PLY, glTF/GLB, STL, OFF; any unit, Y up, facing +Z) aligned
-    to the dense neutral (M, 3) mm and following the dense markers (:meth:`MeshMap.fitted`), and
-    its summary for ``solve.json``."""
+    to the dense neutral (M, 3) mm (dense marker ``labels``), opened as ``rig --mesh`` opens it
+    and following the dense markers (:meth:`MeshMap.fitted`), and its summary for
+    ``solve.json``. ``landmarks`` as ``rig --landmarks``: {marker label: vertex} pairs start the
+    alignment, the :data:`~mocaptk.retarget.mesh_openings.CORNERS` keys steer the openings."""
     from .mesh_io import load_mesh
+    from .mesh_openings import CORNERS
 
     loaded = load_mesh(path)
-    mesh, alignment, pinned = MeshMap.fitted(loaded.vertices, loaded.faces, neutral)
+    plane = None if layout is None else layout.extra.get("sagittal_plane")
+    lateral = np.asarray(plane["normal"], float) if isinstance(plane, dict) else None
+    corners = {k: v for k, v in (landmarks or {}).items() if k in CORNERS}
+    index = {label: i for i, label in enumerate(labels)}
+    pairs = {k: v for k, v in (landmarks or {}).items() if k not in CORNERS}
+    unknown = [k for k in pairs if k not in index]
+    if unknown:
+        raise OptionError(f"--landmarks: not dense markers of the model: {', '.join(unknown[:6])}")
+    mesh, alignment, pinned, opened = MeshMap.fitted(
+        loaded.vertices, loaded.faces, neutral, lateral=lateral, corners=corners,
+        landmarks={index[k]: v for k, v in pairs.items()} or None)
     return mesh, {"kind": "user mesh", "source": str(path), "pinned_markers": pinned,
                   "alignment": {"method": alignment.method, "scale": alignment.transform.scale,
                                 "rms_residual_mm": alignment.rms_mm,
-                                "max_residual_mm": alignment.max_mm}}
+                                "max_residual_mm": alignment.max_mm},
+                  "opening_edges_cut": [] if opened.lip_cut is None else opened.lip_cut.edges.tolist(),
+                  "eye_openings": opened.eye_report}
 
 
 def _frames_csv(solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,

@@ -7,7 +7,10 @@ The poses are found on the default rig's own animation (largest mouth opening, l
 width, smallest eye aperture) and used for every face. Usage (from the repository root, with
 ../shared/data or $MOCAPTK_SHARED_DATA):
 
-    python scripts/render_faces.py [out folder, default docs/renders]
+    python scripts/render_faces.py [out folder, default docs/renders] [--mesh-only]
+
+``--mesh-only``: the ``--mesh`` faces only (the poses still come from the default rig). A
+mesh's parts other than its skin (teeth, eyeballs, lashes) are drawn in a lighter colour.
 """
 
 from __future__ import annotations
@@ -25,6 +28,12 @@ SAMPLE = REPO / "sample_c3d"
 VIEWS = {"front": (0.0, 0.0, 1.0), "three-quarter": (0.62, 0.05, 0.78)}
 POSES = ("rest", "widest jaw", "strongest smile", "full blink")
 SKIN = (0.80, 0.62, 0.52)
+PARTS = (0.93, 0.91, 0.86)
+
+
+def cells_of(faces: np.ndarray) -> np.ndarray:
+    """pyvista's cell array of triangles ``faces`` (T, 3)."""
+    return np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
 
 
 def main(argv: list[str]) -> None:
@@ -33,9 +42,12 @@ def main(argv: list[str]) -> None:
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
     from mocaptk.retarget.build import build_rig
     from mocaptk.retarget.mesh_io import load_mesh
+    from mocaptk.retarget.mesh_parts import skin_faces
     from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
     from mocaptk.retarget.solve_outputs import face_mesh
 
+    mesh_only = "--mesh-only" in argv
+    argv = [a for a in argv if a != "--mesh-only"]
     out = Path(argv[0]) if argv else REPO / "docs" / "renders"
     out.mkdir(parents=True, exist_ok=True)
     truth = load_ground_truth(SAMPLE / "dense_halfface_truth.npz")
@@ -46,19 +58,21 @@ def main(argv: list[str]) -> None:
     build = build_rig(layout, session, check=False)
     frames = pose_frames(build, skinned(build, perf))
     print("frames (rest, jaw, smile, blink):", frames)
-    render(skinned(build, perf, frames), build.rig.faces, out / "default_rig.png",
-           "default rig (rig.fbx / rig.glb)")
-    solver = train_solver(layout, session, {"path": "sample", "sha256": None})
-    mesh = face_mesh(solver, layout)
-    dense = np.concatenate([c.positions for c in solve_chunks(
-        solver, layout_frames(solver, perf, "performance")[frames[1:]])])
-    poses = np.concatenate([mesh.vertices[None], mesh.apply(dense)])
-    render(poses @ build.cloud.rotation.T, mesh.faces, out / "solve_mesh.png",
-           "solve's mesh (mesh.usd / mesh.glb)")
+    if not mesh_only:
+        render(skinned(build, perf, frames), build.rig.faces, out / "default_rig.png",
+               "default rig (rig.fbx / rig.glb)")
+        solver = train_solver(layout, session, {"path": "sample", "sha256": None})
+        mesh = face_mesh(solver, layout)
+        dense = np.concatenate([c.positions for c in solve_chunks(
+            solver, layout_frames(solver, perf, "performance")[frames[1:]])])
+        poses = np.concatenate([mesh.vertices[None], mesh.apply(dense)])
+        render(poses @ build.cloud.rotation.T, mesh.faces, out / "solve_mesh.png",
+               "solve's mesh (mesh.usd / mesh.glb)")
     with tempfile.TemporaryDirectory() as tmp:
         for name, path, title in user_meshes(Path(tmp)):
             user = build_rig(layout, session, mesh=load_mesh(path), check=False)
-            render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title)
+            render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title,
+                   skin=skin_faces(user.rig.faces))
 
 
 def user_meshes(tmp: Path) -> list[tuple[str, Path, str]]:
@@ -102,13 +116,16 @@ def pose_frames(build, posed: np.ndarray) -> list[int]:
             int(np.argmin(eye))]
 
 
-def render(poses: np.ndarray, faces: np.ndarray, path: Path, title: str) -> None:
-    """A 2 x 4 grid (views x poses) of ``poses`` (4, V, 3) mm, rig frame, into ``path``."""
+def render(poses: np.ndarray, faces: np.ndarray, path: Path, title: str, *,
+           skin: np.ndarray | None = None) -> None:
+    """A 2 x 4 grid (views x poses) of ``poses`` (4, V, 3) mm, rig frame, into ``path``;
+    ``skin`` (T,) bool: the skin's triangles (the others drawn lighter)."""
     import matplotlib.pyplot as plt
     import pyvista as pv
 
     pv.OFF_SCREEN = True
-    cells = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+    skin = np.ones(len(faces), bool) if skin is None else skin
+    parts = [(skin, SKIN), (~skin, PARTS)]
     centre = poses[0].mean(axis=0)
     size = float(np.ptp(poses[0][:, 1]))
     fig, axes = plt.subplots(2, 4, figsize=(12, 7.6))
@@ -116,8 +133,10 @@ def render(poses: np.ndarray, faces: np.ndarray, path: Path, title: str) -> None
         for col, (pose, points) in enumerate(zip(POSES, poses)):
             plotter = pv.Plotter(off_screen=True, window_size=(480, 560))
             plotter.set_background("white")
-            plotter.add_mesh(pv.PolyData(np.asarray(points, float), cells), color=SKIN,
-                             smooth_shading=True, specular=0.2)
+            for part, colour in parts:
+                if part.any():
+                    plotter.add_mesh(pv.PolyData(np.asarray(points, float), cells_of(faces[part])),
+                                     color=colour, smooth_shading=True, specular=0.2)
             plotter.camera_position = [tuple(centre + 2.6 * size * np.array(direction)),
                                        tuple(centre), (0.0, 1.0, 0.0)]
             plotter.camera.view_angle = 22.0

@@ -346,12 +346,18 @@ def test_a_given_mesh_is_aligned_and_follows_the_solve(workspace, tmp_path):
     # the back of the head (no marker near) follows the smooth thin-shell extrapolation only
     back = rest[:, 2] < np.percentile(rest[:, 2], 10)
     assert np.linalg.norm(got[:, back] - got[:1, back], axis=2).max() < 2.0  # measured 1.2 mm
+    (tmp_path / "corners.json").write_text('{"mouth_R": 61, "mouth_L": 291}')  # its outer corners
     done = mocaptk("solve", root / "layout" / "layout.json", root / "own_layout.c3d", "--out",
                    tmp_path / "mp", "--formats", "npz", "--mesh",
-                   shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
+                   shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"),
+                   "--landmarks", tmp_path / "corners.json")
     assert done.returncode == 0, done.stderr
     mesh = json.loads((tmp_path / "mp" / "solve.json").read_text())["mesh"]
-    assert mesh["vertices"] == 468 and mesh["pinned_markers"] >= 130
+    assert mesh["opening_edges_cut"][0][0] == 61 and mesh["opening_edges_cut"][-1][1] == 291
+    # opened as rig --mesh opens it: the lips cut (their inner vertices copied), the eyes' insides gone
+    cut, eyes = mesh["opening_edges_cut"], mesh["eye_openings"]
+    assert len(cut) >= 6 and eyes["openings"] == 2 and mesh["pinned_markers"] >= 130
+    assert mesh["vertices"] == 468 + len(cut) - 1 - len(eyes["vertices_removed"])
     assert mesh["alignment"]["rms_residual_mm"] < 3.0
     frames = np.load(tmp_path / "mp" / "mesh_frames.npy")
     assert np.isfinite(frames).all() and np.linalg.norm(frames - frames[:1], axis=2).max() > 3.0

@@ -18,13 +18,15 @@ def parse_formats(text: str) -> tuple[str, ...]:
 
 
 def read_landmarks(path: Path) -> dict[str, int]:
-    """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs)."""
+    """Landmarks file: JSON ``{"MARKER_LABEL": vertex_index, ...}`` (>= 3 pairs); the keys of
+    :data:`~mocaptk.retarget.mesh_openings.CORNERS` name the mesh's mouth and eye corners."""
     from mocaptk.jsonio import read_json
+    from mocaptk.retarget.mesh_openings import CORNERS
 
     data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, int) and v >= 0 for v in data.values()):
         raise InputFileError(path, "expected {\"marker label\": vertex index, ...}")
-    if len(data) < 3:
+    if len([k for k in data if k not in CORNERS]) in (1, 2) or not data:  # corners alone: ICP
         raise InputFileError(path, "need at least 3 marker/vertex pairs")
     return {str(k): int(v) for k, v in data.items()}
 
@@ -86,7 +88,9 @@ def rig(
                                 "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
                                 "the whole face) or markers (a surface through the dense markers)."),
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
-                                   "index} (>= 3) to start the mesh alignment (default: ICP)."),
+                                   "index} (>= 3) to start the mesh alignment (default: ICP); keys "
+                                   "mouth_R, mouth_L, eye_R_outer, eye_R_inner, eye_L_inner, "
+                                   "eye_L_outer name the mesh's corners the openings end on."),
     keep_mesh_space: bool = typer.Option(False, "--keep-mesh-space", help="Write the rig in the "
                                          "--mesh file's own coordinates (read as mm), the motion "
                                          "scaled to it (default: the mesh fitted to the actor)."),

@@ -84,6 +84,9 @@ def solve(
     mesh: Path = typer.Option(None, "--mesh", help="Animate this face mesh (OBJ, PLY, glTF/GLB, STL, "
                               "OFF; any unit, Y up, facing +Z) instead of the marker surface: "
                               "aligned to the dense neutral as 'mocaptk rig --mesh' does."),
+    landmarks: Path = typer.Option(None, "--landmarks", help="With --mesh: JSON as 'mocaptk rig "
+                                   "--landmarks' (marker/vertex pairs for the alignment, the "
+                                   "mesh's mouth and eye corners for its openings)."),
     ridge: float = typer.Option(1e-3, "--ridge", help="Ridge strength of the ridge models, relative "
                                 "to the mean input variance (ridge-cv chooses its own)."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Do not remove head motion (the "
@@ -120,7 +123,7 @@ def solve(
     from .cluster import staged_folder
     from mocaptk.clustering.layout import layout_rigid_set
     from .report import write_solve_report
-    from .rig import parse_formats
+    from .rig import parse_formats, read_landmarks
 
     rig = rig or rig_alias
 
@@ -131,6 +134,9 @@ def solve(
     chosen = tuple(f for f in parse_formats(formats) if f != "none")
     rest = parse_frame_range(neutral, "--neutral")
     check_surface(surface)
+    if landmarks is not None and mesh is None:
+        raise OptionError("--landmarks needs --mesh (they name the mesh's vertices)")
+    pairs = read_landmarks(landmarks) if landmarks is not None else None
     claim_output(out, force=force, folder=True)  # refused (read-only, exists) and locked before any work
     lay = read_layout(layout)
     rigid = None if no_stabilize else layout_rigid_set(lay)
@@ -184,6 +190,7 @@ def solve(
             try:
                 summary = write_solve_outputs(solver, traj, capture_source, staging, formats=chosen,
                                               subdivisions=subdivisions, mesh_path=mesh,
+                                              landmarks=pairs,
                                               layout=lay, surface=surface,
                                               stabilize=not no_stabilize,
                                               adapt=adapt_neutral or rest is not None,
