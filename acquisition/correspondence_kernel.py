@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangulate_kernel import _compiled
+from .compiled import compiled
 
 
-@_compiled(error_model="numpy", inline="always")
+@compiled(error_model="numpy", inline="always")
 def _solve3(m, out):  # pragma: no cover (compiled)
     """``out (3,)`` = the solution of ``m[:, :3] x = -m[:, 3]`` (Cramer's rule)."""
     a, b, c = m[0, 0], m[0, 1], m[0, 2]
@@ -23,7 +23,7 @@ def _solve3(m, out):  # pragma: no cover (compiled)
     out[2] = (r0 * co2 + r1 * (b * g - a * h) + r2 * (a * e - b * d)) / det
 
 
-@_compiled(error_model="numpy", nogil=True)
+@compiled(error_model="numpy", nogil=True)
 def proposals_kernel(norm, by_y, order, essentials, projections, focal, tolerance, out_frame, out_keys,
                      out_error, out_point):  # pragma: no cover (compiled)
     """Write the proposals of ``norm (C, F, B, 2)`` normalized blobs (NaN padding): for every
