@@ -111,3 +111,24 @@ def proposals_kernel(norm, by_y, order, essentials, projections, focal, toleranc
                             out_point[n] = point
                         n += 1
     return n
+
+
+@compiled("int64(int64[:, :], int64[:], boolean[:, :], int64[:])", error_model="numpy")
+def first_come(keys, rows, used, out):  # pragma: no cover (compiled)
+    """Take the hypotheses ``rows`` in their order, each while none of its blobs ``keys[row]``
+    (-1: camera unused) is marked in ``used (C, B)``; mark the blobs of each taken one. Writes
+    the taken rows to ``out[:n]`` (in order) and returns ``n``."""
+    n = 0
+    for row in rows:
+        free = True
+        for c in range(keys.shape[1]):
+            if keys[row, c] >= 0 and used[c, keys[row, c]]:
+                free = False
+                break
+        if free:
+            for c in range(keys.shape[1]):
+                if keys[row, c] >= 0:
+                    used[c, keys[row, c]] = True
+            out[n] = row
+            n += 1
+    return n
