@@ -1,8 +1,8 @@
 """Robust multi-view triangulation of labelled 2-D detections, one compiled pass over all points.
 
 One numba kernel (:mod:`.triangulate_kernel`, imported on first use; compiled once, cached
-on disk; run on threads over ranges of points) does per point: undistort every view (OpenCV's fixed-point
-iteration), solve the DLT normal equations in closed form (3x3), reweight the rows by focal
+on disk; run on threads over ranges of points) does per point: undistort every view (OpenCV's
+fixed-point iteration), solve the DLT normal equations in closed form (3x3), reweight the rows by focal
 / depth so the algebraic error becomes the reprojection error in px (a Gauss-Newton-like
 refinement), and check every view's reprojection error. A point seen by 4 or more cameras
 whose views disagree is first refit without its worst view, and is done when the other views
