@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangulate_kernel import _compiled
+from .compiled import compiled
 
 
-@_compiled(error_model="numpy", nogil=True)
+@compiled(error_model="numpy", nogil=True)
 def blob_moments(image, labels, x0, y0, ids, cx, cy, half, radius, background,
                  mx, my, sxx, syy, sxy):  # pragma: no cover (compiled)
     """Fill ``mx, my`` (px: the centroid of ``image - background`` over the disc of ``radius``

@@ -257,29 +257,13 @@ def _best_set(conflict: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return np.sort(order[[p for p in range(n) if best[1] >> p & 1]])
 
 
-def _in_order(keys: np.ndarray) -> np.ndarray:
-    """Indices of the rows of ``keys (N, C)`` (one frame) accepted first come first served: each
-    while none of its blobs is taken (a row that shares no blob with another is always taken;
-    only the others go through the loop)."""
-    rows, cams = np.nonzero(keys >= 0)
-    blob = cams * (int(keys.max()) + 1) + keys[rows, cams] if len(rows) else rows
-    shared = np.bincount(blob)[blob] > 1
-    contested = np.zeros(len(keys), bool)
-    contested[rows[shared]] = True
-    taken, accepted = set(), []
-    for row in np.nonzero(contested)[0]:
-        mine = {int(c) * (int(keys.max()) + 1) + int(keys[row, c]) for c in np.nonzero(keys[row] >= 0)[0]}
-        if not mine & taken:
-            taken |= mine
-            accepted.append(row)
-    return np.sort(np.concatenate([np.nonzero(~contested)[0], np.array(accepted, dtype=int)]))
-
-
 def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
     """Accepted hypotheses of every frame (arrays of indices): ``chosen`` (>= 3 views), then
     the two-view ones: near a point of the last frame, each other's only partner, on the face
     — nearest first (a two-view match is where a ghost comes from: among conflicting ones the
     closest wins, not the largest number; counting accepted twice the ghosts)."""
+    from .correspondence_kernel import first_come
+
     n_cams = keys.shape[1]
     cams = np.arange(n_cams)
     pairs = np.nonzero(n_views == 2)[0]
@@ -301,9 +285,8 @@ def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
             return rows[~used[cams, keys[rows]].any(axis=1)]
 
         def take(rows):  # in this order, each while its blobs are free
-            best = rows[_in_order(keys[rows])]
-            mark(best)
-            picked.append(best)
+            best = np.empty(len(rows), np.int64)
+            picked.append(best[:first_come(keys, rows.astype(np.int64), used, best)])
 
         mark(accepted)
         candidates = free(candidates)

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangulate_kernel import _compiled
+from .compiled import compiled
 
 
-@_compiled(error_model="numpy", inline="always")
+@compiled(error_model="numpy", inline="always")
 def _solve3(m, out):  # pragma: no cover (compiled)
     """``out (3,)`` = the solution of ``m[:, :3] x = -m[:, 3]`` (Cramer's rule)."""
     a, b, c = m[0, 0], m[0, 1], m[0, 2]
@@ -23,7 +23,7 @@ def _solve3(m, out):  # pragma: no cover (compiled)
     out[2] = (r0 * co2 + r1 * (b * g - a * h) + r2 * (a * e - b * d)) / det
 
 
-@_compiled(error_model="numpy", nogil=True)
+@compiled(error_model="numpy", nogil=True)
 def proposals_kernel(norm, by_y, order, essentials, projections, focal, tolerance, out_frame, out_keys,
                      out_error, out_point):  # pragma: no cover (compiled)
     """Write the proposals of ``norm (C, F, B, 2)`` normalized blobs (NaN padding): for every
@@ -110,4 +110,25 @@ def proposals_kernel(norm, by_y, order, essentials, projections, focal, toleranc
                             out_error[n] = error / views
                             out_point[n] = point
                         n += 1
+    return n
+
+
+@compiled("int64(int64[:, :], int64[:], boolean[:, :], int64[:])", error_model="numpy")
+def first_come(keys, rows, used, out):  # pragma: no cover (compiled)
+    """Take the hypotheses ``rows`` in their order, each while none of its blobs ``keys[row]``
+    (-1: camera unused) is marked in ``used (C, B)``; mark the blobs of each taken one. Writes
+    the taken rows to ``out[:n]`` (in order) and returns ``n``."""
+    n = 0
+    for row in rows:
+        free = True
+        for c in range(keys.shape[1]):
+            if keys[row, c] >= 0 and used[c, keys[row, c]]:
+                free = False
+                break
+        if free:
+            for c in range(keys.shape[1]):
+                if keys[row, c] >= 0:
+                    used[c, keys[row, c]] = True
+            out[n] = row
+            n += 1
     return n

@@ -50,21 +50,22 @@ class ImageSource:
         """``(name, grey uint8 image)`` of every photo, or every ``step``-th video frame."""
         size = None
         for name, image in (self._video() if self.is_video else self._photos()):
-            shape = image.shape[1], image.shape[0]
-            if size is None:
-                size = shape
-            elif shape != size:
-                raise InputFileError(self.path, f"{name} is {shape[0]}x{shape[1]} px, the first "
-                                                f"image is {size[0]}x{size[1]}: one camera's images "
-                                                "must share one size")
+            size = self.check_size(name, (image.shape[1], image.shape[0]), size)
             yield name, image
+
+    def check_size(self, name: str, shape: tuple[int, int],
+                   size: tuple[int, int] | None) -> tuple[int, int]:
+        """``shape``: image ``name``'s (width, height) px, returned; raises InputFileError when
+        it is not ``size`` (the camera's first image's; None: this is the first)."""
+        if size is not None and shape != size:
+            raise InputFileError(self.path, f"{name} is {shape[0]}x{shape[1]} px, the first "
+                                            f"image is {size[0]}x{size[1]}: one camera's images "
+                                            "must share one size")
+        return shape
 
     def _photos(self) -> Iterator[tuple[str, np.ndarray]]:
         for file in self.files():
-            image = cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise InputFileError(file, "cannot decode this image")
-            yield file.name, image
+            yield file.name, read_grey(file)
 
     def _video(self) -> Iterator[tuple[str, np.ndarray]]:
         capture = cv2.VideoCapture(os.fspath(self.path))
@@ -80,6 +81,14 @@ class ImageSource:
                 index += 1
         finally:
             capture.release()
+
+
+def read_grey(file: Path) -> np.ndarray:
+    """One photo as an 8-bit grey image (OpenCV decodes it without holding the GIL)."""
+    image = cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise InputFileError(file, "cannot decode this image")
+    return image
 
 
 def camera_sources(paths: list[Path]) -> list[Path]:

@@ -11,9 +11,9 @@ Every method gets the same (C, P, 2) detections and returns (P, 3) points. mocap
 most work per point: undistortion, DLT + one reweighting step, per-view reprojection errors,
 the outlier consensus, the residual (RMS reprojection error in the distorted image) and view
 counts. Its kernel is compiled by numba (cached on disk; the first call is reported
-separately, then it is timed warm) and runs on all CPUs; the 1-thread row shows the serial
-speed. The per-point loop undistorts the seen detections with ``cv2.undistortPoints`` and
-solves one SVD per point. Our two rows and aniposelib's take turns in each of ``--repeat``
+separately, then it is timed warm) and runs on one thread per CPU; the 1-thread row
+(``numba.set_num_threads(1)``) shows the serial speed. The per-point loop undistorts the seen
+detections with ``cv2.undistortPoints`` and solves one SVD per point. Our two rows and aniposelib's take turns in each of ``--repeat``
 rounds (the fastest round counts), so load changes on a shared machine hit them alike.
 
 aniposelib (``pip install aniposelib``) is a benchmark-only dependency. Since 0.8 its
@@ -154,8 +154,7 @@ def main() -> None:
     truth, normals = ellipsoid_markers(args.frames, args.markers, seed=0)  # all around the head
     flat_truth = truth.reshape(-1, 3)
     n_points = flat_truth.shape[0]
-    # first of all: numba.get_num_threads() loads libgomp too, and only its first load reads the
-    # OMP_WAIT_POLICY that importing the kernel sets (as in a `mocaptk` run)
+    # first of all: the kernel is compiled or loaded from numba's cache (as in a `mocaptk` run)
     first = time.perf_counter()
     triangulate(rig, np.full((len(rig), 1, 1, 2), np.nan))
     threads = numba.get_num_threads()

@@ -32,7 +32,7 @@ def detect(
     import cv2
     import numpy as np
 
-    from mocaptk.acquisition.blob_detection import detect_blobs
+    from mocaptk.acquisition.detect_images import detect_sources
     from mocaptk.acquisition.calibration_figure import mosaic
     from mocaptk.acquisition.detections_file import pack, save_detections
     from mocaptk.acquisition.image_sequences import ImageSource, camera_sources
@@ -47,18 +47,15 @@ def detect(
     for path in (out, overlay):
         check_writable(path, force=force)
     sources = [ImageSource(path, step=step) for path in camera_sources(images)]
+    found, firsts = detect_sources(sources, min_area=min_area, max_area=max_area)
     per_image, panels = [], []
-    for source in sources:
-        row = []
-        for index, (_, image) in enumerate(source.frames()):
-            blobs = detect_blobs(image, min_area=min_area, max_area=max_area, split=True)
-            row.append((blobs.centres, blobs.merged, blobs.area))
-            if index == 0:
-                panels.append(_overlay(image, blobs, source.path.name))
+    for source, row, first in zip(sources, found, firsts):
         if per_image and len(row) != len(per_image[0]):
             raise InputFileError(source.path, f"{len(row)} frames, the first camera has "
                                               f"{len(per_image[0])}: cameras must have one image per frame")
-        per_image.append(row)
+        per_image.append([(blobs.centres, blobs.merged, blobs.area) for blobs in row])
+        if first is not None:
+            panels.append(_overlay(first, row[0], source.path.name))
     detections = pack(per_image, [s.path.name for s in sources], rate)
     save_detections(detections, out, force=force)
     write_bytes(overlay, cv2.imencode(".png", mosaic(panels, legend="green: marker blob   orange: "
