@@ -40,7 +40,8 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
-from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, default_face
+from .default_face import (CORNER_JOINTS_MM, CORNER_PIN_FADE_MM, EYE_CORNER_MM, MOUTH_CORNER_MM,
+                           default_face)
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -50,8 +51,8 @@ from .mesh_openings import cut_lip_line, kept_out, mesh_lids
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
-from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
-                      symmetric_weights, thin_shell_weights)
+from .weights import (blend_corners, cap_weights, corner_joints, mirror_maps, region_masks,
+                      shape_by_regions, symmetric_weights, thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "check_surface", "file_hierarchy",
@@ -528,7 +529,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                                          members=member_vertices))
     if mouth_corners is not None:
         weights = blend_corners(weights, vertices, mouth_corners, reach_mm=MOUTH_CORNER_MM,
-                                pinned=joint_vertices)
+                                pinned=joint_vertices,
+                                pin_fade_mm=0.0 if face is None else CORNER_PIN_FADE_MM)
+    if face is not None:  # around the mouth corners, one set of joints: no step where they change
+        weights = corner_joints(weights, vertices, mouth_corners, inner_mm=CORNER_JOINTS_MM[0],
+                                outer_mm=CORNER_JOINTS_MM[1], count=options.max_influences,
+                                pinned=joint_vertices, pin_fade_mm=CORNER_PIN_FADE_MM)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,

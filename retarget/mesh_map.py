@@ -101,7 +101,8 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, SOLVE_LID_REACH_MM, default_face
+        from .default_face import (CORNER_PIN_FADE_MM, EYE_CORNER_MM, MOUTH_CORNER_MM,
+                                   SOLVE_LID_REACH_MM, default_face)
         from .weights import blend_corners
         from .lid_joints import SENSOR_MIN_MM
 
@@ -131,11 +132,12 @@ class MeshMap:
         mesh = cls.anchored(vertices, face.faces, anchors, columns)
         # the openings part like lenses, not cracks whose tips fold (as the rig's weights)
         matrix = mesh.matrix
-        for corners, reach in (([face.upper_lip[0], face.upper_lip[-1]], MOUTH_CORNER_MM),
-                               ([c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])],
-                                EYE_CORNER_MM)):
+        for corners, reach, fade in (([face.upper_lip[0], face.upper_lip[-1]], MOUTH_CORNER_MM,
+                                      CORNER_PIN_FADE_MM),
+                                     ([c for lid in face.lids for c in (lid.upper[0], lid.upper[-1])],
+                                      EYE_CORNER_MM, 0.0)):
             matrix = blend_corners(matrix, face.vertices, corners, reach_mm=reach,
-                                   pinned=anchors[anchors >= 0])
+                                   pinned=anchors[anchors >= 0], pin_fade_mm=fade)
         matrix = matrix.astype(np.float32)
         mesh = cls(mesh.vertices, mesh.faces, matrix,
                    mesh.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))
