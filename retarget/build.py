@@ -41,7 +41,7 @@ from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .default_face import (CORNER_JOINTS_MM, CORNER_PIN_FADE_MM, EYE_CORNER_MM, MOUTH_CORNER_MM,
-                           default_face)
+                           default_face, lip_anchors)
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -402,6 +402,28 @@ def _vertex_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
                        tolerance_mm=0.05 * spacing)
 
 
+#: A dense marker follows the jaw when its drop is at least this fraction of the jaw markers'
+#: (least squares over the session; sample: lower lip 1.2-1.9, upper lip 0.1-0.4).
+JAW_FOLLOWING = 0.7
+
+
+def _follows_jaw(layout: Layout, cloud: DenseCloud, members: list[np.ndarray]) -> np.ndarray:
+    """Which dense markers (N,) bool drop with the jaw: their downward motion (rig Y) against the
+    mean drop of the jaw joints' influence members (:func:`~.rig_hierarchy.jaw_members`), least
+    squares over the session, at least :data:`JAW_FOLLOWING`."""
+    bind = cloud.neutral[cloud.index([c.representative for c in layout.clusters])]
+    jaw = jaw_members([c.region for c in layout.clusters], bind)
+    sources = np.concatenate([members[j] for j in np.flatnonzero(jaw)])
+    along, power = np.zeros(len(cloud.labels)), 0.0
+    for start in range(0, cloud.trajectories.shape[0], CLOUD_BLOCK_FRAMES):  # no (F, N) copy
+        drop = np.nan_to_num(cloud.neutral[None, :, 1]
+                             - cloud.trajectories[start:start + CLOUD_BLOCK_FRAMES, :, 1])
+        signal = drop[:, sources].mean(axis=1)
+        along += drop.T @ signal
+        power += float(signal @ signal)
+    return along >= JAW_FOLLOWING * max(power, 1e-12)
+
+
 def _rig_plane(layout: Layout, cloud: DenseCloud) -> tuple[np.ndarray, np.ndarray] | None:
     """The sagittal plane ``(point, normal)`` in the rig frame for a mirrored layout, else None."""
     if not any(c.mirrored_from for c in layout.clusters):
@@ -454,6 +476,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
         # anchored where the markers are: the fitted face before its lips close
         dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
+        dense_vertices = lip_anchors(face, dense_vertices, cloud.neutral,
+                                     _follows_jaw(layout, cloud, members))
         dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
                                                     dense_vertices[rep_idx])
         mesh_kind = "face"

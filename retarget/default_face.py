@@ -33,7 +33,8 @@ from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
 __all__ = ["CORNER_JOINTS_MM", "CORNER_PIN_FADE_MM", "EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace",
-           "Lid", "along_rim", "closing_field", "default_face", "flip_slivers", "loop_area",
+           "Lid", "along_rim", "closing_field", "default_face", "flip_slivers", "lip_anchors",
+           "loop_area",
            "split_loop", "template_openings", "triangle_angles"]
 
 #: Rounds of the non-rigid fit (closest points move as the face does).
@@ -56,6 +57,10 @@ SOLVE_LID_REACH_MM = 8.0
 #: neighbour (:func:`flip_slivers`): ICT-FaceKit has two such slivers inside the mouth corners
 #: (2.6°, 0.005 mm²), which any skinning turned backward (issue 30); flipped, 11.3°.
 SLIVER_DEG = 5.0
+#: A vertex belongs to a lip when it is within this (mm, on the surface) of its inner rim...
+LIP_SIDE_MM = 15.0
+#: ... and nearer to it than to the other lip's rim by this (mm): not at the corners.
+LIP_SIDE_MARGIN_MM = 3.0
 #: Rim vertices this close (mm of arc) to an opening's corner are not pinned when it closes
 #: (sample: 42 triangles folded by closing the lips -> 2; the mouth's seam area at rest
 #: 0.2 -> 9.7 mm², 1.2 % of its widest opening; the lids' full blink 0.2 % -> 2 % of rest).
@@ -209,6 +214,34 @@ def default_face(points: np.ndarray, *, spacing: float,
         lids[1] = Lid(lids[1].upper, lids[1].lower, image - 2.0 * (image @ normal)[:, None] * normal)
     return DefaultFace(closed, vertices, faces, uv, upper, lower, tuple(lids),
                        None if plane is None else mirror)
+
+
+def lip_anchors(face: DefaultFace, anchors: np.ndarray, points: np.ndarray,
+                jaw_following: np.ndarray) -> np.ndarray:
+    """``anchors`` (N,) of the markers ``points`` (N, 3) mm on ``face.fitted``, each marker moved
+    to the nearest vertex of its own lip where it was anchored on the other one: a marker that
+    follows the jaw (``jaw_following`` (N,) bool) on the lower lip, one that does not on the upper.
+
+    A lip's side is the rim it is geodesically nearer by :data:`LIP_SIDE_MARGIN_MM` (within
+    :data:`LIP_SIDE_MM`; near the corners, where the rims meet, nothing moves). Where the
+    template's lips fit an actor's less well, a lower-lip marker's closest point can be on the
+    upper lip's inner roll, and the upper lip then follows the jaw (issue 30: a synthetic actor,
+    5.5x at the upper lip's midline)."""
+    from .influence import edge_graph, geodesic_distance
+
+    graph = edge_graph(face.fitted, face.faces)
+    upper = geodesic_distance(graph, face.upper_lip[1:-1], limit=LIP_SIDE_MM)
+    lower = geodesic_distance(graph, face.lower_lip[1:-1], limit=LIP_SIDE_MM)
+    on_upper = upper + LIP_SIDE_MARGIN_MM < lower
+    on_lower = lower + LIP_SIDE_MARGIN_MM < upper
+    out = np.array(anchors, dtype=np.int64)
+    for side, wrong in ((on_lower, on_upper[out] & jaw_following),
+                        (on_upper, on_lower[out] & ~jaw_following)):
+        if wrong.any():
+            own = np.flatnonzero(side)
+            gap = np.linalg.norm(face.fitted[own][None] - np.asarray(points)[wrong][:, None], axis=2)
+            out[wrong] = own[np.argmin(gap, axis=1)]
+    return out
 
 
 def _nonrigid(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,
