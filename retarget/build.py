@@ -40,7 +40,8 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
-from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM, default_face
+from .default_face import (CORNER_JOINTS_MM, CORNER_PIN_FADE_MM, EYE_CORNER_MM, MOUTH_CORNER_MM,
+                           default_face, lip_anchors)
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import FittedTemplate, fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -51,8 +52,8 @@ from .mesh_parts import beyond_markers, part_weights
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
-from .weights import (blend_corners, cap_weights, mirror_maps, region_masks, shape_by_regions,
-                      symmetric_weights, thin_shell_weights)
+from .weights import (blend_corners, cap_weights, corner_joints, mirror_maps, region_masks,
+                      shape_by_regions, symmetric_weights, thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
            "check_surface", "file_hierarchy",
@@ -402,6 +403,28 @@ def _vertex_mirror(layout: Layout, cloud: DenseCloud, vertices: np.ndarray,
                        tolerance_mm=0.05 * spacing)
 
 
+#: A dense marker follows the jaw when its drop is at least this fraction of the jaw markers'
+#: (least squares over the session; sample: lower lip 1.2-1.9, upper lip 0.1-0.4).
+JAW_FOLLOWING = 0.7
+
+
+def _follows_jaw(layout: Layout, cloud: DenseCloud, members: list[np.ndarray]) -> np.ndarray:
+    """Which dense markers (N,) bool drop with the jaw: their downward motion (rig Y) against the
+    mean drop of the jaw joints' influence members (:func:`~.rig_hierarchy.jaw_members`), least
+    squares over the session, at least :data:`JAW_FOLLOWING`."""
+    bind = cloud.neutral[cloud.index([c.representative for c in layout.clusters])]
+    jaw = jaw_members([c.region for c in layout.clusters], bind)
+    sources = np.concatenate([members[j] for j in np.flatnonzero(jaw)])
+    along, power = np.zeros(len(cloud.labels)), 0.0
+    for start in range(0, cloud.trajectories.shape[0], CLOUD_BLOCK_FRAMES):  # no (F, N) copy
+        drop = np.nan_to_num(cloud.neutral[None, :, 1]
+                             - cloud.trajectories[start:start + CLOUD_BLOCK_FRAMES, :, 1])
+        signal = drop[:, sources].mean(axis=1)
+        along += drop.T @ signal
+        power += float(signal @ signal)
+    return along >= JAW_FOLLOWING * max(power, 1e-12)
+
+
 def _rig_plane(layout: Layout, cloud: DenseCloud) -> tuple[np.ndarray, np.ndarray] | None:
     """The sagittal plane ``(point, normal)`` in the rig frame for a mirrored layout, else None."""
     if not any(c.mirrored_from for c in layout.clusters):
@@ -455,6 +478,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
         # anchored where the markers are: the fitted face before its lips close
         dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
+        dense_vertices = lip_anchors(face, dense_vertices, cloud.neutral,
+                                     _follows_jaw(layout, cloud, members))
         dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
                                                     dense_vertices[rep_idx])
         mesh_kind = "face"
@@ -522,7 +547,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                                          members=member_vertices))
     if mouth_corners is not None:
         weights = blend_corners(weights, vertices, mouth_corners, reach_mm=MOUTH_CORNER_MM,
-                                pinned=joint_vertices)
+                                pinned=joint_vertices,
+                                pin_fade_mm=0.0 if face is None else CORNER_PIN_FADE_MM)
+    if face is not None:  # around the mouth corners, one set of joints: no step where they change
+        weights = corner_joints(weights, vertices, mouth_corners, inner_mm=CORNER_JOINTS_MM[0],
+                                outer_mm=CORNER_JOINTS_MM[1], count=options.max_influences,
+                                pinned=joint_vertices, pin_fade_mm=CORNER_PIN_FADE_MM)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,

@@ -32,8 +32,10 @@ import numpy as np
 from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
-__all__ = ["EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace", "Lid", "along_rim", "closing_field",
-           "default_face", "loop_area", "split_loop", "template_openings"]
+__all__ = ["CORNER_JOINTS_MM", "CORNER_PIN_FADE_MM", "EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace",
+           "Lid", "along_rim", "closing_field", "default_face", "flip_slivers", "lip_anchors",
+           "loop_area",
+           "split_loop", "template_openings", "triangle_angles"]
 
 #: Rounds of the non-rigid fit (closest points move as the face does).
 FIT_ROUNDS = 3
@@ -51,6 +53,14 @@ LID_REACH_MM = 12.0
 #: eye region's marker-driven error within 4 % of the marker surface's (12 mm: +23 %) and the
 #: aperture at a full blink at 11 % of rest (12 mm: 36 %).
 SOLVE_LID_REACH_MM = 8.0
+#: The template's triangles with a smallest angle below this (degrees) are flipped with a
+#: neighbour (:func:`flip_slivers`): ICT-FaceKit has two such slivers inside the mouth corners
+#: (2.6°, 0.005 mm²), which any skinning turned backward (issue 30); flipped, 11.3°.
+SLIVER_DEG = 5.0
+#: A vertex belongs to a lip when it is within this (mm, on the surface) of its inner rim...
+LIP_SIDE_MM = 15.0
+#: ... and nearer to it than to the other lip's rim by this (mm): not at the corners.
+LIP_SIDE_MARGIN_MM = 3.0
 #: Rim vertices this close (mm of arc) to an opening's corner are not pinned when it closes
 #: (sample: 42 triangles folded by closing the lips -> 2; the mouth's seam area at rest
 #: 0.2 -> 9.7 mm², 1.2 % of its widest opening; the lids' full blink 0.2 % -> 2 % of rest).
@@ -60,6 +70,14 @@ CORNER_FREE_MM = 5.0
 #: triangles at the widest jaw: 92 with none, 54 at 8 mm, 20 at 12 mm, 2 at 16 mm; the mouth's
 #: error unchanged; solve's mesh 88 -> 2).
 MOUTH_CORNER_MM = 16.0
+#: The blend towards a mouth corner fades in over this distance (mm) from the joints' own
+#: vertices (:func:`~mocaptk.retarget.weights.pin_fade`; sample, rig and solve's mesh: the
+#: edges at a lip joint blended 0.3 towards the corner stretched 2.3x at the widest jaw).
+CORNER_PIN_FADE_MM = 3.0
+#: Within the first (mm) of a mouth corner the rig's weights keep only the corner's strongest
+#: joints, back to their own at the second (:func:`~mocaptk.retarget.weights.corner_joints`;
+#: sample: the 4-influence cap swapped weights up to 0.2 across an edge below the corner).
+CORNER_JOINTS_MM = (10.0, 16.0)
 #: ... and towards its eyes' corners within this (mm; sample, most folded triangles at the
 #: fullest blink: 22 with none, 2 at 8 mm, 0 at 12 mm; the eye region's error +0.5 %).
 EYE_CORNER_MM = 12.0
@@ -97,7 +115,42 @@ class DefaultFace:
 def _template() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     with resources.files(__package__).joinpath(TEMPLATE_FILE).open("rb") as handle:
         with np.load(handle, allow_pickle=False) as data:
-            return data["vertices"], data["triangles"].astype(np.int64), data["uv"]
+            vertices, triangles = data["vertices"], data["triangles"].astype(np.int64)
+            return vertices, flip_slivers(vertices, triangles), data["uv"]
+
+
+def triangle_angles(corners: np.ndarray) -> np.ndarray:
+    """Interior angles (..., 3) in degrees of triangles ``corners`` (..., 3, 3), one per corner."""
+    corners = np.asarray(corners, dtype=float)
+    angles = []
+    for k in range(3):
+        u = corners[..., (k + 1) % 3, :] - corners[..., k, :]
+        w = corners[..., (k + 2) % 3, :] - corners[..., k, :]
+        cos = np.einsum("...i,...i->...", u, w) / (np.linalg.norm(u, axis=-1)
+                                                  * np.linalg.norm(w, axis=-1))
+        angles.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return np.stack(angles, axis=-1)
+
+
+def flip_slivers(vertices: np.ndarray, faces: np.ndarray, *,
+                 min_angle_deg: float = SLIVER_DEG) -> np.ndarray:
+    """``faces`` (T, 3) with each triangle whose smallest angle is below ``min_angle_deg``
+    flipped with its neighbour across its longest edge, where that raises the pair's smallest
+    angle (orientation kept; vertices, UVs and openings unchanged)."""
+    faces = np.array(faces, dtype=np.int64)
+    angles = triangle_angles(np.asarray(vertices, float)[faces])
+    for t in np.flatnonzero(angles.min(axis=1) < min_angle_deg):
+        k = int(np.argmax(angles[t]))  # the widest angle faces the longest edge
+        apex, a, b = faces[t, k], faces[t, (k + 1) % 3], faces[t, (k + 2) % 3]
+        other = np.flatnonzero((faces == a).any(axis=1) & (faces == b).any(axis=1))
+        other = other[other != t]
+        if len(other) != 1:  # a border edge: nothing to flip with
+            continue
+        far = int(np.setdiff1d(faces[other[0]], [a, b])[0])
+        pair = np.array([[apex, a, far], [apex, far, b]])  # the quad apex-a-far-b, other diagonal
+        if triangle_angles(vertices[pair]).min() > min(angles[t].min(), angles[other[0]].min()):
+            faces[t], faces[other[0]] = pair
+    return faces
 
 
 @lru_cache(maxsize=1)
@@ -161,6 +214,34 @@ def default_face(points: np.ndarray, *, spacing: float,
         lids[1] = Lid(lids[1].upper, lids[1].lower, image - 2.0 * (image @ normal)[:, None] * normal)
     return DefaultFace(closed, vertices, faces, uv, upper, lower, tuple(lids),
                        None if plane is None else mirror)
+
+
+def lip_anchors(face: DefaultFace, anchors: np.ndarray, points: np.ndarray,
+                jaw_following: np.ndarray) -> np.ndarray:
+    """``anchors`` (N,) of the markers ``points`` (N, 3) mm on ``face.fitted``, each marker moved
+    to the nearest vertex of its own lip where it was anchored on the other one: a marker that
+    follows the jaw (``jaw_following`` (N,) bool) on the lower lip, one that does not on the upper.
+
+    A lip's side is the rim it is geodesically nearer by :data:`LIP_SIDE_MARGIN_MM` (within
+    :data:`LIP_SIDE_MM`; near the corners, where the rims meet, nothing moves). Where the
+    template's lips fit an actor's less well, a lower-lip marker's closest point can be on the
+    upper lip's inner roll, and the upper lip then follows the jaw (issue 30: a synthetic actor,
+    5.5x at the upper lip's midline)."""
+    from .influence import edge_graph, geodesic_distance
+
+    graph = edge_graph(face.fitted, face.faces)
+    upper = geodesic_distance(graph, face.upper_lip[1:-1], limit=LIP_SIDE_MM)
+    lower = geodesic_distance(graph, face.lower_lip[1:-1], limit=LIP_SIDE_MM)
+    on_upper = upper + LIP_SIDE_MARGIN_MM < lower
+    on_lower = lower + LIP_SIDE_MARGIN_MM < upper
+    out = np.array(anchors, dtype=np.int64)
+    for side, wrong in ((on_lower, on_upper[out] & jaw_following),
+                        (on_upper, on_lower[out] & ~jaw_following)):
+        if wrong.any():
+            own = np.flatnonzero(side)
+            gap = np.linalg.norm(face.fitted[own][None] - np.asarray(points)[wrong][:, None], axis=2)
+            out[wrong] = own[np.argmin(gap, axis=1)]
+    return out
 
 
 def _nonrigid(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *,

@@ -103,7 +103,7 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import SOLVE_LID_REACH_MM, default_face
+        from .default_face import CORNER_PIN_FADE_MM, SOLVE_LID_REACH_MM, default_face
 
         neutral = np.asarray(neutral, dtype=np.float64)
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
@@ -130,30 +130,33 @@ class MeshMap:
         vertices = face.vertices @ rotation  # back to the session frame
         mesh = cls.anchored(vertices, face.faces, anchors, columns)
         mesh = mesh._with_openings(face.vertices, np.array([face.upper_lip[0], face.upper_lip[-1]]),
-                                   face.lids, anchors, columns, rotation)
+                                   face.lids, anchors, columns, rotation,
+                                   mouth_pin_fade_mm=CORNER_PIN_FADE_MM)
         return replace(mesh, uv=face.uv, mirror=mirror)
 
     def _with_openings(self, rig_vertices: np.ndarray, mouth: np.ndarray | None, lids: tuple,
                        anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray, *,
-                       eye_corner_mm: float | None = None) -> MeshMap:
+                       eye_corner_mm: float | None = None, mouth_pin_fade_mm: float = 0.0) -> MeshMap:
         """This map with its openings' corners blended and its lids' blinks (the default face, a
         user's opened mesh): ``rig_vertices`` (V, 3) mm its vertices in the rig frame
         (``rotation`` session -> rig), ``mouth`` (2,) the mouth's corner vertices (None: no
         mouth cut), ``lids`` the eyes' :class:`~mocaptk.retarget.default_face.Lid` (their corners
         blended within ``eye_corner_mm``, default the default face's), ``anchors`` (M,) and
-        ``columns`` (M, 3) mm as :meth:`anchored`."""
+        ``columns`` (M, 3) mm as :meth:`anchored`; ``mouth_pin_fade_mm`` fades the mouth blend in
+        from the joints' own vertices (:func:`~mocaptk.retarget.weights.pin_fade`; 0: none)."""
         from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM
         from .lid_joints import SENSOR_MIN_MM
         from .weights import blend_corners
 
         # the openings part like lenses, not cracks whose tips fold (as the rig's weights)
         matrix = self.matrix
-        for corners, reach in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM),
-                               ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
-                                EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm)):
+        for corners, reach, fade in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM,
+                                      mouth_pin_fade_mm),
+                                     ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
+                                      EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm, 0.0)):
             if corners:
                 matrix = blend_corners(matrix, rig_vertices, corners, reach_mm=reach,
-                                       pinned=anchors[anchors >= 0])
+                                       pinned=anchors[anchors >= 0], pin_fade_mm=fade)
         matrix = np.asarray(matrix).astype(np.float32)
         mesh = replace(self, matrix=matrix,
                        offset=self.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))

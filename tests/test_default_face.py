@@ -69,3 +69,75 @@ def test_solve_mesh_closes_lips_and_lids(solved):
         weight = truth.weights[:, names.index(blink)]
         assert aperture[int(np.argmax(weight))] <= 0.2
         assert np.percentile(aperture[weight < 0.05], 5) > 0.8
+
+
+def test_solve_mesh_neither_folds_nor_tears_at_the_mouth(solved):
+    """No triangle of solve's face faces backward against its rest in any frame of the held-out
+    performance (was 2: the template's slivers inside the mouth corners), and within 20 mm of a
+    mouth corner the largest stretch is 2.04x (was 2.35x, at a lip marker's vertex blended
+    towards the corner). Elsewhere it is 2.27x, at the upper lids' crease in a blink (issue 30:
+    <= 2x is not met yet)."""
+    from mocaptk.retarget.default_face import template_openings
+
+    _, _, mesh, frames = solved
+    faces = mesh.faces
+    rest = mesh.vertices
+
+    def normals(points):
+        return np.cross(points[..., faces[:, 1], :] - points[..., faces[:, 0], :],
+                        points[..., faces[:, 2], :] - points[..., faces[:, 0], :])
+
+    assert (np.einsum("ftk,tk->ft", normals(frames), normals(rest)) < 0).sum() == 0
+    (upper, _), _, _ = template_openings()
+    corners = rest[[upper[0], upper[-1]]]
+    near = np.linalg.norm(rest[faces].mean(axis=1)[:, None] - corners, axis=2).min(axis=1) < 20
+    edges = np.unique(np.sort(faces[near][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    length = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+    stretch = np.linalg.norm(frames[:, edges[:, 0]] - frames[:, edges[:, 1]], axis=2) / length
+    assert np.nanmax(stretch) <= 2.1, np.nanmax(stretch)
+
+
+def test_template_slivers_are_flipped():
+    """The ICT-FaceKit template's two 2.6° slivers inside the mouth corners are flipped with
+    their neighbours: every triangle's smallest angle >= 5°, the same vertices, triangle count
+    and openings, every triangle still facing the way its original did."""
+    import igl
+
+    from mocaptk.retarget.default_face import _template, flip_slivers, triangle_angles
+    from mocaptk.retarget.face_template import template_face
+
+    vertices, original = template_face()
+    faces = _template()[1]
+    assert triangle_angles(vertices[original]).min() < 3.0
+    assert triangle_angles(vertices[faces]).min() >= 5.0
+    changed = np.flatnonzero((faces != original).any(axis=1))
+    assert len(changed) == 4 and faces.shape == original.shape
+    assert sorted(map(len, igl.boundary_loop_all(faces))) == sorted(map(len, igl.boundary_loop_all(original)))
+    before = np.cross(*(vertices[original[changed, k]] - vertices[original[changed, 0]] for k in (1, 2)))
+    after = np.cross(*(vertices[faces[changed, k]] - vertices[faces[changed, 0]] for k in (1, 2)))
+    assert (np.einsum("tk,tk->t", before, after) > 0).all()
+    assert np.array_equal(flip_slivers(vertices, faces), faces)  # nothing left to flip
+
+
+def test_lip_anchors_put_each_marker_on_its_own_lip():
+    """A marker that follows the jaw but was anchored on the upper lip's inner roll moves to the
+    nearest lower-lip vertex (and one that does not, to the upper lip); the sample's own anchors
+    need no move (build_rig: 0 moved; a synthetic actor's 3: 5.46x -> 3.58x)."""
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.retarget.default_face import default_face, lip_anchors
+    from mocaptk.surface_mesh import marker_spacing
+
+    truth = load_ground_truth(SAMPLES / "dense_halfface_truth.npz")
+    points = truth.marker_neutral
+    face = default_face(points, spacing=marker_spacing(points))
+    upper, lower = face.upper_lip, face.lower_lip
+    middle = len(upper) // 2
+    # two markers just off the lips' inner rims, each anchored on the other lip
+    probe = face.fitted[[lower[len(lower) // 2], upper[middle]]] + [[0, -1.0, 1.0], [0, 1.0, 1.0]]
+    wrong = np.array([upper[middle], lower[len(lower) // 2]])
+    moved = lip_anchors(face, wrong, probe, np.array([True, False]))
+    assert moved[0] != wrong[0] and moved[1] != wrong[1]
+    assert np.linalg.norm(face.fitted[moved[0]] - face.fitted[lower[len(lower) // 2]]) < 3.0
+    assert np.linalg.norm(face.fitted[moved[1]] - face.fitted[upper[middle]]) < 3.0
+    right = lip_anchors(face, moved, probe, np.array([True, False]))
+    assert np.array_equal(right, moved)  # already on their own lips: kept
