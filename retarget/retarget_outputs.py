@@ -32,7 +32,7 @@ from .character import ARKIT_NAMES, Character
 from .correspondence import Correspondence, correspond
 from .gaze import eye_labels, gaze_angles
 from .livelink_csv import livelink_csv, yaw_pitch_roll
-from .rom_calibration import DEFAULT_PRIOR, DEFAULT_ROM_PRIOR, Calibration, calibrate, side_ties
+from .rom_calibration import DEFAULT_PRIOR, Calibration, calibrate, side_ties
 from .solve import CHUNK_FRAMES, POSE_FROM_LAYOUT, FaceSolver, head_poses, layout_frames, to_head_frame
 from .weight_solve import DEFAULT_L1, DEFAULT_SMOOTH, solve_weights
 
@@ -88,9 +88,8 @@ def fit_retargeter(character: Character, session: Trajectories, *, prior: float 
 
 def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajectories, path: str, *,
                      l1: float = DEFAULT_L1, smooth: float = DEFAULT_SMOOTH, stabilize: bool = True,
-                     rom_prior: float = DEFAULT_ROM_PRIOR, chunk: int = CHUNK_FRAMES) -> RetargetResult:
-    """Weights of every frame of ``capture`` (its file ``path``, for messages); ``rom_prior`` the
-    strength of the ROM's weight prior (:meth:`.rom_calibration.Calibration.weight_prior`, 0: none).
+                     chunk: int = CHUNK_FRAMES) -> RetargetResult:
+    """Weights of every frame of ``capture`` (its file ``path``, for messages).
 
     Poses from the layout's least-moving markers (no stabilization markers) take part of the
     expression for head motion (on the sample's still performance, 20 layout markers: up to 2.6°
@@ -102,13 +101,12 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
     rows = np.array([retargeter.labels.index(label) for label in solver.layout_labels])
     basis, inverse = retargeter.calibration.tied_basis(rows)
     neutral = retargeter.calibration.neutral[rows]
-    prior = retargeter.calibration.weight_prior(rom_prior)
     n_frames = capture.n_frames
     weights = np.zeros((n_frames, len(basis)))
     residual, lost = np.full(n_frames, np.nan), np.zeros(n_frames, dtype=np.int64)
     rotations = None if poses is None else np.array(poses.rotations, dtype=np.float64)
     translations = None if poses is None else np.array(poses.translations, dtype=np.float64)
-    if joint and not _posed_fits_better(basis, neutral, x, rotations, translations, l1=l1, prior=prior):
+    if joint and not _posed_fits_better(basis, neutral, x, rotations, translations, l1=l1):
         poses = replace(poses, rotations=np.broadcast_to(np.eye(3), rotations.shape).copy(),
                         translations=np.zeros_like(translations), still=True)
         rotations, translations, joint = poses.rotations, poses.translations, False
@@ -119,9 +117,9 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
         if joint:
             rotations[part], translations[part] = _joint_poses(
                 basis, neutral, world, rotations[part], translations[part], l1=l1, smooth=smooth,
-                previous=previous, prior=prior)
+                previous=previous)
         frames = world if poses is None else in_head_frame(world, rotations[part], translations[part])
-        solved = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous, prior=prior)
+        solved = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous)
         weights[part], residual[part], lost[part] = solved.weights, solved.residual_mm, solved.lost
         previous = solved.weights[-1] if len(solved.weights) else previous
     head = np.zeros((n_frames, 3)) if poses is None else yaw_pitch_roll(rotations)
@@ -138,24 +136,22 @@ POSE_TEST_FRAMES = 1000
 
 
 def _posed_fits_better(basis: np.ndarray, neutral: np.ndarray, x: np.ndarray, rotations: np.ndarray,
-                       translations: np.ndarray, *, l1: float,
-                       prior: tuple[np.ndarray, np.ndarray] | None) -> bool:
+                       translations: np.ndarray, *, l1: float) -> bool:
     """Whether the rig fits the capture's layout markers ``x`` (F, L, 3) better (median RMS
     residual) with the refined poses than with none: a head that did not move, seen through a few
     expression-moving markers, is better left unposed."""
     test = np.linspace(0, len(x) - 1, min(len(x), POSE_TEST_FRAMES)).astype(np.int64)
     world = np.array(x[test], dtype=np.float64)
     rot, trans = _joint_poses(basis, neutral, world, rotations[test].copy(), translations[test].copy(),
-                              l1=l1, smooth=0.0, previous=None, prior=prior)
-    posed = solve_weights(basis, in_head_frame(world, rot, trans) - neutral, l1=l1, smooth=0.0,
-                          prior=prior).residual_mm
-    unposed = solve_weights(basis, world - neutral, l1=l1, smooth=0.0, prior=prior).residual_mm
+                              l1=l1, smooth=0.0, previous=None)
+    posed = solve_weights(basis, in_head_frame(world, rot, trans) - neutral, l1=l1, smooth=0.0).residual_mm
+    unposed = solve_weights(basis, world - neutral, l1=l1, smooth=0.0).residual_mm
     return bool(np.nanmedian(posed) < np.nanmedian(unposed))
 
 
 def _joint_poses(basis: np.ndarray, neutral: np.ndarray, world: np.ndarray, rotations: np.ndarray,
-                 translations: np.ndarray, *, l1: float, smooth: float, previous: np.ndarray | None,
-                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 translations: np.ndarray, *, l1: float, smooth: float, previous: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Head poses refined with the expression: alternately the weights in the current head frame,
     then each frame's pose as the rigid fit (all seen layout markers) of the rig's prediction
     ``neutral + A w`` onto the capture ``world`` (f, L, 3) mm. What the rig's shapes explain stays
@@ -165,8 +161,7 @@ def _joint_poses(basis: np.ndarray, neutral: np.ndarray, world: np.ndarray, rota
     seen = np.isfinite(world).all(axis=2)
     for _ in range(JOINT_POSE_ROUNDS):
         frames = in_head_frame(world, rotations, translations)
-        w = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous,
-                          prior=prior).weights
+        w = solve_weights(basis, frames - neutral, l1=l1, smooth=smooth, previous=previous).weights
         predicted = neutral + np.einsum("fs,smc->fmc", w, basis)
         rot, trans = kabsch(predicted, np.where(seen[..., None], world, 0.0), seen.astype(float))
         ok = np.isfinite(rot).all(axis=(1, 2))

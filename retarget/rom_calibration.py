@@ -28,13 +28,6 @@ region — with the character's expression space as the prior:
      keep the default rule. Where the ROM reaches less than ``q`` of a shape, its weights come out
      too high by ``q`` / reached.
 
-5. **Weight prior** (:meth:`Calibration.weight_prior`): how the ROM co-activates the shapes — the
-   mean and covariance of its frames' weights (after the range step), and the ROM fit's residual
-   variance per coordinate σ² — make a Gaussian prior for the per-frame solve, ``σ² Σ⁻¹`` with
-   mean μ: the MAP weights of a capture whose markers are the ROM's up to that residual. Few
-   markers cannot tell some shapes apart (20 markers: ``mouthLowerDown`` from ``jawOpen`` +
-   ``mouthClose``, a side from its twin); the ROM says how the actor combines them.
-
 The neutral maps to all weights 0 by construction: displacements are taken from the actor's
 neutral (:func:`mocaptk.clustering.neutral.neutral_pose` of the session).
 
@@ -53,7 +46,7 @@ import numpy as np
 
 from .weight_solve import DEFAULT_L1, solve_weights
 
-__all__ = ["DEFAULT_ROM_PRIOR", "Calibration", "calibrate", "side_ties"]
+__all__ = ["Calibration", "calibrate", "side_ties"]
 
 #: ROM frames used (evenly spread).
 MAX_FRAMES = 2000
@@ -61,8 +54,6 @@ MAX_FRAMES = 2000
 ROUNDS = 4
 #: Default strength of the pull towards the character's shapes.
 DEFAULT_PRIOR = 1.0
-#: Default strength of the ROM's weight prior in the per-frame solve (:meth:`Calibration.weight_prior`).
-DEFAULT_ROM_PRIOR = 0.0
 #: Percentile of a shape's ROM weights taken as its extreme.
 RANGE_PERCENTILE = 99.5
 #: With ``reach``: a shape whose ROM extreme is below this (character units) counts as not
@@ -70,9 +61,6 @@ RANGE_PERCENTILE = 99.5
 MIN_PERFORMED = 0.2
 #: A side shape seen with less than this fraction of its twin's energy follows the twin.
 TIE_ENERGY_RATIO = 0.25
-#: Added to the ROM weights' covariance's diagonal (weight²): a shape the ROM never moves is held
-#: near its mean, not pinned.
-PRIOR_VARIANCE_FLOOR = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,19 +68,13 @@ class Calibration:
     """``basis`` (S, M, 3) mm the actor's shapes at every dense marker; ``neutral`` (M, 3) mm;
     ``ties`` (S,) the index of the solved variable each shape takes its weight from (itself
     unless it follows a mirror twin); ``rom_extreme`` (S,) the shapes' ROM extremes (before the
-    alignment) and ``stretch`` (S,) the factor the shapes were scaled by (≥ 1 without ``reach``);
-    ``weight_mean`` (S,), ``weight_cov`` (S, S) the ROM frames' weights' mean and covariance and
-    ``residual_var`` the ROM fit's residual variance per coordinate (mm²), for
-    :meth:`weight_prior` (None: a calibration saved without them)."""
+    alignment) and ``stretch`` (S,) the factor the shapes were scaled by (≥ 1 without ``reach``)."""
 
     basis: np.ndarray
     neutral: np.ndarray
     ties: np.ndarray
     rom_extreme: np.ndarray
     stretch: np.ndarray
-    weight_mean: np.ndarray | None = None
-    weight_cov: np.ndarray | None = None
-    residual_var: float | None = None
 
     def tied_basis(self, rows: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
         """The basis of the solved variables at markers ``rows``: (U, m, 3), and the variable
@@ -101,16 +83,6 @@ class Calibration:
         basis = np.zeros((len(variables), *self.basis[:, rows].shape[1:]))
         np.add.at(basis, inverse, self.basis[:, rows])
         return basis, inverse
-
-    def weight_prior(self, strength: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """The ROM's Gaussian prior on the solved variables (:meth:`tied_basis`): precision
-        ``strength · σ² (Σ + floor·I)⁻¹`` (U, U) mm² and mean (U,); None at strength 0 or
-        without ROM statistics."""
-        if strength <= 0 or self.weight_cov is None:
-            return None
-        variables = np.unique(self.ties)
-        cov = self.weight_cov[np.ix_(variables, variables)] + PRIOR_VARIANCE_FLOOR * np.eye(len(variables))
-        return strength * self.residual_var * np.linalg.inv(cov), self.weight_mean[variables]
 
 
 def side_ties(names: Sequence[str], prior: np.ndarray) -> np.ndarray:
@@ -148,29 +120,24 @@ def calibrate(rom: np.ndarray, neutral: np.ndarray, prior: np.ndarray, ties: np.
     basis = np.array(prior, dtype=np.float64)
     calibration = Calibration(basis, neutral, np.asarray(ties), np.ones(len(prior)), np.ones(len(prior)))
     for _ in range(rounds):
-        weights, _ = _rom_weights(calibration, delta, l1)
+        weights = _rom_weights(calibration, delta, l1)
         basis = _refit(weights, delta, prior, strength)
         calibration = Calibration(basis, neutral, calibration.ties, calibration.rom_extreme,
                                   calibration.stretch)
-    weights, residual = _rom_weights(calibration, delta, l1)
+    weights = _rom_weights(calibration, delta, l1)
     extreme = np.percentile(weights, RANGE_PERCENTILE, axis=0) if len(weights) else np.zeros(len(prior))
     stretch = np.maximum(extreme, 1.0)
     if reach is not None:  # the actor's extreme is the rig's reach
         stretch = np.where(extreme >= MIN_PERFORMED, extreme / reach, stretch)
-    scaled = weights / stretch  # the ROM's weights in the stretched shapes' units
-    fitted = residual[np.isfinite(residual)]
-    return Calibration(basis * stretch[:, None, None], neutral, calibration.ties, extreme, stretch,
-                       scaled.mean(axis=0) if len(scaled) else np.zeros(len(prior)),
-                       np.cov(scaled, rowvar=False) if len(scaled) > 1 else np.zeros((len(prior),) * 2),
-                       float(np.mean(fitted ** 2) / 3.0) if len(fitted) else 0.0)
+    return Calibration(basis * stretch[:, None, None], neutral, calibration.ties, extreme, stretch)
 
 
-def _rom_weights(calibration: Calibration, delta: np.ndarray, l1: float) -> tuple[np.ndarray, np.ndarray]:
+def _rom_weights(calibration: Calibration, delta: np.ndarray, l1: float) -> np.ndarray:
     """Each ROM frame's weights (F, S) with the current shapes (unbounded above: the extremes
-    must show before the range step), and its RMS residual (F,) mm."""
+    must show before the range step)."""
     basis, inverse = calibration.tied_basis()
     solved = solve_weights(basis, delta, l1=l1, smooth=0.0, upper=np.inf)
-    return solved.weights[:, inverse], solved.residual_mm
+    return solved.weights[:, inverse]
 
 
 def _refit(weights: np.ndarray, delta: np.ndarray, prior: np.ndarray, strength: float) -> np.ndarray:

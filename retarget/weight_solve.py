@@ -5,12 +5,10 @@ neutral (head-relative) and the actor basis ``A`` (S, L, 3) mm (how each marker 
 1 of each shape), the weights ``w_t`` (S,) minimise
 
     ||A w - d_t||²  (over the markers seen in frame t)
-    + l1 · a · Σ_k w_k  +  smooth · a · ||w - w_{t-1}||²
-    + (w - μ)ᵀ P (w - μ),                                       0 ≤ w ≤ 1,
+    + l1 · a · Σ_k w_k  +  smooth · a · ||w - w_{t-1}||²,     0 ≤ w ≤ 1,
 
 where ``a`` is the mean squared norm of the basis columns (so ``l1`` and ``smooth`` are unitless:
-the same values work for any marker count or face size) and ``(P, μ)`` an optional Gaussian
-prior on the weights (P in mm², :meth:`.rom_calibration.Calibration.weight_prior`). Lost markers (NaN) are dropped from
+the same values work for any marker count or face size). Lost markers (NaN) are dropped from
 that frame's system, never filled. The smoothness term is causal (the previous frame's solved
 weights), so the solve streams chunk by chunk with the last weights carried over.
 
@@ -59,11 +57,11 @@ def basis_scale(basis: np.ndarray) -> float:
 
 def solve_weights(basis: np.ndarray, displacements: np.ndarray, *, l1: float = DEFAULT_L1,
                   smooth: float = DEFAULT_SMOOTH, previous: np.ndarray | None = None,
-                  upper: float = 1.0, prior: tuple[np.ndarray, np.ndarray] | None = None) -> SolvedWeights:
+                  upper: float = 1.0) -> SolvedWeights:
     """Weights (F, S) for ``displacements`` (F, L, 3) mm (NaN: lost) with ``basis`` (S, L, 3) mm.
 
     ``previous`` (S,) the weights of the frame before the first (default 0: the neutral);
-    ``upper`` the bound (1 for a rig's range); ``prior`` (precision P (S, S) mm², mean μ (S,)).
+    ``upper`` the bound (1 for a rig's range).
     """
     a = np.ascontiguousarray(np.asarray(basis, dtype=np.float64).reshape(len(basis), -1))  # (S, 3L)
     n_shapes, n_markers = len(basis), a.shape[1] // 3
@@ -71,18 +69,14 @@ def solve_weights(basis: np.ndarray, displacements: np.ndarray, *, l1: float = D
     seen = np.isfinite(d).all(axis=2)
     scale = basis_scale(basis)
     start = np.zeros(n_shapes) if previous is None else np.asarray(previous, dtype=np.float64)
-    gram, pull = a @ a.T, np.zeros(n_shapes)
-    if prior is not None:  # the Gaussian prior adds P to the normal matrix and P μ to the right side
-        gram = gram + prior[0]
-        pull = np.asarray(prior[0] @ prior[1], dtype=np.float64)
     weights, residual = _solve(a, np.ascontiguousarray(np.where(seen[..., None], d, 0.0).reshape(len(d), -1)),
-                               np.ascontiguousarray(seen), gram, pull, l1 * scale, smooth * scale,
+                               np.ascontiguousarray(seen), a @ a.T, l1 * scale, smooth * scale,
                                start.copy(), float(upper))
     return SolvedWeights(weights, residual, (~seen).sum(axis=1))
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve(a, d, seen, gram, pull, l1, smooth, w, upper):  # pragma: no cover - compiled
+def _solve(a, d, seen, gram, l1, smooth, w, upper):  # pragma: no cover - compiled
     n_frames, n_shapes = d.shape[0], a.shape[0]
     n_markers = seen.shape[1]
     out = np.empty((n_frames, n_shapes))
@@ -91,7 +85,7 @@ def _solve(a, d, seen, gram, pull, l1, smooth, w, upper):  # pragma: no cover - 
     h = np.empty(n_shapes)
     for t in range(n_frames):
         g[:, :] = gram
-        h[:] = pull
+        h[:] = 0.0
         count = 0
         for m in range(n_markers):
             for c in range(3):
