@@ -144,14 +144,20 @@ def _largest_motion(basis: np.ndarray) -> np.ndarray:
 
 
 def unseen_shapes(names: Sequence[str], result: RetargetResult) -> list[str]:
-    """A note naming the shapes that move the session's markers but no layout marker by
-    :data:`UNSEEN_MM` (empty when every shape is seen): their weights cannot come from the capture."""
-    unseen = [k for k in range(len(names))
-              if result.layout_motion_mm[k] < UNSEEN_MM <= result.dense_motion_mm[k]]
+    """The shapes that move the session's markers but no layout marker by :data:`UNSEEN_MM`,
+    most-moving first: their weights cannot come from the capture."""
+    unseen = [k for k in range(len(names)) if result.layout_motion_mm[k] < UNSEEN_MM <= result.dense_motion_mm[k]]
+    return [names[k] for k in sorted(unseen, key=lambda k: -result.dense_motion_mm[k])]
+
+
+def _unseen_note(names: Sequence[str], result: RetargetResult) -> list[str]:
+    """A note naming :func:`unseen_shapes` (the first 3 with their motion), or none."""
+    unseen = unseen_shapes(names, result)
     if not unseen:
         return []
-    listed = ", ".join(f"{names[k]} {result.layout_motion_mm[k]:.2f} mm (session {result.dense_motion_mm[k]:.1f})"
-                       for k in unseen)
+    index = {name: k for k, name in enumerate(names)}
+    listed = ", ".join(f"{n} {result.layout_motion_mm[index[n]]:.2f} mm (session {result.dense_motion_mm[index[n]]:.1f})"
+                       for n in unseen[:3]) + (f" and {len(unseen) - 3} more" if len(unseen) > 3 else "")
     return [f"{len(unseen)} shapes move no layout marker by {UNSEEN_MM} mm: {listed}; the capture cannot show "
             "them (a layout with markers there can: cluster --method set-cover --character)"]
 
@@ -383,5 +389,5 @@ def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectori
                    "with_lost_markers": int((result.lost > 0).sum()),
                    "without_markers": int((~np.isfinite(result.residual_mm)).sum())},
         "outputs": outputs,
-        "notes": [*notes, *unseen_shapes(character.names, result)],
+        "notes": [*notes, *_unseen_note(character.names, result)],
     }
