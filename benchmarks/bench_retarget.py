@@ -3,6 +3,7 @@
     python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
     BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
         python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
+    python benchmarks/bench_retarget.py reach        # ROM extremes vs truth; Ribera's alignment variants
     python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
     python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
     python benchmarks/bench_retarget.py memory       # peak memory of a 72,000-frame retarget (subprocess)
@@ -170,7 +171,16 @@ class Actor:
                 "same solve without ROM calibration": same_solve.weights,
                 "unconstrained least squares": per_frame(cal.basis[:, rows], d, False),
                 "NNLS, raw displacements, no ROM (Zell)": per_frame(prior[:, rows], d, True),
-                "solve -> dense -> NNLS": per_frame(prior, dense - cal.neutral, True)}
+                "solve -> dense -> NNLS": per_frame(prior, dense - cal.neutral, True),
+                "solve -> dense -> ours on the calibrated dense basis": dense_calibrated(cal, dense)}
+
+
+def dense_calibrated(cal, dense: np.ndarray) -> np.ndarray:
+    """Weights (F, S) from ``solve``'s dense prediction (F, M, 3) with the calibrated dense basis."""
+    from mocaptk.retarget.weight_solve import solve_weights
+
+    basis, inverse = cal.tied_basis()
+    return solve_weights(basis, dense - cal.neutral).weights[:, inverse]
 
 
 def accuracy() -> None:
@@ -215,6 +225,69 @@ def accuracy() -> None:
                             if os.environ.get("BENCH_RETARGET_PER_SHAPE"):
                                 print("|  | per shape (MAE, r): " + ", ".join(
                                     f"{k} {v[0]:.3f}/{v[1]:.2f}" for k, v in s["per_shape"].items()) + " | | | |")
+
+
+#: ``reach``: a shape "shows its extreme" when its 2nd-highest ROM peak is this close to the highest.
+PEAK_AGREEMENT = 0.9
+
+
+def reach() -> None:
+    """Ribera's range alignment on our ROMs: each shape's ROM extreme as the calibration estimates
+    it against the ROM's truth; alignment of only the shapes whose ROM repeats its peak; and an
+    oracle aligning every shape with its true ROM reach (default layout, both characters)."""
+    from dataclasses import replace
+
+    from scipy.signal import find_peaks
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+    from mocaptk.retarget.rom_calibration import MAX_FRAMES, MIN_PERFORMED, _rom_weights
+    from mocaptk.retarget.solve import train_solver
+
+    generic = load_character("arkit")
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        for name, session_path, performance, truth_path in datasets(work):
+            truth = arkit_truth(load_ground_truth(truth_path))
+            true_reach = arkit_truth(load_ground_truth(
+                truth_path.with_name(truth_path.name.replace("_performance", "")))).max(axis=0)
+            capture, session = read_c3d(performance), read_c3d(session_path)
+            folder = work / f"layout_{session_path.parent.name}_{session_path.stem}_default"
+            if not (folder / "layout.json").is_file():
+                mocaptk("cluster", session_path, "--out", folder, "--formats", "none", "--quiet", "--force")
+            for rig in (generic, stylized(generic)[0]):
+                retargeter = fit_retargeter(rig, session)
+                cal = retargeter.calibration
+                step = max(1, int(np.ceil(len(session.positions) / MAX_FRAMES)))
+                rom = _rom_weights(cal, session.positions[::step] - cal.neutral, 1e-3)
+                rom = rom * cal.stretch  # in the units the extremes were measured in
+                performed = np.flatnonzero((cal.rom_extreme >= MIN_PERFORMED) & (true_reach >= MIN_PERFORMED)
+                                           & (cal.ties == np.arange(len(cal.ties))))
+                repeated = np.zeros(len(cal.ties), bool)
+                for k in performed:
+                    peaks = np.sort(rom[find_peaks(rom[:, k], prominence=0.5 * cal.rom_extreme[k])[0], k])[::-1]
+                    repeated[k] = len(peaks) >= 2 and peaks[1] >= PEAK_AGREEMENT * peaks[0]
+                est, true = cal.rom_extreme[performed], true_reach[performed]
+                print(f"\n## {name} onto {rig.source}: {len(performed)} performed shapes; estimated vs true ROM "
+                      f"extreme r {np.corrcoef(est, true)[0, 1]:.2f}, median |diff| {np.median(np.abs(est - true)):.2f}; "
+                      f"true reach {true.min():.2f}-{true.max():.2f} (median {np.median(true):.2f}); repeated "
+                      f"peaks: {', '.join(f'{rig.names[k]} (true {true_reach[k]:.2f})' for k in np.flatnonzero(repeated)) or 'none'}")
+                solver = train_solver(read_layout(folder / "layout.json"), session, {})
+                known = np.zeros(len(cal.ties), bool)
+                known[performed] = True
+                rules = {"default (keep the character's amplitude)": cal.stretch,
+                         "--rom-reach 1 on the shapes with repeated peaks": np.where(repeated, cal.rom_extreme, cal.stretch),
+                         "oracle: each shape aligned with its true ROM reach":
+                             np.where(known, cal.rom_extreme / np.where(known, true_reach, 1.0), cal.stretch)}
+                for rule, stretch in rules.items():
+                    aligned = replace(cal, basis=cal.basis / cal.stretch[:, None, None] * stretch[:, None, None],
+                                      stretch=stretch)
+                    result = retarget_capture(replace(retargeter, calibration=aligned), solver, capture, "capture")
+                    s = scores(result.weights, truth, rig)
+                    print(f"| {rule} | {s['mae']:.3f} | {s['r']:.3f} | {s['mesh_rmse_mm']:.2f} |", flush=True)
 
 
 def lost() -> None:
@@ -322,4 +395,4 @@ print(long.n_frames, 'frames; peak RSS', resource.getrusage(resource.RUSAGE_SELF
 
 
 if __name__ == "__main__":
-    {"accuracy": accuracy, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()
+    {"accuracy": accuracy, "reach": reach, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()

@@ -37,12 +37,15 @@ from .solve import CHUNK_FRAMES, POSE_FROM_LAYOUT, FaceSolver, head_poses, layou
 from .weight_solve import DEFAULT_L1, DEFAULT_SMOOTH, solve_weights
 
 __all__ = ["RETARGET_FORMAT", "Retargeter", "RetargetResult", "fit_retargeter", "load_calibration",
-           "retarget_capture", "write_retarget_outputs"]
+           "retarget_capture", "unseen_shapes", "write_retarget_outputs"]
 
 RETARGET_FORMAT, RETARGET_VERSION = "mocaptk.retarget", 1
 CALIBRATION_FORMAT = "mocaptk.retarget-calibration"
 #: Character files ``--formats`` chooses from.
 CHARACTER_FORMATS = ("glb", "usd", "fbx")
+#: A shape moving no layout marker by this much (mm) is unseen by the layout (2.5x the 0.2 mm
+#: marker noise of our captures): its weight cannot come from the capture.
+UNSEEN_MM = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,7 +66,9 @@ class RetargetResult:
     """``weights`` (F, S); ``head`` (F, 3) yaw/pitch/roll radians (0 without a rigid set);
     ``residual_mm`` (F,); ``lost`` (F,) lost layout markers; ``layout_labels`` the markers used;
     ``eyes`` (F, 6) left then right eye yaw/pitch/roll radians (0 without eye markers) and
-    ``eye_labels`` the eye markers used (:mod:`.gaze`)."""
+    ``eye_labels`` the eye markers used (:mod:`.gaze`); ``layout_motion_mm`` (S,) and
+    ``dense_motion_mm`` (S,) each shape's largest marker motion at weight 1 over the layout's
+    markers and over the session's (for :func:`unseen_shapes`)."""
 
     weights: np.ndarray
     head: np.ndarray
@@ -72,6 +77,8 @@ class RetargetResult:
     layout_labels: tuple[str, ...]
     eyes: np.ndarray
     eye_labels: dict[str, str]
+    layout_motion_mm: np.ndarray
+    dense_motion_mm: np.ndarray
 
 
 def fit_retargeter(character: Character, session: Trajectories, *, prior: float = DEFAULT_PRIOR,
@@ -126,7 +133,33 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
     if joint:  # the head-frame eye markers follow the refined poses
         poses = replace(poses, rotations=rotations, translations=translations)
     eyes, eye_markers = _gaze(retargeter, capture, poses)
-    return RetargetResult(weights[:, inverse], head, residual, lost, solver.layout_labels, eyes, eye_markers)
+    dense, _ = retargeter.calibration.tied_basis()
+    return RetargetResult(weights[:, inverse], head, residual, lost, solver.layout_labels, eyes, eye_markers,
+                          _largest_motion(basis)[inverse], _largest_motion(dense)[inverse])
+
+
+def _largest_motion(basis: np.ndarray) -> np.ndarray:
+    """(S,) each shape's largest marker displacement (mm) in ``basis`` (S, M, 3), NaN rows skipped."""
+    return np.nan_to_num(np.linalg.norm(basis, axis=2)).max(axis=1, initial=0.0)
+
+
+def unseen_shapes(names: Sequence[str], result: RetargetResult) -> list[str]:
+    """The shapes that move the session's markers but no layout marker by :data:`UNSEEN_MM`,
+    most-moving first: their weights cannot come from the capture."""
+    unseen = [k for k in range(len(names)) if result.layout_motion_mm[k] < UNSEEN_MM <= result.dense_motion_mm[k]]
+    return [names[k] for k in sorted(unseen, key=lambda k: -result.dense_motion_mm[k])]
+
+
+def _unseen_note(names: Sequence[str], result: RetargetResult) -> list[str]:
+    """A note naming :func:`unseen_shapes` (the first 3 with their motion), or none."""
+    unseen = unseen_shapes(names, result)
+    if not unseen:
+        return []
+    index = {name: k for k, name in enumerate(names)}
+    listed = ", ".join(f"{n} {result.layout_motion_mm[index[n]]:.2f} mm (session {result.dense_motion_mm[index[n]]:.1f})"
+                       for n in unseen[:3]) + (f" and {len(unseen) - 3} more" if len(unseen) > 3 else "")
+    return [f"{len(unseen)} shapes move no layout marker by {UNSEEN_MM} mm: {listed}; the capture cannot show "
+            "them (a layout with markers there can: cluster --method set-cover --character)"]
 
 
 #: Rounds of :func:`_joint_poses` (pose, then expression, then pose ...).
@@ -332,6 +365,7 @@ def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectori
     character, cal, corr = retargeter.character, retargeter.calibration, retargeter.correspondence
     shapes = [{"name": name, "arkit": arkit, "rom_extreme": float(cal.rom_extreme[i]),
                "stretch": float(cal.stretch[i]),
+               "layout_motion_mm": round(float(result.layout_motion_mm[i]), 4),
                "follows": None if cal.ties[i] == i else character.names[int(cal.ties[i])],
                "max_weight": float(result.weights[:, i].max()) if len(result.weights) else 0.0}
               for i, (name, arkit) in enumerate(zip(character.names, character.arkit))]
@@ -355,5 +389,5 @@ def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectori
                    "with_lost_markers": int((result.lost > 0).sum()),
                    "without_markers": int((~np.isfinite(result.residual_mm)).sum())},
         "outputs": outputs,
-        "notes": list(notes),
+        "notes": [*notes, *_unseen_note(character.names, result)],
     }

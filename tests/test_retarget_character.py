@@ -131,6 +131,31 @@ def test_weights_recover_the_held_out_performance_truth(workspace):
 
 
 @pytest.mark.slow
+def test_shapes_no_layout_marker_sees_are_named(workspace):
+    """The default layout sees every shape; the same layout without its eye markers cannot see
+    the lids' shapes (the identity actor's 20-marker layout: blinks r 0), and says so."""
+    from mocaptk.retarget.retarget_outputs import RetargetResult, unseen_shapes
+    from mocaptk.retarget.rom_calibration import Calibration
+
+    root, _ = workspace
+    summary = json.loads((root / "out" / "retarget.json").read_text())
+    assert min(s["layout_motion_mm"] for s in summary["shapes"] if s["max_weight"] > 0.1) >= 0.5
+    assert not any("move no layout marker" in note for note in summary["notes"])
+
+    with np.load(root / "out" / "calibration.npz") as data:
+        labels = json.loads(bytes(data["header"]).decode())["labels"]
+        cal = Calibration(*(data[k] for k in ("basis", "neutral", "ties", "rom_extreme", "stretch")))
+    names = [s["name"] for s in summary["shapes"]]
+    rows = [labels.index(label) for label in summary["layout_markers"] if not label.startswith("EYE")]
+    (seen, inverse), (dense, _) = cal.tied_basis(np.array(rows)), cal.tied_basis()
+    motion = [np.nan_to_num(np.linalg.norm(b, axis=2)).max(axis=1)[inverse] for b in (seen, dense)]
+    result = RetargetResult(*(None,) * 7, *motion)
+    named = set(unseen_shapes(names, result))
+    assert {"eyeBlinkLeft", "eyeWideLeft"} <= named and not any(n.startswith(("mouth", "jaw")) for n in named)
+    assert all(motion[0][names.index(n)] < 0.5 <= motion[1][names.index(n)] for n in named)
+
+
+@pytest.mark.slow
 def test_saved_calibration_for_another_rig_is_refused(workspace, tmp_path, run_cli):
     root, _ = workspace
     cal = np.load(root / "out" / "calibration.npz")
