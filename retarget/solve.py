@@ -349,8 +349,11 @@ def _following_skin(solver: FaceSolver, poses: HeadPoses, reference: np.ndarray,
         for start in range(0, len(x), CHUNK_FRAMES):
             rows = slice(start, start + CHUNK_FRAMES)
             moved[rows] = solver.model.predict_positions(to_head_frame(x[rows], poses, rows))[:, columns]
+        seen = np.isfinite(moved).any(axis=0)  # a marker never solved keeps its fixed shape
+        centre = np.full(seen.shape, np.nan)
+        centre[seen] = np.nanmedian(moved[:, seen], axis=0)
         skin = np.zeros((len(x), len(poses.labels), 3))
-        skin[:, movable] = moved - np.nanmedian(moved, axis=0)
+        skin[:, movable] = moved - centre
         poses = skin_following_poses(poses, reference, capture, skin)
     return poses
 
