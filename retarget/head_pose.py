@@ -24,7 +24,7 @@ from mocaptk.trajectories import Trajectories
 
 from .consistency import LayoutGaussian
 
-__all__ = ["HeadPoses", "least_moving_markers", "refine_poses", "robust_head_poses"]
+__all__ = ["HeadPoses", "least_moving_markers", "refine_poses", "robust_head_poses", "skin_following_poses"]
 
 #: A pose marker farther than this from where the other pose markers place it is dropped (mm):
 #: skin slides ~1 mm over the skull; a ghost or a swap is centimetres off.
@@ -72,21 +72,46 @@ def robust_head_poses(reference: np.ndarray, capture: Trajectories, labels: Sequ
     reference = _own_shape(np.asarray(reference, dtype=np.float64), points)
     dropped = np.isfinite(points).all(axis=2) & ~_consensus(reference, points)
     kept = np.where(dropped[..., None], np.nan, points)
-    steady = Trajectories(kept, tuple(labels), capture.rate, capture.first_frame, metadata=capture.metadata)
+    rot, trans, residual = _steady_fit(reference, kept, capture, max_gap=max_gap)
+    offsets = np.sum((kept - reference) ** 2, axis=2)
+    offsets = offsets[np.isfinite(offsets)]
+    motion = float(np.sqrt(offsets.mean())) if offsets.size else float("nan")
+    return HeadPoses(rot, trans, residual, dropped, tuple(labels), source, motion)
+
+
+def skin_following_poses(poses: HeadPoses, reference: np.ndarray, capture: Trajectories, skin: np.ndarray, *,
+                         max_gap: int = MAX_POSE_GAP) -> HeadPoses:
+    """``poses`` fitted again, each frame's pose markers laid on their head-frame shape in that
+    frame: the capture's own shape of them (from the session's ``reference`` (K, 3) mm, as
+    :func:`robust_head_poses` takes it) plus ``skin`` (F, K, 3) mm, how far the face's expression
+    moves each from its median (0 for a skull or headband marker). The markers found contradicted
+    stay dropped."""
+    points = capture.positions[:, capture.index(list(poses.labels))]
+    own = _own_shape(np.asarray(reference, dtype=np.float64), points)
+    kept = np.where(poses.dropped[..., None], np.nan, points)
+    rot, trans, residual = _steady_fit(own + np.nan_to_num(skin), kept, capture, max_gap=max_gap)
+    return replace(poses, rotations=rot, translations=trans, residual_mm=residual)
+
+
+def _steady_fit(reference: np.ndarray, kept: np.ndarray, capture: Trajectories, *,
+                max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses (F, 3, 3), (F, 3) and RMS fit residuals (F,) mm of the pose markers ``kept``
+    (F, K, 3) mm (NaN: lost or dropped), low-passed, onto ``reference`` (K, 3) or per frame
+    (F, K, 3); short gaps bridged."""
+    steady = Trajectories(kept, tuple(f"p{k}" for k in range(kept.shape[1])), capture.rate,
+                          capture.first_frame, metadata=capture.metadata)
     if POSE_CUTOFF_HZ < capture.rate / 2:
         steady = lowpass(steady, cutoff_hz=POSE_CUTOFF_HZ)
     seen = np.isfinite(steady.positions).all(axis=2)
     rot, trans = kabsch(reference, steady.positions, seen.astype(float))
-    fitted = np.einsum("fij,kj->fki", rot, reference) + trans[:, None]
+    frames = np.broadcast_to(reference, steady.positions.shape)
+    fitted = np.einsum("fij,fkj->fki", rot, frames) + trans[:, None]
     sq = np.where(seen, np.sum((fitted - steady.positions) ** 2, axis=2), 0.0)
     count = seen.sum(axis=1)
     ok = np.isfinite(rot[:, 0, 0]) & (count > 0)
     residual = np.where(ok, np.sqrt(np.nan_to_num(sq).sum(axis=1) / np.maximum(count, 1)), np.nan)
     bridge_poses(rot, trans, take_segments(capture), max_gap=max_gap)
-    offsets = np.sum((kept - reference) ** 2, axis=2)
-    offsets = offsets[np.isfinite(offsets)]
-    motion = float(np.sqrt(offsets.mean())) if offsets.size else float("nan")
-    return HeadPoses(rot, trans, residual, dropped, tuple(labels), source, motion)
+    return rot, trans, residual
 
 
 def fixed_pose(reference: np.ndarray, capture: Trajectories,

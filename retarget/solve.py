@@ -35,7 +35,8 @@ from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import Adaptation
 from .consistency import LayoutGaussian, Screen, capture_screen, screen_frames, training_consistency
-from .head_pose import HeadPoses, fixed_pose, least_moving_markers, refine_poses, robust_head_poses
+from .head_pose import (HeadPoses, fixed_pose, least_moving_markers, refine_poses, robust_head_poses,
+                        skin_following_poses)
 from .mesh_map import MeshMap
 
 __all__ = ["FaceSolver", "MeshMap", "SolvedChunk", "head_poses", "layout_frames", "solve_chunks",
@@ -46,6 +47,9 @@ POSE_FROM_RIGID = "stabilization markers"
 POSE_FROM_LAYOUT = "least-moving layout markers"
 #: Frames solved at once (bounded memory for any capture length).
 CHUNK_FRAMES = 4096
+#: Pose fits following the stabilization markers' skin motion (:func:`_following_skin`): the
+#: second fits again with the expression read through the first's poses (fixed beforehand, not tuned).
+SKIN_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -246,6 +250,9 @@ def head_poses(solver: FaceSolver, capture: Trajectories) -> HeadPoses | None:
             return replace(poses, rotations=np.broadcast_to(fixed[0], (n, 3, 3)).copy(),
                            translations=np.broadcast_to(fixed[1], (n, 3)).copy(), still=True,
                            motion_rms_mm=fixed[2])
+        if all(label in known for label in solver.layout_labels):
+            poses = _following_skin(solver, poses, solver.rigid_reference[present],
+                                    capture.positions[:, capture.index(solver.layout_labels)], capture)
     return poses
 
 
@@ -314,6 +321,41 @@ def solve_chunks(solver: FaceSolver, layout_positions: np.ndarray, poses: HeadPo
         solved = np.isfinite(positions).all(axis=2).any(axis=1)
         error = np.where(solved, result.expected_error_mm, np.nan)
         yield SolvedChunk(start, positions, error, result.missing, solved, flagged, consistency)
+
+
+def _following_skin(solver: FaceSolver, poses: HeadPoses, reference: np.ndarray, x: np.ndarray,
+                    capture: Trajectories) -> HeadPoses:
+    """Stabilization-marker poses fitted again with each pose marker where the model puts it in
+    that frame (:func:`~.head_pose.skin_following_poses`), :data:`SKIN_ROUNDS` times.
+
+    A head-relative session's stabilization set holds the markers that moved least in it, skin
+    ones among them (a forehead, a nose bridge); the expressions of a capture move them, and a
+    pose fitted to a fixed shape turns that into head motion, which the solve then passes to
+    every dense marker (the model, trained without head motion, does not follow a rigid offset
+    of its layout markers). The layout markers in the head frame give each frame's expression,
+    the model the pose markers' skin motion in it. A pose marker that is itself a layout marker
+    keeps its fixed shape (the model copies it: no prediction). Ghosts are screened first."""
+    layout = set(solver.layout_labels)
+    movable = [k for k, label in enumerate(poses.labels) if label not in layout]
+    if not movable or solver.gaussian is None:
+        return poses
+    columns = [solver.labels.index(poses.labels[k]) for k in movable]
+    head = to_head_frame(x, poses)
+    flagged, _ = screen_frames(solver.gaussian, capture_screen(
+        solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
+    x = np.where(flagged[..., None], np.nan, x)
+    for _ in range(SKIN_ROUNDS):
+        moved = np.full((len(x), len(columns), 3), np.nan)
+        for start in range(0, len(x), CHUNK_FRAMES):
+            rows = slice(start, start + CHUNK_FRAMES)
+            moved[rows] = solver.model.predict_positions(to_head_frame(x[rows], poses, rows))[:, columns]
+        seen = np.isfinite(moved).any(axis=0)  # a marker never solved keeps its fixed shape
+        centre = np.full(seen.shape, np.nan)
+        centre[seen] = np.nanmedian(moved[:, seen], axis=0)
+        skin = np.zeros((len(x), len(poses.labels), 3))
+        skin[:, movable] = moved - centre
+        poses = skin_following_poses(poses, reference, capture, skin)
+    return poses
 
 
 def _refined(solver: FaceSolver, poses: HeadPoses, x: np.ndarray) -> HeadPoses:

@@ -430,6 +430,33 @@ def test_head_motion_ghosts_and_dropouts_on_a_head_relative_session(workspace, t
     assert flagged >= 0.95 * layout_ghosts and flagged <= 1.1 * layout_ghosts, (flagged, layout_ghosts)
 
 
+def test_head_poses_follow_the_skin_motion_of_the_stabilization_markers(workspace, solved):
+    """The sample's stabilization set is skin (brow, lid, nose) that its expressions move: the
+    poses, fitted again to where the model puts those markers in each frame, lie closer to the true
+    head motion than one fit to their fixed shape (measured: 0.25 vs 0.30 mm at the dense neutral)."""
+    from mocaptk.retarget.head_pose import robust_head_poses
+    from mocaptk.retarget.solve import head_poses, load_solver
+
+    root, layout = workspace
+    out, _ = solved
+    solver = load_solver(out / "model.npz")
+    performance = read_c3d(SAMPLES / "dense_halfface_performance.c3d").frames(0, 600)
+    labels = [m for m in performance.labels if m in set(layout["layout"]) | set(solver.rigid_labels)]
+    capture, (rot, shift, centre), _ = moving_capture(performance, labels, degrees=8, mm=15, ghosts=0,
+                                                      dropouts=0)
+    neutral = solver.model.neutral
+    true = np.einsum("fij,mj->fmi", rot, neutral - centre) + centre + shift[:, None]
+
+    def pose_error(poses) -> float:
+        got = np.einsum("fij,mj->fmi", poses.rotations, neutral) + poses.translations[:, None]
+        return float(np.sqrt(np.mean(np.sum((got - true) ** 2, axis=2))))
+
+    poses = head_poses(solver, capture)
+    assert not poses.still and poses.labels == solver.rigid_labels
+    fixed_shape = robust_head_poses(solver.rigid_reference, capture, solver.rigid_labels, source="x")
+    assert pose_error(poses) < 0.9 * pose_error(fixed_shape), (pose_error(poses), pose_error(fixed_shape))
+
+
 def test_a_capture_without_stabilization_markers_is_solved_with_a_warning(solved):
     out, done = solved
     summary = json.loads((out / "solve.json").read_text())
