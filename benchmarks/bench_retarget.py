@@ -242,7 +242,7 @@ def reach() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
     from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
-    from mocaptk.retarget.character import load_character
+    from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
     from mocaptk.retarget.rom_calibration import MAX_FRAMES, MIN_PERFORMED, _rom_weights
     from mocaptk.retarget.solve import train_solver
