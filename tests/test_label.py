@@ -129,8 +129,9 @@ def test_cli_check_and_fix(run_cli, tmp_path, sample):
 @pytest.mark.parametrize("subject, other", [(1, 2), (2, 1)])
 def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
     """Real capture (blenderFace, 16 markers, 25 Hz): another subject's session as the template, and
-    each take labelled with the subject's other takes as the template; the issue's 99 % target over
-    all of a subject's points (measured per case: 98.4 % to 100 %)."""
+    each take labelled with the subject's other takes as the template; the issue's 99 % target in
+    every case (measured: 100 % in all 10; S02 "happy" was 98.38 % before a marker whose fragment
+    broke was looked for where it was last seen)."""
     from mocaptk.trajectories import concatenate_takes
 
     def read(k):
@@ -148,7 +149,7 @@ def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
         correct, wrong, _ = scores(lc.label_capture(template, raw.trajectories), raw, template)
         visible = (raw.truth >= 0).sum()
         totals += (correct * visible, wrong * visible, visible)
-        assert correct >= 0.98, (k, correct, wrong)
+        assert correct >= 0.99 and wrong <= 0.01, (k, correct, wrong)
     assert totals[0] / totals[2] >= 0.99 and totals[1] / totals[2] <= 0.01, totals
 
 

@@ -129,9 +129,10 @@ def _dist(a, b):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True)
 def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
-                 offset_rate, tracked):  # pragma: no cover - compiled
+                 offset_rate, last, seen, tracked):  # pragma: no cover - compiled
     """Store frame ``f``'s labels ``lab[:n]`` of columns ``cols[:n]`` and their confidence; when
-    ``tracked``, move each seen marker's offset toward the capture and carry the fragments' labels."""
+    ``tracked``, move each seen marker's offset toward the capture, keep its head-coordinate
+    position in ``last`` and the frame in ``seen``, and carry the fragments' labels."""
     for i in range(n):
         m = lab[i]
         if m >= 0:
@@ -140,23 +141,31 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
                 r = head[i, c] - pred[m, c]
                 z2 += r * r
                 if tracked:
+                    last[m, c] = head[i, c]
                     offset[m, c] += offset_rate * r
             label[f, cols[i]] = m
             conf[f, cols[i]] = math.exp(-0.5 * z2 / (sigma[m] * sigma[m]))
+            if tracked:
+                seen[m] = f
         if tracked:
             frag_label[fragments[f, cols[i]]] = m
 
 
 @numba.njit(cache=True, nogil=True)
-def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, mode_std, sigma,
-          gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
-          pred):  # pragma: no cover - compiled
+def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, mode_std,
+          sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
+          pred, new_pred):  # pragma: no cover - compiled
     """Label frames from ``f`` on while every frame has 3+ carried points and needs no matching.
 
     Returns ``(frame, code, n)``: :data:`DONE`; :data:`START_OVER` at ``frame`` (nothing done in
     it); :data:`MATCH` at ``frame``, where ``cols[:n]``, ``lab[:n]`` (carried labels, -1 to
-    assign), ``carried[:n]``, ``head[:n]`` and ``pred`` hold the frame for the caller's matching.
-    ``rot``, ``trans`` (the pose), ``offset``, ``frag_label`` and the outputs are updated in place.
+    assign), ``carried[:n]``, ``head[:n]``, ``pred`` and ``new_pred`` hold the frame for the
+    caller's matching. ``new_pred`` is what a new point is matched to: ``pred``, except for a marker
+    seen in the previous frame (its fragment broke), looked for where it was then (``last``, head
+    coordinates): where the expression goes beyond the template, the model refitted without the
+    marker can move its prediction away by more than the gate.
+    ``rot``, ``trans`` (the pose), ``offset``, ``last``, ``seen``, ``frag_label`` and the outputs
+    are updated in place.
     """
     n_frames, n_cols = fragments.shape
     n_markers = mean.shape[0]
@@ -195,6 +204,9 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
             rot[:, :] = r
             trans[:] = t
             _predict(mean, basis, coeffs, offset, pred)
+            for m in range(n_markers):
+                for c in range(3):
+                    new_pred[m, c] = last[m, c] if seen[m] == f - 1 else pred[m, c]
             for i in range(n):
                 pts[i] = positions[f, cols[i]]
             _to_head(pts[:n], rot, trans, head)
@@ -222,7 +234,7 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
                 continue
             near = 0
             for m in range(n_markers):
-                if not taken[m] and _dist(head[i], pred[m]) <= new_gate[m]:
+                if not taken[m] and min(_dist(head[i], pred[m]), _dist(head[i], new_pred[m])) <= new_gate[m]:
                     near += 1
                     hits[m] += 1
                     choice[i] = m
@@ -234,6 +246,6 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
             if choice[i] >= 0:
                 lab[i] = choice[i]
         finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
-                     offset_rate, True)
+                     offset_rate, last, seen, True)
         f += 1
     return f, DONE, 0

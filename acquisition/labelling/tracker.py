@@ -82,6 +82,8 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
     n_frag = int(fragments.max()) + 1 if fragments.size else 0
     frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
     offset = np.zeros_like(template.mean)
+    last = np.zeros_like(template.mean)
+    seen = np.full(template.n_markers, -2, dtype=np.int64)
     rot, trans, have_pose = np.eye(3), np.zeros(3), False
     positions = np.ascontiguousarray(positions, dtype=np.float64)
     fragments = np.ascontiguousarray(fragments, dtype=np.int32)
@@ -90,22 +92,23 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
     carried = np.empty(n_cols, dtype=bool)
     head = np.empty((n_cols, 3))
     pred = np.empty_like(template.mean)
+    new_pred = np.empty_like(template.mean)
     tpl = (template.mean, template.basis, template.mode_std, template.sigma)
 
     def store(f: int, n: int, pred: np.ndarray) -> None:
         finish_frame(f, n, cols, lab, head, pred, template.sigma, fragments, label, conf, frag_label,
-                     offset, OFFSET_RATE, tracked)
+                     offset, OFFSET_RATE, last, seen, tracked)
 
     f = 0
     while f < n_frames:
         if tracked:  # the compiled kernel runs until a frame needs a start-over or a matching
-            f, code, n = track(f, positions, fragments, frag_label, offset, rot, trans, *tpl, gate,
-                               new_gate, TRACK_ROUNDS, OFFSET_RATE, label, conf, released, cols, lab,
-                               carried, head, pred)
+            f, code, n = track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, *tpl,
+                               gate, new_gate, TRACK_ROUNDS, OFFSET_RATE, label, conf, released, cols,
+                               lab, carried, head, pred, new_pred)
             if code == DONE:
                 break
             if code == MATCH:
-                _assign(template, pred, new_gate, head[:n], lab[:n], ~carried[:n])
+                _assign(template, pred, new_gate, head[:n], lab[:n], ~carried[:n], also=new_pred)
                 store(f, n, pred)
                 f += 1
                 continue
@@ -123,6 +126,7 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
             rot[:], trans[:] = found_rot, found_trans
             have_pose = inliers >= 3
             offset[:] = 0.0
+            seen[:] = -2  # a new pose: no marker continues from the frame before
         if not have_pose:
             f += 1
             continue
@@ -146,8 +150,9 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
 
 
 def _assign(template: LabelTemplate, pred: np.ndarray, gate: np.ndarray, head: np.ndarray,
-            lab: np.ndarray, todo: np.ndarray) -> None:
-    """Match the points ``head[todo]`` (head coordinates) to the labels not in ``lab`` (in place)."""
+            lab: np.ndarray, todo: np.ndarray, *, also: np.ndarray | None = None) -> None:
+    """Match the points ``head[todo]`` (head coordinates) to the labels not in ``lab`` (in place);
+    ``also (M, 3)``: a second prediction per label, the nearer of the two counts."""
     rows = np.flatnonzero(todo)
     if not len(rows):
         return
@@ -157,6 +162,8 @@ def _assign(template: LabelTemplate, pred: np.ndarray, gate: np.ndarray, head: n
     if not len(free):
         return
     d = np.linalg.norm(head[rows, None] - pred[free][None], axis=2)
+    if also is not None:
+        d = np.minimum(d, np.linalg.norm(head[rows, None] - also[free][None], axis=2))
     within = d <= gate[free]
     useful_rows = within.any(axis=1)
     useful_cols = within.any(axis=0)
