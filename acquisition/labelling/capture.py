@@ -19,7 +19,7 @@ from mocaptk.trajectories import Trajectories
 from ..runs import true_runs
 from .fragments import column_fragments, link_clouds, looks_untracked
 from .template import LabelTemplate
-from .tracker import PointLabels, label_points
+from .tracker import PointLabels, label_points, threads
 from .vote import vote
 
 #: The capture's typical marker spacing may differ from the template's by at most this factor.
@@ -61,7 +61,7 @@ def label_capture(template: LabelTemplate, capture: Trajectories, *, clouds: boo
         template = template.scaled(ratio)
     if clouds is None:
         clouds = looks_untracked(pos, template.spacing)
-    fragments = link_clouds(pos, template.spacing) if clouds else column_fragments(pos)
+    fragments = link_clouds(pos, template.spacing, threads=threads()) if clouds else column_fragments(pos)
     if not tracked:
         fragments = np.where(seen, 0, -1)
     found: PointLabels = label_points(template, pos, fragments, tracked=tracked)
