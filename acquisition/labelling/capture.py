@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mocaptk.errors import source_error
 from mocaptk.trajectories import Trajectories
@@ -82,9 +83,7 @@ def check_scale(template: LabelTemplate, capture: Trajectories) -> float:
     spacing = []
     for f in frames:
         pts = pos[f][~np.isnan(pos[f]).any(axis=1)]
-        d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
-        np.fill_diagonal(d, np.inf)
-        spacing.append(np.median(d.min(axis=1)))
+        spacing.append(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     ratio = float(np.median(spacing)) / template.spacing
     if not 1 / SCALE_FACTOR <= ratio <= SCALE_FACTOR:
         raise source_error(capture.metadata.get("source"),
