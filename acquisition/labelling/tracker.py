@@ -14,7 +14,8 @@ offset from the model when it was last seen, so a fragment broken at random is p
 stopped and a face that differs from the template's is followed.
 
 The tracked frames run in the compiled kernel (:mod:`.track_kernel`); Python sees only the
-frames that start over or need a real matching (a few per capture).
+frames that start over or need a real matching (a few per capture). A long capture is labelled
+in chunks side by side on two threads (:func:`label_points`), the same labels on any number.
 """
 
 from __future__ import annotations
