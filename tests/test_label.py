@@ -73,6 +73,32 @@ def test_label_meets_the_targets_and_beats_the_baseline(sample, clouds, count):
     assert base[0] < correct and base[2] > ghosts  # the rigid-fit Hungarian baseline does worse
 
 
+def test_chunks_give_the_same_labels_on_one_or_two_threads_and_a_wrong_start_is_redone(sample, monkeypatch):
+    """The 1,200-frame capture is labelled as 2 chunks side by side; the labels do not depend on the
+    threads. Seed 3 at 40 markers: the second chunk's pose search fails at its start (an extreme
+    frame; alone it labels 60.8 %, 13.5 % wrongly), so it is labelled again from the first chunk."""
+    from mocaptk.acquisition.labelling import fragments, tracker
+
+    session, performance, _ = sample
+    keep = spread_subset(session, 40)
+    template = build_template(session.select(keep))
+    raw = unlabelled_capture(performance.select(keep), seed=3)
+    assert tracker.chunks(raw.trajectories.n_frames) == [(0, 600), (600, 1200)]
+    runs = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(tracker, "THREADS", threads)
+        runs[threads] = lc.label_capture(template, raw.trajectories)
+    assert np.array_equal(runs[1].labels, runs[2].labels)
+    assert np.array_equal(runs[1].confidence, runs[2].confidence)
+    correct, wrong, ghosts = scores(runs[2], raw, template)
+    assert correct >= 0.995 and wrong <= 0.001 and ghosts <= 0.001, (correct, wrong, ghosts)
+    # cloud linking in ranges: the same fragment ids whatever the threads
+    clouds = unlabelled_capture(performance.select(keep), seed=3, clouds=True).trajectories.positions
+    one = fragments.link_clouds(clouds, template.spacing, threads=1)
+    assert np.array_equal(one, fragments.link_clouds(clouds, template.spacing, threads=3))
+    assert one.max() < 0.2 * (one >= 0).sum()  # linked: far fewer fragments than points
+
+
 def test_cli_synth_then_label_writes_capture_report_and_summary(run_cli, tmp_path):
     raw_path = tmp_path / "raw.c3d"
     made = run_cli("synth", raw_path, "--unlabelled", PERFORMANCE, "--seed", "4")
@@ -129,8 +155,9 @@ def test_cli_check_and_fix(run_cli, tmp_path, sample):
 @pytest.mark.parametrize("subject, other", [(1, 2), (2, 1)])
 def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
     """Real capture (blenderFace, 16 markers, 25 Hz): another subject's session as the template, and
-    each take labelled with the subject's other takes as the template; the issue's 99 % target over
-    all of a subject's points (measured per case: 98.4 % to 100 %)."""
+    each take labelled with the subject's other takes as the template; the issue's 99 % target in
+    every case (measured: 100 % in all 10; S02 "happy" was 98.38 % before a marker whose fragment
+    broke was looked for where it was last seen)."""
     from mocaptk.trajectories import concatenate_takes
 
     def read(k):
@@ -148,7 +175,7 @@ def test_blenderface_labels_stripped_cut_into_fragments(subject, other):
         correct, wrong, _ = scores(lc.label_capture(template, raw.trajectories), raw, template)
         visible = (raw.truth >= 0).sum()
         totals += (correct * visible, wrong * visible, visible)
-        assert correct >= 0.98, (k, correct, wrong)
+        assert correct >= 0.99 and wrong <= 0.01, (k, correct, wrong)
     assert totals[0] / totals[2] >= 0.99 and totals[1] / totals[2] <= 0.01, totals
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mocaptk.errors import source_error
 from mocaptk.trajectories import Trajectories
@@ -19,7 +20,7 @@ from mocaptk.trajectories import Trajectories
 from ..runs import true_runs
 from .fragments import column_fragments, link_clouds, looks_untracked
 from .template import LabelTemplate
-from .tracker import PointLabels, label_points
+from .tracker import PointLabels, label_points, threads
 from .vote import vote
 
 #: The capture's typical marker spacing may differ from the template's by at most this factor.
@@ -61,7 +62,7 @@ def label_capture(template: LabelTemplate, capture: Trajectories, *, clouds: boo
         template = template.scaled(ratio)
     if clouds is None:
         clouds = looks_untracked(pos, template.spacing)
-    fragments = link_clouds(pos, template.spacing) if clouds else column_fragments(pos)
+    fragments = link_clouds(pos, template.spacing, threads=threads()) if clouds else column_fragments(pos)
     if not tracked:
         fragments = np.where(seen, 0, -1)
     found: PointLabels = label_points(template, pos, fragments, tracked=tracked)
@@ -82,9 +83,7 @@ def check_scale(template: LabelTemplate, capture: Trajectories) -> float:
     spacing = []
     for f in frames:
         pts = pos[f][~np.isnan(pos[f]).any(axis=1)]
-        d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
-        np.fill_diagonal(d, np.inf)
-        spacing.append(np.median(d.min(axis=1)))
+        spacing.append(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     ratio = float(np.median(spacing)) / template.spacing
     if not 1 / SCALE_FACTOR <= ratio <= SCALE_FACTOR:
         raise source_error(capture.metadata.get("source"),

@@ -21,6 +21,9 @@ TRIANGLES = 6
 MAX_CANDIDATES = 20000
 #: Candidates scored on all markers after a first score on the pose markers alone.
 FINALISTS = 20
+#: The search stops at the first triangle whose pose puts this fraction of the template markers
+#: (or of the points, when fewer) on a point: later triangles only repeat it.
+GOOD_POSE = 0.9
 #: Side lengths match when within this fraction (or 3 mm): the capture's face may differ a little.
 SIDE_TOLERANCE = 0.12
 
@@ -55,7 +58,8 @@ def find_pose(template: LabelTemplate, points: np.ndarray) -> tuple[np.ndarray, 
     Triangles of the template's least-moving markers are matched to point triangles with the
     same side lengths; each match gives a pose (Kabsch), scored first by how many pose markers,
     then (the best :data:`FINALISTS`) by how many template markers land within half their
-    nearest-neighbour distance of a point. ``inliers`` 0: no pose found (identity returned).
+    nearest-neighbour distance of a point; a score of :data:`GOOD_POSE` ends the search.
+    ``inliers`` 0: no pose found (identity returned).
     """
     best = (np.eye(3), np.zeros(3), 0)
     if len(points) < 3:
@@ -89,6 +93,8 @@ def find_pose(template: LabelTemplate, points: np.ndarray) -> tuple[np.ndarray, 
         best_k = int(np.argmax(score))
         if score[best_k] > best[2]:
             best = (rot[top[best_k]], trans[top[best_k]], int(score[best_k]))
+        if best[2] >= GOOD_POSE * min(len(points), template.n_markers):
+            break
     return best
 
 

@@ -21,15 +21,49 @@ DONE, START_OVER, MATCH = 0, 1, 2
 
 @numba.njit(cache=True, nogil=True)
 def _rodrigues(rx, ry, rz):  # pragma: no cover - compiled
-    """The rotation matrix of a rotation vector (rad)."""
+    """The rotation matrix of a rotation vector (rad): ``cos I + sin [k]x + (1 - cos) k k^T``."""
     out = np.eye(3)
     angle = math.sqrt(rx * rx + ry * ry + rz * rz)
     if angle < 1e-12:
         return out
-    kx, ky, kz = rx / angle, ry / angle, rz / angle
-    s, c1 = math.sin(angle), 1.0 - math.cos(angle)
-    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return out + s * cross + c1 * (cross @ cross)
+    k = np.array([rx / angle, ry / angle, rz / angle])
+    s, c = math.sin(angle), math.cos(angle)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = (c if i == j else 0.0) + (1.0 - c) * k[i] * k[j]
+    out[0, 1] -= s * k[2]
+    out[0, 2] += s * k[1]
+    out[1, 0] += s * k[2]
+    out[1, 2] -= s * k[0]
+    out[2, 0] -= s * k[1]
+    out[2, 1] += s * k[0]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_spd(a, b):  # pragma: no cover - compiled
+    """``x`` with ``a x = b``, ``a`` symmetric positive definite (Cholesky). Why not
+    ``np.linalg.solve``: its LAPACK binding was half of the kernel's ~20 CPU-s first compile."""
+    n = len(b)
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = a[i, j]
+            for k in range(j):
+                acc -= low[i, k] * low[j, k]
+            low[i, j] = math.sqrt(max(acc, 1e-300)) if i == j else acc / low[j, j]
+    x = np.empty(n)
+    for i in range(n):  # forward: L y = b
+        acc = b[i]
+        for k in range(i):
+            acc -= low[i, k] * x[k]
+        x[i] = acc / low[i, i]
+    for i in range(n - 1, -1, -1):  # back: L^T x = y
+        acc = x[i]
+        for k in range(i + 1, n):
+            acc -= low[k, i] * x[k]
+        x[i] = acc / low[i, i]
+    return x
 
 
 @numba.njit(cache=True, nogil=True)
@@ -84,10 +118,15 @@ def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, t
         for j in range(k):
             s = max(mode_std[j], 1e-6)
             lhs[6 + j, 6 + j] += 1.0 / (s * s)
-        x = np.linalg.solve(lhs, rhs)
+        x = _solve_spd(lhs, rhs)
         coeffs[:k] = x[6:]
-        trans = trans + rot @ x[3:6]
-        rot = rot @ _rodrigues(x[0], x[1], x[2])
+        step = _rodrigues(x[0], x[1], x[2])
+        new_trans, new_rot = np.empty(3), np.empty((3, 3))
+        for i in range(3):  # trans + R x[3:6]; R step (3 x 3 loops: no BLAS binding to compile)
+            new_trans[i] = trans[i] + rot[i, 0] * x[3] + rot[i, 1] * x[4] + rot[i, 2] * x[5]
+            for j in range(3):
+                new_rot[i, j] = rot[i, 0] * step[0, j] + rot[i, 1] * step[1, j] + rot[i, 2] * step[2, j]
+        trans, rot = new_trans, new_rot
     return rot, trans, coeffs
 
 
@@ -129,9 +168,10 @@ def _dist(a, b):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True)
 def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
-                 offset_rate, tracked):  # pragma: no cover - compiled
+                 offset_rate, last, seen, tracked):  # pragma: no cover - compiled
     """Store frame ``f``'s labels ``lab[:n]`` of columns ``cols[:n]`` and their confidence; when
-    ``tracked``, move each seen marker's offset toward the capture and carry the fragments' labels."""
+    ``tracked``, move each seen marker's offset toward the capture, keep its head-coordinate
+    position in ``last`` and the frame in ``seen``, and carry the fragments' labels."""
     for i in range(n):
         m = lab[i]
         if m >= 0:
@@ -140,23 +180,31 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
                 r = head[i, c] - pred[m, c]
                 z2 += r * r
                 if tracked:
+                    last[m, c] = head[i, c]
                     offset[m, c] += offset_rate * r
             label[f, cols[i]] = m
             conf[f, cols[i]] = math.exp(-0.5 * z2 / (sigma[m] * sigma[m]))
+            if tracked:
+                seen[m] = f
         if tracked:
             frag_label[fragments[f, cols[i]]] = m
 
 
 @numba.njit(cache=True, nogil=True)
-def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, mode_std, sigma,
-          gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
-          pred):  # pragma: no cover - compiled
+def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, mode_std,
+          sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
+          pred, new_pred):  # pragma: no cover - compiled
     """Label frames from ``f`` on while every frame has 3+ carried points and needs no matching.
 
     Returns ``(frame, code, n)``: :data:`DONE`; :data:`START_OVER` at ``frame`` (nothing done in
     it); :data:`MATCH` at ``frame``, where ``cols[:n]``, ``lab[:n]`` (carried labels, -1 to
-    assign), ``carried[:n]``, ``head[:n]`` and ``pred`` hold the frame for the caller's matching.
-    ``rot``, ``trans`` (the pose), ``offset``, ``frag_label`` and the outputs are updated in place.
+    assign), ``carried[:n]``, ``head[:n]``, ``pred`` and ``new_pred`` hold the frame for the
+    caller's matching. ``new_pred`` is what a new point is matched to: ``pred``, except for a marker
+    seen in the previous frame (its fragment broke), looked for where it was then (``last``, head
+    coordinates): where the expression goes beyond the template, the model refitted without the
+    marker can move its prediction away by more than the gate.
+    ``rot``, ``trans`` (the pose), ``offset``, ``last``, ``seen``, ``frag_label`` and the outputs
+    are updated in place.
     """
     n_frames, n_cols = fragments.shape
     n_markers = mean.shape[0]
@@ -195,6 +243,9 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
             rot[:, :] = r
             trans[:] = t
             _predict(mean, basis, coeffs, offset, pred)
+            for m in range(n_markers):
+                for c in range(3):
+                    new_pred[m, c] = last[m, c] if seen[m] == f - 1 else pred[m, c]
             for i in range(n):
                 pts[i] = positions[f, cols[i]]
             _to_head(pts[:n], rot, trans, head)
@@ -222,7 +273,7 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
                 continue
             near = 0
             for m in range(n_markers):
-                if not taken[m] and _dist(head[i], pred[m]) <= new_gate[m]:
+                if not taken[m] and min(_dist(head[i], pred[m]), _dist(head[i], new_pred[m])) <= new_gate[m]:
                     near += 1
                     hits[m] += 1
                     choice[i] = m
@@ -234,6 +285,6 @@ def track(f, positions, fragments, frag_label, offset, rot, trans, mean, basis, 
             if choice[i] >= 0:
                 lab[i] = choice[i]
         finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
-                     offset_rate, True)
+                     offset_rate, last, seen, True)
         f += 1
     return f, DONE, 0

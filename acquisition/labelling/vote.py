@@ -10,6 +10,7 @@ one point per frame at most (the most confident one).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 #: Runs shorter than this (frames) follow their neighbours.
@@ -55,15 +56,31 @@ def vote(label: np.ndarray, confidence: np.ndarray, fragments: np.ndarray) -> tu
 
 
 def _unique_per_frame(label: np.ndarray, confidence: np.ndarray) -> None:
-    """Where a label appears twice in a frame, keep the most confident point (in place)."""
-    f, c = np.nonzero(label >= 0)
-    if not len(f):
-        return
-    order = np.lexsort((-confidence[f, c], label[f, c], f))
-    f, c = f[order], c[order]
-    lab = label[f, c]
-    dup = np.r_[False, (f[1:] == f[:-1]) & (lab[1:] == lab[:-1])]
-    label[f[dup], c[dup]] = -1
+    """Where a label appears twice in a frame, keep the most confident point (the first column on
+    a tie; in place)."""
+    if label.size:
+        _keep_best(label, confidence, np.full(max(int(label.max()) + 1, 1), -1, dtype=np.int64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep_best(label, confidence, best):  # pragma: no cover - compiled
+    """:func:`_unique_per_frame` frame by frame; ``best (M,)`` scratch, -1."""
+    for f in range(label.shape[0]):
+        for c in range(label.shape[1]):
+            m = label[f, c]
+            if m < 0:
+                continue
+            b = best[m]
+            if b < 0:
+                best[m] = c
+            elif confidence[f, c] > confidence[f, b]:
+                label[f, b] = -1
+                best[m] = c
+            else:
+                label[f, c] = -1
+        for c in range(label.shape[1]):  # reset the scratch for the next frame
+            if label[f, c] >= 0:
+                best[label[f, c]] = -1
 
 
 def _splits(seq: np.ndarray, frag: np.ndarray) -> int:
