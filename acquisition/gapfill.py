@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from mocaptk.errors import OptionError
+from mocaptk.threads import single_threaded
 from mocaptk.trajectories import Trajectories
 
 from .runs import take_segments, true_runs
@@ -293,6 +294,7 @@ def _displacement_correlation(target: np.ndarray, cand: np.ndarray, seen: np.nda
 LOW_RANK = 12
 
 
+@single_threaded  # 100 small products: BLAS threads only spin against each other (60x the CPU)
 def fill_low_rank(positions: np.ndarray, *, rank: int = LOW_RANK, iterations: int = 100,
                   tolerance_mm: float = 1e-3) -> np.ndarray:
     """Every gap of ``positions (F, N, 3)`` mm filled from the session's main motion patterns,
