@@ -19,6 +19,7 @@ from scipy.sparse import lil_matrix
 
 from .boards import Board
 from .cameras import Camera, CameraRig
+from .wand import Wand, wand_ends
 
 #: A view whose RMS reprojection error exceeds this many times the median of the others (and
 #: ``MIN_OUTLIER_PX``) is dropped and the camera refitted: a misdetected or blurred board.
@@ -26,6 +27,8 @@ OUTLIER_FACTOR = 3.0
 MIN_OUTLIER_PX = 0.5
 #: Fewer views than this cannot constrain focal length, principal point and distortion.
 MIN_VIEWS = 3
+#: A wand frame whose length is off by this many mm weighs like one corner off by ``f_scale`` px.
+WAND_LENGTH_SD_MM = 0.05
 #: Distortion model: (k1, k2, p1, p2) with k3 = 0, as Qualisys' calibrations; enough for
 #: non-fisheye lenses and stable with few views.
 INTRINSIC_FLAGS = cv2.CALIB_FIX_K3
@@ -188,13 +191,14 @@ class BundleResult:
 def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Sequence[Intrinsics],
                   start: Sequence[tuple[np.ndarray, np.ndarray]], *,
                   refine_intrinsics: bool = True, loss: str = "soft_l1",
-                  f_scale: float | None = None) -> BundleResult:
+                  f_scale: float | None = None, wand: Wand | None = None) -> BundleResult:
     """Refine camera poses (camera 0 fixed: the world frame), board poses per frame and
     (optionally) intrinsics ``fx, fy, cx, cy, k1, k2, p1, p2`` by minimising all reprojection
     errors together; ``start`` gives the initial ``(R, t)`` of every camera. The ``loss``
     (scipy's) is robust by default with ``f_scale`` px = the median per-view RMS of the
     intrinsics fits: corners of steeply tilted views, several times less precise than the rest,
-    pulled the rig by up to 0.2 deg on the rendered Cara views."""
+    pulled the rig by up to 0.2 deg on the rendered Cara views. A ``wand`` adds its ends (3-D
+    points per frame, seen by several cameras at once) and its length to the fit."""
     if f_scale is None:
         f_scale = float(np.median([r for i in intrinsics for r in i.view_rms.values()] or [1.0]))
     n_cams, points = len(views), board.object_points()
@@ -224,25 +228,36 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
     intr0 = np.array([[i.matrix[0, 0], i.matrix[1, 1], i.matrix[0, 2], i.matrix[1, 2],
                        *i.distortion[[0, 1, 2, 3, 4]]] for i in intrinsics])
     n_intr = 8 if refine_intrinsics else 0
+    ends0, wand_cam, wand_pt, wand_px = _wand_observations(wand, intrinsics, start)
+    n_wand = len(wand_cam)
     x0 = np.concatenate([intr0[:, :n_intr].ravel(),
                          np.concatenate([np.concatenate([cv2.Rodrigues(r)[0].ravel(), t])
                                          for r, t in start[1:]]) if n_cams > 1 else [],
-                         np.concatenate([frames[f] for f in frame_ids])])
+                         np.concatenate([frames[f] for f in frame_ids]), ends0.ravel()])
     cam_off, frame_off = n_cams * n_intr, n_cams * n_intr + 6 * (n_cams - 1)
+    wand_off = frame_off + 6 * n_frames
+    length_weight = f_scale / WAND_LENGTH_SD_MM
 
     def unpack(x: np.ndarray):
         intr = intr0.copy()
         intr[:, :n_intr] = x[:cam_off].reshape(n_cams, n_intr)
         cams = np.vstack([np.zeros((1, 6)), x[cam_off:frame_off].reshape(-1, 6)])
-        return intr, cams, x[frame_off:].reshape(n_frames, 6)
+        return intr, cams, x[frame_off:wand_off].reshape(n_frames, 6), x[wand_off:].reshape(-1, 3)
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        intr, cams, boards = unpack(x)
+        intr, cams, boards, ends = unpack(x)
         r_cams, r_boards = rotation_matrices(cams[:, :3]), rotation_matrices(boards[:, :3])
-        return (_project(intr[cam_idx], (r_cams[cam_idx], cams[cam_idx, 3:]),
-                         (r_boards[frm_idx], boards[frm_idx, 3:]), objs) - pixels).ravel()
+        board = _project(intr[cam_idx], (r_cams[cam_idx], cams[cam_idx, 3:]),
+                         (r_boards[frm_idx], boards[frm_idx, 3:]), objs) - pixels
+        if not n_wand:
+            return board.ravel()
+        still = (np.broadcast_to(np.eye(3), (n_wand, 3, 3)), np.zeros((n_wand, 3)))
+        seen = _project(intr[wand_cam], (r_cams[wand_cam], cams[wand_cam, 3:]), still,
+                        ends[wand_pt]) - wand_px
+        lengths = np.linalg.norm(ends[0::2] - ends[1::2], axis=1) - wand.length
+        return np.concatenate([board.ravel(), seen.ravel(), length_weight * lengths])
 
-    sparsity = lil_matrix((2 * n_obs, len(x0)), dtype=np.int8)
+    sparsity = lil_matrix((2 * n_obs + 2 * n_wand + len(ends0) // 2, len(x0)), dtype=np.int8)
     rows = np.arange(n_obs)
     for axis in (0, 1):
         for k in range(n_intr):
@@ -251,21 +266,59 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
         for k in range(6):
             sparsity[2 * rows[moving] + axis, cam_off + (cam_idx[moving] - 1) * 6 + k] = 1
             sparsity[2 * rows + axis, frame_off + frm_idx * 6 + k] = 1
+    _wand_sparsity(sparsity, 2 * n_obs, wand_cam, wand_pt, n_intr=n_intr, cam_off=cam_off,
+                   wand_off=wand_off)
     initial = residuals(x0)
     fit = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac", method="trf", tr_solver="lsmr",
                         loss=loss, f_scale=f_scale,
                         tr_options={"atol": 1e-12, "btol": 1e-12},
                         xtol=1e-10, ftol=1e-9, gtol=1e-10, max_nfev=100)
-    intr, cams, _ = unpack(fit.x)
-    error = fit.fun.reshape(-1, 2)
+    intr, cams, _, _ = unpack(fit.x)
+    error = fit.fun[:2 * n_obs].reshape(-1, 2)
     camera_rms = [float(np.sqrt(np.mean(np.sum(error[cam_idx == c] ** 2, axis=1))))
                   for c in range(n_cams)]
     return BundleResult(
         rig_poses=[(cv2.Rodrigues(p[:3])[0], p[3:].copy()) for p in cams],
         intrinsics=[(np.array([[i[0], 0, i[2]], [0, i[1], i[3]], [0, 0, 1.0]]), i[4:].copy())
                     for i in intr],
-        camera_rms=camera_rms, initial_rms=float(np.sqrt(np.mean(initial ** 2) * 2)),
-        final_rms=float(np.sqrt(np.mean(fit.fun ** 2) * 2)))
+        camera_rms=camera_rms, initial_rms=float(np.sqrt(np.mean(initial[:2 * n_obs] ** 2) * 2)),
+        final_rms=float(np.sqrt(np.mean(fit.fun[:2 * n_obs] ** 2) * 2)))
+
+
+def _wand_observations(wand: Wand | None, intrinsics: Sequence[Intrinsics],
+                       start: Sequence[tuple[np.ndarray, np.ndarray]]):
+    """The wand's starting ends ``(2N, 3)`` mm (triangulated through the starting rig; frames
+    that do not triangulate dropped) and its observations: camera and end index ``(W,)`` and
+    pixels ``(W, 2)``. Empty without a wand."""
+    if wand is None:
+        return np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2))
+    rig = rig_from_poses([str(c) for c in range(len(start))], [(i.matrix, i.distortion) for i in intrinsics],
+                         start, [i.image_size for i in intrinsics])
+    ends = wand_ends(wand, rig)
+    good = np.isfinite(ends).all(axis=(1, 2))
+    ends, pixels = ends[good].reshape(-1, 3), wand.pixels[:, good].reshape(len(rig), -1, 2)
+    cam, point = np.nonzero(np.isfinite(pixels[..., 0]))
+    return ends, cam, point, pixels[cam, point]
+
+
+def _wand_sparsity(sparsity, first_row: int, cam: np.ndarray, point: np.ndarray, *, n_intr: int,
+                   cam_off: int, wand_off: int) -> None:
+    """Mark the Jacobian entries of the wand's rows (after ``first_row``): each pixel row depends
+    on its camera's intrinsics and pose and its end; each length row on the frame's two ends."""
+    rows = first_row + 2 * np.arange(len(cam))
+    for axis in (0, 1):
+        for k in range(n_intr):
+            sparsity[rows + axis, cam * n_intr + k] = 1
+        moving = cam > 0
+        for k in range(6):
+            sparsity[rows[moving] + axis, cam_off + (cam[moving] - 1) * 6 + k] = 1
+        for k in range(3):
+            sparsity[rows + axis, wand_off + 3 * point + k] = 1
+    if len(cam):
+        n_ends = (sparsity.shape[1] - wand_off) // 3
+        length_rows = first_row + 2 * len(cam) + np.arange(n_ends // 2)
+        for k in range(6):
+            sparsity[length_rows, wand_off + 6 * np.arange(n_ends // 2) + k] = 1
 
 
 def rig_from_poses(names: Sequence[str], intrinsics: Sequence[tuple[np.ndarray, np.ndarray]],

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from mocaptk.errors import OptionError
+from mocaptk.threads import single_threaded
 from mocaptk.trajectories import Trajectories
 
 from .runs import take_segments, true_runs
@@ -287,3 +288,38 @@ def _displacement_correlation(target: np.ndarray, cand: np.ndarray, seen: np.nda
     den = np.sqrt((dt ** 2).sum(axis=(0, 2)) * (dc ** 2).sum(axis=(0, 2)))
     score = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     return np.where(n[:, 0] >= 3, score, -np.inf)
+
+
+#: Motion patterns kept by :func:`fill_low_rank` (a face's expressions span about a dozen).
+LOW_RANK = 12
+
+
+@single_threaded  # 100 small products: BLAS threads only spin against each other (60x the CPU)
+def fill_low_rank(positions: np.ndarray, *, rank: int = LOW_RANK, iterations: int = 100,
+                  tolerance_mm: float = 1e-3) -> np.ndarray:
+    """Every gap of ``positions (F, N, 3)`` mm filled from the session's main motion patterns,
+    regardless of time (frames may be far apart): the frames x coordinates matrix is fitted by a
+    rank-``rank`` truncated SVD, the missing entries (starting at each coordinate's mean) replaced
+    by the fit until they move less than ``tolerance_mm``. Markers never seen stay NaN."""
+    frames, markers, _ = positions.shape
+    matrix = positions.reshape(frames, 3 * markers).astype(np.float64)
+    missing = np.isnan(matrix)
+    seen = ~missing.all(axis=0)
+    if not missing[:, seen].any():
+        return positions.copy()
+    work = matrix[:, seen]
+    gaps = missing[:, seen]
+    work[gaps] = np.take(np.nanmean(work, axis=0), np.nonzero(gaps)[1])
+    keep = min(rank, min(work.shape) - 1)
+    for _ in range(iterations):
+        mean = work.mean(axis=0)
+        centred = work - mean
+        # the leading right singular vectors from the (coordinates x coordinates) scatter matrix
+        basis = np.linalg.eigh(centred.T @ centred)[1][:, -keep:]
+        fitted = (centred @ basis) @ basis.T + mean
+        change = np.max(np.abs(fitted[gaps] - work[gaps]))
+        work[gaps] = fitted[gaps]
+        if change < tolerance_mm:
+            break
+    matrix[:, seen] = work
+    return matrix.reshape(frames, markers, 3)

@@ -23,17 +23,21 @@ BACKGROUND = 70  # grey level around the board
 WHITE, BLACK = 215, 30
 
 
+def aim_point(rig: CameraRig) -> np.ndarray:
+    """Where the rig looks: the point closest to all optical axes (least squares), mm."""
+    centers = np.stack([cam.center for cam in rig])
+    axes = np.stack([cam.rotation[2] for cam in rig])
+    projector = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    return np.linalg.solve(projector.sum(0), np.einsum("cij,cj->i", projector, centers))
+
+
 def board_poses(rig: CameraRig, board: Board, n_views: int, *, seed: int = 0,
                 spread_mm: float | None = None, max_tilt_deg: float = 40.0) -> np.ndarray:
     """``(n_views, 6)`` board -> world poses (Rodrigues vector, translation mm): the board's
     centre near the rig's common aim point (the mean camera target), facing a randomly chosen
     camera with a random tilt of up to ``max_tilt_deg`` and spin."""
     rng = np.random.default_rng(seed)
-    centers = np.stack([cam.center for cam in rig])
-    axes = np.stack([cam.rotation[2] for cam in rig])  # optical axes
-    # the point closest to all optical axes (least squares): where the rig looks
-    projector = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
-    aim = np.linalg.solve(projector.sum(0), np.einsum("cij,cj->i", projector, centers))
+    aim = aim_point(rig)
     width, height = board.size_mm()
     spread = spread_mm if spread_mm is not None else 0.3 * max(width, height)
     poses = []

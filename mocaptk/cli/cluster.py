@@ -189,6 +189,9 @@ def cluster(
     out: Path = typer.Option(None, "--out", help="Output folder (default: <session>_layout/ next to it)."),
     mirror: bool = typer.Option(None, "--mirror/--no-mirror", help="Mirror the half-face layout across "
                                 "the sagittal plane (default: when labels show one half + midline)."),
+    fill_gaps: bool = typer.Option(False, "--fill-gaps", help="Fill every gap from the session's main "
+                                   "motion patterns (low-rank) before clustering: for captures with many "
+                                   "gaps, e.g. reconstructed from images, whose gaps follow the expression."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data, e.g. head-mounted cameras)."),
     rigid: Rigid = None,
@@ -247,6 +250,8 @@ def cluster(
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
     if len(sessions) > 1:
+        if fill_gaps:
+            raise OptionError("--fill-gaps takes one session")
         if rig is not None:
             raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
         from mocaptk.clustering.multi_actor import load_actors
@@ -259,6 +264,9 @@ def cluster(
         if unknown:  # named here: from a batch sidecar the option is not on the user's command line
             raise OptionError(f"--rigid: {len(unknown)} labels are not markers of {session.name}: "
                               + ", ".join(unknown[:5]))
+        if fill_gaps:
+            from mocaptk.acquisition.gapfill import fill_low_rank
+            traj = traj.replace(positions=fill_low_rank(traj.positions), residuals=None)
     # how the file was read, for evaluate, solve and rig to read it alike
     source = {**source, "reading": session_reading(traj, rate=rate, units=units)}
     neutral = None

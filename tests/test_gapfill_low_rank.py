@@ -1,0 +1,53 @@
+"""Low-rank gap filling (``cluster --fill-gaps``): gaps that follow the expression, as the
+lips' and chin's do in captures reconstructed from images, filled from the session's own motion."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mocaptk.acquisition.gapfill import fill_low_rank
+from mocaptk.acquisition.synth_session import load_ground_truth
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
+
+
+def _truth(step: int) -> np.ndarray:
+    """The sample's gap-free true positions (its capture has gaps of its own), every step-th frame."""
+    return load_ground_truth(SAMPLE.with_name("dense_halfface_truth.npz")).positions[::step]
+
+
+def test_expression_gaps_filled_from_the_session_motion():
+    truth = _truth(40)
+    moving = np.linalg.norm(truth - np.median(truth, axis=0), axis=2)
+    # the 20 markers that move most are lost in 30 % of their wider-than-median frames
+    busy = np.argsort(moving.max(axis=0))[-20:]
+    gaps = np.zeros(moving.shape, bool)
+    rng = np.random.default_rng(0)
+    gaps[:, busy] = (moving[:, busy] > np.median(moving[:, busy], axis=0)) & (rng.random((len(truth), 20)) < 0.3)
+    gappy = truth.copy()
+    gappy[gaps] = np.nan
+    filled = fill_low_rank(gappy)
+    assert np.isfinite(filled).all()
+    assert np.array_equal(filled[~gaps], truth[~gaps])  # seen points untouched
+    error = np.sqrt(np.mean(np.linalg.norm(filled - truth, axis=2)[gaps] ** 2))
+    mean_fill = np.sqrt(np.mean(np.linalg.norm(np.nanmean(gappy, axis=0)[None] - truth, axis=2)[gaps] ** 2))
+    # measured 3.9 mm against 6.4 mm for each marker's mean (this sample's world coordinates carry
+    # head motion; when a marker's widest frames are all lost the fill is no better than the mean)
+    assert error < 0.7 * mean_fill, (error, mean_fill)
+
+
+def test_never_seen_markers_stay_gaps_and_complete_sessions_unchanged():
+    truth = _truth(50)
+    assert np.array_equal(fill_low_rank(truth), truth)
+    gappy = truth.copy()
+    gappy[:, 3] = np.nan
+    gappy[::4, 7] = np.nan
+    filled = fill_low_rank(gappy)
+    assert np.isnan(filled[:, 3]).all() and np.isfinite(filled[:, 7]).all()
+
+
+def test_fill_gaps_takes_one_session(run_cli, tmp_path):
+    result = run_cli("cluster", SAMPLE, SAMPLE, "--fill-gaps", "--out", tmp_path / "out")
+    assert result.exit_code == 2 and "--fill-gaps takes one session" in result.stderr, result.stderr
