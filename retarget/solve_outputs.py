@@ -41,6 +41,9 @@ SOLVE_FORMATS = ("npz", "usd", "glb")
 #: How much of the layout markers' excess inconsistency (over the training session's) shows in
 #: the dense markers' error (see :func:`estimated_error`).
 CONSISTENCY_WEIGHT = 1.0
+#: Bytes of float64 vertices mapped at once: a 9,000-vertex face over a whole chunk of frames
+#: would hold ~3 GB of temporaries (72,000 frames then peaked at 3.2 GB anonymous memory).
+MESH_BLOCK_BYTES = 1 << 26
 
 
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
@@ -130,8 +133,11 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         if part.flagged is not None:
             flagged[rows], consistency[rows] = part.flagged, part.consistency_mm
         if frames_file is not None:
-            frames_file[rows] = mesh.apply(part.positions, None if poses is None else
-                                           (poses.rotations[rows], poses.translations[rows]))
+            step = max(1, MESH_BLOCK_BYTES // (24 * mesh.vertices.shape[0]))
+            for first in range(rows.start, rows.stop, step):
+                block = slice(first, min(first + step, rows.stop))
+                frames_file[block] = mesh.apply(dense[block], None if poses is None else
+                                                (poses.rotations[block], poses.translations[block]))
     estimated = estimated_error(error, consistency, solver.training_consistency_mm)
     solved = np.isfinite(dense).all(axis=2).any(axis=1)
     written = ["dense.c3d", "solve_frames.csv", "solve.json"]
