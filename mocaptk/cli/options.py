@@ -74,6 +74,8 @@ def session_path(layout_path: Path, source: dict, given: Path | None) -> Path:
         found = [path for path in found if digest(path) == source["sha256"]] or found
     if found:
         return found[0]
-    where = ", ".join(str(p) for p in candidates[:2]) if source.get("relative") else "beside it"
-    raise InputFileError(layout_path, f"its session {recorded} is not where it records it ({where}), "
-                         "beside it, in the folder above nor in the working folder; give --session")
+    # the recorded places, when the layout has them, then the fallbacks every layout gets
+    recorded_at = ", ".join(str(p) for p in candidates[:2])
+    where = f"where it records it ({recorded_at}), " if source.get("relative") else ""
+    raise InputFileError(layout_path, f"its session {recorded} is not {where}beside it, in the folder above "
+                         "nor in the working folder; give --session")
