@@ -340,10 +340,7 @@ def _following_skin(solver: FaceSolver, poses: HeadPoses, reference: np.ndarray,
     if not movable or solver.gaussian is None:
         return poses
     columns = [solver.labels.index(poses.labels[k]) for k in movable]
-    head = to_head_frame(x, poses)
-    flagged, _ = screen_frames(solver.gaussian, capture_screen(
-        solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
-    x = np.where(flagged[..., None], np.nan, x)
+    x = _without_ghosts(solver, poses, x)
     for _ in range(SKIN_ROUNDS):
         moved = np.full((len(x), len(columns), 3), np.nan)
         for start in range(0, len(x), CHUNK_FRAMES):
@@ -358,14 +355,20 @@ def _following_skin(solver: FaceSolver, poses: HeadPoses, reference: np.ndarray,
     return poses
 
 
+def _without_ghosts(solver: FaceSolver, poses: HeadPoses, x: np.ndarray) -> np.ndarray:
+    """Layout positions ``x`` (F, L, 3) mm with the points the layout Gaussian flags as ghosts in
+    the head frame of ``poses`` set to NaN (before a pose fit leans on them)."""
+    head = to_head_frame(x, poses)
+    flagged, _ = screen_frames(solver.gaussian, capture_screen(
+        solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
+    return np.where(flagged[..., None], np.nan, x)
+
+
 def _refined(solver: FaceSolver, poses: HeadPoses, x: np.ndarray) -> HeadPoses:
     """Few-marker poses refined on every layout marker (ghosts screened out first): a brow raise
     tilts a head posed from a few forehead markers. ``motion_rms_mm`` becomes the RMS distance the
     poses move the layout's neutral (a still capture's expressions no longer count as motion)."""
-    head = to_head_frame(x, poses)
-    flagged, _ = screen_frames(solver.gaussian, capture_screen(
-        solver.gaussian, head, training_mm=solver.training_consistency_mm), head)
-    poses = refine_poses(poses, solver.gaussian, np.where(flagged[..., None], np.nan, x))
+    poses = refine_poses(poses, solver.gaussian, _without_ghosts(solver, poses, x))
     neutral = solver.model.neutral[solver.model.layout]
     moved = np.einsum("fij,lj->fli", poses.rotations, neutral) + poses.translations[:, None] - neutral
     sq = np.sum(moved ** 2, axis=2)
