@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -273,12 +274,14 @@ print(capture.n_frames, base, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 def memory_face(frames_per_take: int = 60) -> dict:
     """Peak anonymous memory (RssAnon: the mesh_frames.npy memmap's file pages left out) of
-    ``mocaptk solve --formats npz`` on the sample performance tiled ``frames_per_take`` times
-    (72,000 frames) with head motion added (±5°, ±10 mm), through the sample's layout and the
-    default face (~9,400 vertices); sampled every 20 ms in the solving process."""
+    ``mocaptk solve`` with ``--formats npz`` and with the default formats (mesh.usd in value clips,
+    mesh.glb) on the sample performance tiled ``frames_per_take`` times (72,000 frames) with head
+    motion added (±5°, ±10 mm), through the sample's layout and the default face (~9,400
+    vertices); sampled every 20 ms in the solving process."""
     from scipy.spatial.transform import Rotation
 
     from mocaptk.acquisition.formats import read_trajectories, write_trajectories
+    from mocaptk.retarget.solve_outputs import SOLVE_FORMATS
 
     watcher = """
 import os, sys, threading, time
@@ -309,14 +312,22 @@ print(peak[0])
         rotation = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
         positions = np.einsum("fij,fmj->fmi", rotation, positions - centre) + centre + shift[:, None]
         write_trajectories(take.replace(positions=positions, residuals=None, metadata={}), tmp / "moving.c3d")
-        t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
-        done = subprocess.run([sys.executable, "-c", watcher, "solve", str(tmp / "layout" / "layout.json"),
-                               str(tmp / "moving.c3d"), "--out", str(tmp / "solved"), "--formats", "npz", "-q"],
-                              capture_output=True, text=True, check=True)
-        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        out = {"frames": len(positions), "peak_anonymous_mb": int(done.stdout.split()[-1]) / 1024,
-               "mesh_frames_npy_mb": (tmp / "solved" / "mesh_frames.npy").stat().st_size / 2**20,
-               "seconds": time.perf_counter() - t0, "cpu_seconds": c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime}
+        out = {"frames": len(positions)}
+        for formats in ("npz", ",".join(SOLVE_FORMATS)):
+            t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
+            done = subprocess.run([sys.executable, "-c", watcher, "solve", str(tmp / "layout" / "layout.json"),
+                                   str(tmp / "moving.c3d"), "--out", str(tmp / formats), "--formats", formats,
+                                   "-q"], capture_output=True, text=True, check=True)
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            files = [p for p in (tmp / formats).rglob("*") if p.is_file()]
+            out[formats] = {"peak_anonymous_mb": int(done.stdout.split()[-1]) / 1024,
+                            "outputs_mb": {p.name: p.stat().st_size / 2**20 for p in files
+                                           if p.parent == tmp / formats},
+                            "usd_clips": sum(p.suffix == ".usdc" for p in files),
+                            "seconds": time.perf_counter() - t0,
+                            "cpu_seconds": c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime}
+            print(formats, out[formats], flush=True)
+            shutil.rmtree(tmp / formats)
     print(out)
     return out
 

@@ -7,30 +7,38 @@ triangles counter-clockwise (``orientation`` rightHanded), a ``primvars:displayC
 normals of the rest pose, ``primvars:st`` texture coordinates when the mesh has them, and one
 ``UsdPreviewSurface`` material (a skin tone) bound to the mesh.
 Blender, Houdini, Maya, Unreal and Omniverse read this. The binary crate (``.usdc`` content) is
-written to a temporary sibling and renamed into place. usd-core keeps every time sample in memory
-until the file is saved (about ``frames × vertices × 12`` bytes).
+written to a temporary sibling and renamed into place.
+
+usd-core keeps a layer's time samples in memory until the layer is saved (``frames × vertices × 12``
+bytes: 8 GB for 72,000 frames of a 9,400-vertex face). With ``clip_frames`` the samples go instead
+into USD *value clips*, ``<stem>_clips/<stem>.NNNN.usdc`` of ``clip_frames`` frames each, which the
+file names in its ``clips`` metadata (with a manifest); one clip is in memory at a time. Readers
+that resolve USD composition (usdview, Blender, Houdini, Maya, Omniverse) see one animated mesh.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from mocaptk.atomic import atomic_path
+from mocaptk.atomic import atomic_path, staged_folder
 from mocaptk.trajectories import Take
 
 __all__ = ["new_stage", "write_mesh_usd"]
 
 MESH_PATH = "/Face/face_mesh"
+CLIP_SET = "default"
 
 
 def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.ndarray,
                    frames: Iterable[np.ndarray], n_frames: int, rate: float,
                    uv: np.ndarray | None = None, first_frame: int = 0,
-                   takes: Sequence[Take] = (), force: bool = True) -> Path:
+                   takes: Sequence[Take] = (), clip_frames: int | None = None,
+                   force: bool = True) -> Path:
     """Write the mesh animation to ``path`` (``.usd``/``.usdc``; ``.usda`` for text).
 
     Parameters
@@ -43,61 +51,135 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
     first_frame : the capture's number of the first frame (its time code)
     takes : the capture's takes (frames from 0): ``customLayerData["takes"][name]`` holds each
         one's ``startTimeCode`` and ``endTimeCode``
+    clip_frames : when set and below ``n_frames``, the points' time samples go into value clips of
+        this many frames in the folder ``<stem>_clips`` beside ``path`` (replaced whole)
     """
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt  # ~0.3 s to import: only when writing USD
+    from pxr import Sdf, Vt  # ~0.3 s to import: only when writing USD
+
+    rest = np.asarray(rest, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    path = Path(path)
+    frames = (frame for chunk in frames for frame in np.asarray(chunk, dtype=np.float32))
+    clipped = clip_frames is not None and n_frames > clip_frames
+    clip_dir = path.with_name(f"{path.stem}_clips")
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(atomic_path(path, force=force))
+        # the clips land before the file that names them (exits run in reverse)
+        clip_tmp = stack.enter_context(staged_folder(clip_dir, force=force)) if clipped else None
+        layer = _mesh_layer(tmp, path, rest=rest, faces=faces, uv=uv, rate=rate, n_frames=n_frames,
+                            first_frame=first_frame, takes=takes, rest_points=not clipped)
+        if clipped:
+            starts = list(range(first_frame, first_frame + n_frames, clip_frames))
+            low, high = _write_clips(clip_tmp, path.stem, frames, rest=rest, starts=starts,
+                                     clip_frames=clip_frames)
+            _anchor_clips(layer, [f"./{clip_dir.name}/{path.stem}.{k:04d}.usdc" for k in range(len(starts))],
+                          starts=starts, last=first_frame + n_frames - 1,
+                          manifest=f"./{clip_dir.name}/manifest.usda")
+        else:
+            low, high = _write_samples(layer, frames, rest=rest, first_frame=first_frame,
+                                       count=n_frames)
+        extent = Sdf.AttributeSpec(layer.GetPrimAtPath(MESH_PATH), "extent",
+                                   Sdf.ValueTypeNames.Float3Array)
+        extent.default = Vt.Vec3fArray.FromNumpy(np.stack([low, high]).astype(np.float32))
+        layer.Save()
+    return Path(path)
+
+
+def _mesh_layer(tmp: Path, path: Path, *, rest: np.ndarray, faces: np.ndarray, uv: np.ndarray | None,
+                rate: float, n_frames: int, first_frame: int, takes: Sequence[Take],
+                rest_points: bool):
+    """The layer at ``tmp`` holding the mesh (topology, normals, UVs, material; the rest pose as
+    the points' default when ``rest_points``), its stage already released so that later edits
+    do not recompose it."""
+    from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
 
     from mocaptk.surface_mesh import vertex_normals
 
     from .export_fbx import SKIN_COLOUR
 
-    rest = np.asarray(rest, dtype=np.float32)
-    faces = np.asarray(faces, dtype=np.int32)
-    with atomic_path(path, force=force) as tmp:
-        layer, stage = new_stage(tmp, Path(path), rate=rate, n_frames=n_frames,
-                                 first_frame=first_frame)
-        if takes:
-            layer.customLayerData = {"takes": {
-                t.name: {"startTimeCode": float(first_frame + t.start),
-                         "endTimeCode": float(first_frame + t.end - 1)} for t in takes}}
-        root = UsdGeom.Xform.Define(stage, "/Face")
-        stage.SetDefaultPrim(root.GetPrim())
-        mesh = UsdGeom.Mesh.Define(stage, MESH_PATH)
-        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
-        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
-        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        mesh.CreateDisplayColorAttr([Gf.Vec3f(0.8, 0.66, 0.58)])
-        normals = vertex_normals(rest, faces)
-        normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
-        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(normals.astype(np.float32)))
-        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-        if uv is not None:
-            st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
-                                                         UsdGeom.Tokens.vertex)
-            st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, dtype=np.float32)))
-        material = UsdShade.Material.Define(stage, "/Face/face_skin")
-        shader = UsdShade.Shader.Define(stage, "/Face/face_skin/surface")
-        shader.CreateIdAttr("UsdPreviewSurface")
-        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*SKIN_COLOUR))
-        shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
-        material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
-        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
-        points = mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(rest))
-        low, high = rest.min(axis=0), rest.max(axis=0)
-        written = 0
-        for chunk in frames:
-            chunk = np.asarray(chunk, dtype=np.float32)
-            for i, frame in enumerate(chunk):
-                frame = np.where(np.isfinite(frame).all(axis=1, keepdims=True), frame, rest)
-                points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(frame)),
-                           first_frame + written + i)
-            finite = chunk[np.isfinite(chunk).all(axis=2)]
-            if finite.size:
-                low, high = np.minimum(low, finite.min(axis=0)), np.maximum(high, finite.max(axis=0))
-            written += len(chunk)
-        mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([low, high]).astype(np.float32)))
+    layer, stage = new_stage(tmp, path, rate=rate, n_frames=n_frames, first_frame=first_frame)
+    if takes:
+        layer.customLayerData = {"takes": {
+            t.name: {"startTimeCode": float(first_frame + t.start),
+                     "endTimeCode": float(first_frame + t.end - 1)} for t in takes}}
+    root = UsdGeom.Xform.Define(stage, "/Face")
+    stage.SetDefaultPrim(root.GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, MESH_PATH)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateDisplayColorAttr([Gf.Vec3f(0.8, 0.66, 0.58)])
+    normals = vertex_normals(rest, faces)
+    normals[~np.any(normals, axis=1)] = (0.0, 0.0, 1.0)
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(normals.astype(np.float32)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    if uv is not None:
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.vertex)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, dtype=np.float32)))
+    material = UsdShade.Material.Define(stage, "/Face/face_skin")
+    shader = UsdShade.Shader.Define(stage, "/Face/face_skin/surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*SKIN_COLOUR))
+    shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+    material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    if rest_points:  # with clips a default would override every clip: rest is mesh_neutral.obj's
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(rest))
+    return layer
+
+
+def _anchor_clips(layer, asset_paths: Sequence[str], *, starts: Sequence[int], last: int,
+                  manifest: str) -> None:
+    """Name the clips in the mesh's ``clips`` metadata (set ``CLIP_SET``): clip k from time code
+    ``starts[k]``, clip time = stage time, up to ``last``."""
+    from pxr import Gf, Sdf, Vt
+
+    spec = layer.GetPrimAtPath(MESH_PATH)
+    spec.SetInfo("clips", {CLIP_SET: {
+        "assetPaths": Sdf.AssetPathArray(list(asset_paths)),
+        "primPath": MESH_PATH,
+        "active": Vt.Vec2dArray([Gf.Vec2d(t, k) for k, t in enumerate(starts)]),
+        "times": Vt.Vec2dArray([Gf.Vec2d(starts[0], starts[0]), Gf.Vec2d(last, last)]),
+        "manifestAssetPath": Sdf.AssetPath(manifest)}})
+
+
+def _write_clips(folder: Path, stem: str, frames: Iterator[np.ndarray], *, rest: np.ndarray,
+                 starts: Sequence[int], clip_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Write the points' time samples as clip layers ``folder/stem.NNNN.usdc`` (one saved and
+    released before the next starts) and their manifest; returns the extent ``(low, high)``."""
+    from pxr import Sdf, Usd
+
+    low, high = rest.min(axis=0), rest.max(axis=0)
+    for k, start in enumerate(starts):
+        layer = Sdf.Layer.CreateNew(str(folder / f"{stem}.{k:04d}.usdc"))
+        bounds = _write_samples(layer, frames, rest=rest, first_frame=start, count=clip_frames)
+        low, high = np.minimum(low, bounds[0]), np.maximum(high, bounds[1])
+        if k == 0:  # every clip holds the same attribute: its manifest is the first clip's
+            manifest = Usd.ClipsAPI.GenerateClipManifestFromLayers([layer], MESH_PATH)
+            manifest.Export(str(folder / "manifest.usda"))
         layer.Save()
-    return Path(path)
+    return low, high
+
+
+def _write_samples(layer, frames: Iterator[np.ndarray], *, rest: np.ndarray, first_frame: int,
+                   count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Set the next ``count`` frames of ``frames`` ((V, 3) float32 mm each; NaN rows: rest) as
+    time samples of the mesh's points in ``layer``, from time code ``first_frame``; returns the
+    extent ``(low, high)`` of ``rest`` and those frames."""
+    from pxr import Sdf, Vt
+
+    prim = Sdf.CreatePrimInLayer(layer, MESH_PATH)
+    attribute = prim.attributes.get("points") or Sdf.AttributeSpec(
+        prim, "points", Sdf.ValueTypeNames.Point3fArray)
+    low, high = rest.min(axis=0), rest.max(axis=0)
+    for i, frame in zip(range(count), frames):  # range first: zip takes no frame past count
+        frame = np.where(np.isfinite(frame).all(axis=1, keepdims=True), frame, rest)
+        low, high = np.minimum(low, frame.min(axis=0)), np.maximum(high, frame.max(axis=0))
+        layer.SetTimeSample(attribute.path, first_frame + i,
+                            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(frame)))
+    return low, high
 
 
 def new_stage(tmp: Path, path: Path, *, rate: float, n_frames: int, first_frame: int = 0):

@@ -4,7 +4,8 @@
 = the frame's expected error, mm), ``solve_frames.csv`` (per frame: solved, expected error, the
 layout markers lost), ``solve.json`` (summary), ``model.npz`` (when trained here), and the mesh:
 ``mesh_neutral.obj``, ``mesh_frames.npy`` ((F, V, 3) float32 mm, NaN = unsolved; streamed to disk
-chunk by chunk), ``mesh.usd`` (time codes = the capture's frame numbers), ``mesh.glb`` (a morph basis keyed per
+chunk by chunk), ``mesh.usd`` (time codes = the capture's frame numbers; a long take's samples in value clips,
+``mesh_clips/``), ``mesh.glb`` (a morph basis keyed per
 frame and the head pose on one joint; any length; one clip per take from time 0).
 Everything is written into a staging folder and moved into place at the end.
 """
@@ -44,6 +45,10 @@ CONSISTENCY_WEIGHT = 1.0
 #: Bytes of float64 vertices mapped at once: a 9,000-vertex face over a whole chunk of frames
 #: would hold ~3 GB of temporaries (72,000 frames then peaked at 3.2 GB anonymous memory).
 MESH_BLOCK_BYTES = 1 << 26
+#: Bytes of mesh.usd time samples held in memory at once: above this the samples go into value clips
+#: (``mesh_clips/``), since usd-core keeps a layer's samples until it saves (72,000 frames of the
+#: default face held 10.1 GB).
+MESH_USD_CLIP_BYTES = 1 << 28
 
 
 def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_source: Mapping[str, Any],
@@ -162,11 +167,12 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         say("writing mesh.usd")
         from .export_usd import write_mesh_usd
 
+        clip_frames = max(1, MESH_USD_CLIP_BYTES // (12 * mesh.vertices.shape[0]))
         write_mesh_usd(staging / "mesh.usd", rest=mesh.vertices, faces=mesh.faces, n_frames=n_frames,
                        frames=(frames_file[s:s + chunk] for s in range(0, n_frames, chunk)),
                        rate=capture.rate, uv=mesh.uv, first_frame=capture.first_frame,
-                       takes=capture.takes)
-        written.append("mesh.usd")
+                       takes=capture.takes, clip_frames=clip_frames)
+        written += ["mesh.usd"] + (["mesh_clips/"] if n_frames > clip_frames else [])
     if "glb" in formats:
         say("writing mesh.glb")
         from .export_morph_glb import write_morph_glb

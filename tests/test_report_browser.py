@@ -133,7 +133,8 @@ def test_sample_report_in_headless_chromium(sample_report, browser, tmp_path):
 
 def test_numbers_of_markers_the_face_hides_are_not_drawn(sample_report, browser):
     """Issue 33: in a profile view the numbers of the far side's markers floated over the mesh
-    (SVG annotations are drawn over the WebGL scene); they are now left out."""
+    (SVG annotations are drawn over the WebGL scene); they are now left out. Hidden is judged
+    along rays to Plotly's perspective camera, not along the eye direction."""
     browser.open(sample_report / "report.html", ready=READY, timeout=300)
     front = len(browser.evaluate(NUMBER_BOXES))
     browser.evaluate("mocaptkReport.view({x: 2.0, y: 0.1, z: 0.1})")  # the subject's left profile
@@ -144,9 +145,15 @@ def test_numbers_of_markers_the_face_hides_are_not_drawn(sample_report, browser)
     assert side == layout - len(hidden) and len(hidden) > layout / 4, (layout, front, side, len(hidden))
     neutral = np.array(browser.evaluate("mocaptkReport.data.markers.neutral"), float)
     assert np.median(neutral[hidden, 0]) < 0  # hidden: the subject's right (X = subject's left)
+    # the rays go to Plotly's perspective camera, which sits off the subject's left, ~0.5 m away
+    camera = np.array(browser.evaluate("mocaptkReport.camera()"), float)
+    centre = np.nanmean(neutral, axis=0)
+    assert camera[0] - centre[0] > 200 and abs(camera[2] - centre[2]) < camera[0] - centre[0]
     browser.evaluate("mocaptkReport.view({x: 0, y: 0.08, z: 1.25})")  # front again
     browser.evaluate("mocaptkReport.settled()")
     assert len(browser.evaluate(NUMBER_BOXES)) == front
+    camera = np.array(browser.evaluate("mocaptkReport.camera()"), float)
+    assert camera[2] - neutral[:, 2].max() > 100 and abs(camera[0] - centre[0]) < 30
 
 
 def test_toggles_hide_and_show_markers_and_hover_tells_the_cluster(sample_report, browser):

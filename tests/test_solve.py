@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -120,6 +121,63 @@ def test_usd_reads_back_with_pxr_and_passes_the_usd_validators(solved):
     registry = UsdValidation.ValidationRegistry()  # what usdchecker runs
     errors = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators()).Validate(stage)
     assert not errors, [e.GetMessage() for e in errors]
+
+
+@pytest.fixture(scope="module")
+def clipped_usd(solved, tmp_path_factory):
+    """The solve's mesh rewritten with its 1,200 frames in value clips of 500 frames, twice."""
+    from pxr import Usd, UsdGeom
+
+    from mocaptk.retarget.export_usd import write_mesh_usd
+
+    out, _ = solved
+    stage = Usd.Stage.Open(str(out / "mesh.usd"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/face_mesh"))
+    rest = np.array(mesh.GetPointsAttr().Get())
+    faces = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    uv = np.array(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get())
+    frames = np.load(out / "mesh_frames.npy", mmap_mode="r")
+    folders = [tmp_path_factory.mktemp("clipped") for _ in range(2)]
+    for folder in folders:
+        write_mesh_usd(folder / "mesh.usd", rest=rest, faces=faces, uv=uv, rate=60.0,
+                       frames=(frames[s:s + 256] for s in range(0, len(frames), 256)),
+                       n_frames=len(frames), clip_frames=500)
+    return folders, out / "mesh_frames.npy"
+
+
+def test_a_long_mesh_usd_streams_its_frames_into_value_clips(clipped_usd):
+    """Above ``clip_frames`` the points' samples go into USD value clips (one in memory at a
+    time): the stage composes every frame of mesh_frames.npy from 3 clip files, passes the USD
+    validators, and a second write is byte-identical (issue 28: long takes stream)."""
+    from pxr import Usd, UsdGeom, UsdValidation
+
+    (first, second), frames_path = clipped_usd
+    frames = np.load(frames_path, mmap_mode="r")
+    assert sorted(p.name for p in (first / "mesh_clips").iterdir()) == [
+        "manifest.usda", "mesh.0000.usdc", "mesh.0001.usdc", "mesh.0002.usdc"]
+    stage = Usd.Stage.Open(str(first / "mesh.usd"))
+    points = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/face_mesh")).GetPointsAttr()
+    assert len(points.GetTimeSamples()) == 1200
+    worst = max(float(np.abs(np.array(points.Get(f)) - frames[f]).max()) for f in range(0, 1200, 7))
+    assert worst == 0.0 and np.abs(np.array(points.Get(1199)) - frames[1199]).max() == 0.0
+    registry = UsdValidation.ValidationRegistry()
+    errors = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators()).Validate(stage)
+    assert not errors, [e.GetMessage() for e in errors]
+    assert (first / "mesh.usd").stat().st_size < 1_000_000  # the samples live in the clips
+    for path in [Path("mesh.usd"), *(p.relative_to(first) for p in (first / "mesh_clips").iterdir())]:
+        assert (first / path).read_bytes() == (second / path).read_bytes(), path
+
+
+def test_blender_plays_a_mesh_usd_written_in_value_clips(clipped_usd):
+    """Blender's USD importer resolves the clips: the evaluated mesh at 4 frames (one per clip
+    and the last) equals mesh_frames.npy (scripts/check_mesh_blender.py)."""
+    python = installed.blender_python()
+    (first, _), frames_path = clipped_usd
+    script = installed.REPO / "scripts" / "check_mesh_blender.py"
+    run = subprocess.run([str(python), str(script), str(first / "mesh.usd"), str(frames_path), "60"],
+                         capture_output=True, text=True, timeout=300)
+    report = json.loads(run.stdout[run.stdout.index("{"):])
+    assert run.returncode == 0 and report["ok"], report
 
 
 def _gltf_array(gltf, accessor: int) -> np.ndarray:

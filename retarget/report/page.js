@@ -202,12 +202,35 @@
     return false;
   }
 
-  // The layout markers hidden from the camera: the view direction in data space is the camera's eye
-  // (the scene box is the data scaled alike on every axis); returns whether the set changed.
+  // Plotly's perspective camera in data space: the eye of its view matrix taken back through the
+  // model matrix and the data scale (gl-plot3d's, column-major); null where Plotly hides them.
+  function cameraInData() {
+    const scene = (((gd._fullLayout || {}).scene || {})._scene) || {};
+    const params = (scene.glplot || {}).cameraParams, scale = scene.dataScale;
+    if (!params || !scale) return null;
+    const v = params.view, m = params.model;
+    const world = [0, 1, 2].map(function (i) { return -(v[i * 4] * v[12] + v[i * 4 + 1] * v[13] + v[i * 4 + 2] * v[14]); });
+    const a = [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]];
+    const b = [world[0] - m[12], world[1] - m[13], world[2] - m[14]];
+    const det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
+                a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
+    if (!(Math.abs(det) > 1e-12)) return null;
+    return [0, 1, 2].map(function (i) {  // Cramer's rule, then undo the data scale
+      const c = a.map(function (row, r) { return row.map(function (x, k) { return k === i ? b[r] : x; }); });
+      const d = c[0][0] * (c[1][1] * c[2][2] - c[1][2] * c[2][1]) - c[0][1] * (c[1][0] * c[2][2] - c[1][2] * c[2][0]) +
+                c[0][2] * (c[1][0] * c[2][1] - c[1][1] * c[2][0]);
+      return d / det / scale[i];
+    });
+  }
+
+  // The layout markers hidden from the camera: rays from each marker to Plotly's perspective camera
+  // (before the first draw, or without Plotly's internals, along the layout's eye direction: the
+  // scene box is the data scaled alike on every axis); returns whether the set changed.
   function updateHidden() {
-    const camera = ((gd._fullLayout || {}).scene || {}).camera || plotLayout.scene.camera;
-    const e = camera.eye, length = Math.hypot(e.x, e.y, e.z) || 1;
-    const d = [e.x / length, e.y / length, e.z / length];
+    const eyeCamera = ((gd._fullLayout || {}).scene || {}).camera || plotLayout.scene.camera;
+    const e = eyeCamera.eye, length = Math.hypot(e.x, e.y, e.z) || 1;
+    const along = [e.x / length, e.y / length, e.z / length];
+    const camera = cameraInData();
     const pos = markerPositions();
     const mv = meshVertices(pos);
     const next = {};
@@ -215,7 +238,13 @@
       shownLayout().forEach(function (entry) {
         const i = entry.marker;
         const p = [0, 1, 2].map(function (a) { return pos[i][a] + mesh.marker_lift[i][a]; });
-        if (p.every(isFinite) && rayHitsFace(p, d, mv, mesh.faces)) next[i] = true;
+        if (!p.every(isFinite)) return;
+        let d = along;
+        if (camera) {
+          const to = [camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]], n = Math.hypot(to[0], to[1], to[2]);
+          if (n > 0) d = [to[0] / n, to[1] / n, to[2] / n];
+        }
+        if (rayHitsFace(p, d, mv, mesh.faces)) next[i] = true;
       });
     }
     const changed = Object.keys(next).join() !== Object.keys(hidden).join();
@@ -543,6 +572,7 @@
   window.mocaptkReport = {data: data, state: state, setFrame: setFrame, setClip: setClip, pick: pick,
                           markerPositions: markerPositions, ready: false, loadMs: null,
                           hidden: function () { return Object.keys(hidden).map(Number); },
+                          camera: cameraInData,
                           view: function (eye) { return Plotly.relayout(gd, {"scene.camera.eye": eye}).then(placeNumbers).then(function () { return true; }); },
                           settled: function () { return drawing || Promise.resolve(); }};
   setClip(0).then(placeNumbers).then(function () {
