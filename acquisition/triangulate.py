@@ -26,6 +26,9 @@ from mocaptk.trajectories import Trajectories
 
 from .cameras import CameraRig
 
+# Chunks of the kernel per task of a thread (8 x 512 points).
+_TASK_CHUNKS = 8
+
 
 def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[str] | None = None,
                 rate: float | None = None, min_views: int = 2,
@@ -110,20 +113,25 @@ def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
 
     observations = np.ascontiguousarray(observations)
     n_chunks = (n_points + CHUNK - 1) // CHUNK
+    # tasks of a few chunks, taken in turn by the threads (a thread slowed by other processes
+    # takes fewer); each point is computed alone, so the output does not depend on who ran it
+    tasks = iter([(first, min(n_chunks, first + _TASK_CHUNKS))
+                  for first in range(0, n_chunks, _TASK_CHUNKS)])
 
-    def run(first: int, last: int) -> None:
-        triangulate_kernel(observations, cameras, poses, focal, int(min_views),
-                           float(outlier_threshold_px), int(refine_iterations), first, last,
-                           points, inliers, rms)
+    def run() -> None:
+        for first, last in tasks:  # one shared iterator: next() holds the GIL
+            triangulate_kernel(observations, cameras, poses, focal, int(min_views),
+                               float(outlier_threshold_px), int(refine_iterations), first, last,
+                               points, inliers, rms)
 
     import numba
 
-    threads = min(numba.get_num_threads(), n_chunks)  # numba's setting (NUMBA_NUM_THREADS)
-    bounds = np.linspace(0, n_chunks, threads + 1).round().astype(int)
-    if threads <= 1:
-        run(0, n_chunks)
-    else:  # the kernel releases the GIL: one contiguous range of chunks per thread
-        list(_pool().map(run, bounds[:-1], bounds[1:]))
+    # numba's setting (NUMBA_NUM_THREADS, set_num_threads); the kernel releases the GIL
+    helpers = [_pool().submit(run)
+               for _ in range(min(numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS)) - 1)]
+    run()
+    for helper in helpers:
+        helper.result()
     return points, inliers, rms
 
 
