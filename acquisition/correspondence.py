@@ -162,21 +162,25 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
             break
         capacity = count
     frame, keys, error, point = frame[:count], keys[:count], error[:count], point[:count]
-    # the same view set proposed by several pairs is one hypothesis (its smallest error kept);
-    # a two-view set has only one pair to propose it
+    # the same view set proposed by several pairs is one hypothesis (its smallest error kept,
+    # the first proposed among equal ones); a two-view set has only one pair to propose it
     finite = np.isfinite(error)
-    many = np.nonzero(finite & ((keys >= 0).sum(axis=1) >= 3))[0]
-    if (norm.shape[2] + 1.0) ** n_cams < 2.0 ** 62:  # the view set as one integer
-        code = np.zeros(len(many), np.int64)
+    n_views = (keys >= 0).sum(axis=1)
+    many = np.nonzero(finite & (n_views >= 3))[0]
+    base = norm.shape[2] + 1
+    if norm.shape[1] * float(base) ** n_cams < 2.0 ** 62:  # frame and view set as one integer
+        code = frame[many]
         for c in range(n_cams):
-            code = code * (norm.shape[2] + 1) + keys[many, c] + 1
-    else:  # many cameras: the rank of the view set among the distinct ones
-        code = np.unique(keys[many], axis=0, return_inverse=True)[1].ravel()
-    order = np.lexsort((error[many], code, frame[many]))
-    first = np.ones(len(order), bool)
-    first[1:] = (code[order[1:]] != code[order[:-1]]) | (frame[many][order[1:]] != frame[many][order[:-1]])
-    order = many[order]
-    keep = np.sort(np.concatenate([np.nonzero(finite & ((keys >= 0).sum(axis=1) == 2))[0], order[first]]))
+            code = code * base + keys[many, c] + 1
+    else:  # many cameras: the rank of (frame, view set) among the distinct ones
+        code = np.unique(np.column_stack([frame[many], keys[many]]), axis=0,
+                         return_inverse=True)[1].ravel()
+    by_error = np.argsort(error[many], kind="stable")
+    order = by_error[np.argsort(code[by_error], kind="stable")]  # by set, then error, then index
+    first = np.ones(len(order), bool)  # each set's first
+    first[1:] = code[order[1:]] != code[order[:-1]]
+    best = order[first]
+    keep = np.sort(np.concatenate([np.nonzero(finite & (n_views == 2))[0], many[best]]))
     return frame[keep], keys[keep], error[keep], point[keep]
 
 

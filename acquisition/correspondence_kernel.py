@@ -41,6 +41,7 @@ def proposals_kernel(norm, by_y, order, essentials, projections, focal, toleranc
     normal = np.empty((3, 4))
     point = np.empty(3)
     keys = np.empty(n_cams, np.int64)
+    near = np.empty(width, np.int64)
     for f in range(n_frames):
         for i in range(n_cams):
             for j in range(i + 1, n_cams):
@@ -53,10 +54,16 @@ def proposals_kernel(norm, by_y, order, essentials, projections, focal, toleranc
                     l1 = e[1, 0] * xa + e[1, 1] * ya + e[1, 2]
                     l2 = e[2, 0] * xa + e[2, 1] * ya + e[2, 2]
                     scale = focal[j] / np.sqrt(l0 * l0 + l1 * l1)
+                    # the blobs of camera j near the epipolar line of blob a, in order: a
+                    # branch-free pass over all blobs (SIMD), then the few candidates
+                    m = 0
                     for b in range(width):
+                        near[m] = b
+                        m += abs(l0 * norm[j, f, b, 0] + l1 * norm[j, f, b, 1] + l2) * scale \
+                            < tolerance  # NaN: no
+                    for candidate in range(m):
+                        b = near[candidate]
                         xb, yb = norm[j, f, b, 0], norm[j, f, b, 1]
-                        if not (abs(l0 * xb + l1 * yb + l2) * scale < tolerance):  # NaN: no
-                            continue
                         # two-view linear point: 4 equations, 3 unknowns, normal equations
                         for q in range(4):
                             a_mat[0, q] = xa * projections[i, 2, q] - projections[i, 0, q]

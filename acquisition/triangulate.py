@@ -1,8 +1,8 @@
 """Robust multi-view triangulation of labelled 2-D detections, one compiled pass over all points.
 
 One numba kernel (:mod:`.triangulate_kernel`, imported on first use; compiled once, cached
-on disk; threads over points) does per point: undistort every view (OpenCV's fixed-point
-iteration), solve the DLT normal equations in closed form (3x3), reweight the rows by focal
+on disk; run on threads over ranges of points) does per point: undistort every view (OpenCV's
+fixed-point iteration), solve the DLT normal equations in closed form (3x3), reweight the rows by focal
 / depth so the algebraic error becomes the reprojection error in px (a Gauss-Newton-like
 refinement), and check every view's reprojection error. A point seen by 4 or more cameras
 whose views disagree is first refit without its worst view, and is done when the other views
@@ -14,14 +14,20 @@ the refit join in (not aniposelib's exhaustive subset loop).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from functools import lru_cache
 
 import numpy as np
 
 from mocaptk.trajectories import Trajectories
 
 from .cameras import CameraRig
+
+# Chunks of the kernel per task of a thread (8 x 512 points).
+_TASK_CHUNKS = 8
 
 
 def triangulate(rig: CameraRig, observations: np.ndarray, *, labels: Sequence[str] | None = None,
@@ -103,12 +109,41 @@ def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
     points = np.empty((n_points, 3))
     inliers = np.empty((len(rig), n_points), dtype=np.bool_)
     rms = np.empty(n_points)
-    from .triangulate_kernel import triangulate_kernel  # imports numba: on first use only
+    from .triangulate_kernel import CHUNK, triangulate_kernel  # imports numba: on first use only
 
-    triangulate_kernel(np.ascontiguousarray(observations), cameras, poses, focal,
-                       int(min_views), float(outlier_threshold_px), int(refine_iterations),
-                       points, inliers, rms)  # plain int/float: one compiled signature
+    observations = np.ascontiguousarray(observations)
+    n_chunks = (n_points + CHUNK - 1) // CHUNK
+    # tasks of a few chunks, taken in turn by the threads (a thread slowed by other processes
+    # takes fewer); each point is computed alone, so the output does not depend on who ran it
+    tasks = iter([(first, min(n_chunks, first + _TASK_CHUNKS))
+                  for first in range(0, n_chunks, _TASK_CHUNKS)])
+
+    def run() -> None:
+        for first, last in tasks:  # one shared iterator: next() holds the GIL
+            triangulate_kernel(observations, cameras, poses, focal, int(min_views),
+                               float(outlier_threshold_px), int(refine_iterations), first, last,
+                               points, inliers, rms)
+
+    import numba
+
+    # numba's setting (NUMBA_NUM_THREADS, set_num_threads); the kernel releases the GIL
+    helpers = [_pool().submit(run)
+               for _ in range(min(numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS)) - 1)]
+    run()
+    for helper in helpers:
+        helper.result()
     return points, inliers, rms
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The threads that run the kernel, started once per process (starting them per call cost
+    more CPU than a small call); a forked child starts its own."""
+    return _pool_of(os.getpid())
+
+
+@lru_cache(maxsize=1)
+def _pool_of(pid: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mocaptk-triangulate")
 
 
 def _camera_table(rig: CameraRig) -> np.ndarray:
@@ -120,23 +155,25 @@ def _camera_table(rig: CameraRig) -> np.ndarray:
 @contextmanager
 def compile_notice(callback: Callable[[str], None]) -> Iterator[None]:
     """Within this context, call ``callback(message)`` once when the triangulation kernel
-    starts compiling (its first use in a process with no usable numba disk cache: about a
-    minute), so that a command line can tell the user; nothing happens when the kernel is
+    starts compiling (its first use in a process with no usable numba disk cache: about ten
+    seconds), so that a command line can tell the user; nothing happens when the kernel is
     loaded from the cache or already compiled. ``message`` says what is happening."""
+    import sys
+
     from numba.core import event
 
-    from . import compiled, triangulate_kernel
-
-    how_often = ("once per installation" if compiled.CACHED
-                 else "in every process: no writable cache folder")
+    kernel = f"{__package__}.triangulate_kernel"
 
     class Notice(event.Listener):
         called = False
 
         def on_start(self, ev: event.Event) -> None:
-            if ev.data["dispatcher"] is triangulate_kernel.triangulate_kernel and not self.called:
+            if ev.data["dispatcher"].py_func.__module__ == kernel and not self.called:
                 self.called = True
-                callback(f"compiling the triangulation kernel ({how_often}, about a minute)…")
+                cached = sys.modules[f"{__package__}.compiled"].CACHED
+                how_often = ("once per installation" if cached
+                             else "in every process: no writable cache folder")
+                callback(f"compiling the triangulation kernel ({how_often}, about ten seconds)…")
 
         def on_end(self, ev: event.Event) -> None:
             pass
