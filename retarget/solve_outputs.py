@@ -239,16 +239,17 @@ def _frames_csv(solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, co
                 labels: Sequence[str]) -> str:
     names = np.asarray(labels, dtype=object)
     out = io.StringIO()
-    out.write("frame,solved,expected_error_mm,estimated_error_mm,consistency_mm,measured_error_mm,"
-              "pose_residual_mm,missing_count,missing_markers,flagged_count,flagged_markers\n")
+    out.write("frame,solved,expected_error_mm,estimated_error_mm,consistency_mm,pose_residual_mm,"
+              "missing_count,missing_markers,flagged_count,flagged_markers,measured_error_mm\n")
     pose = poses.residual_mm if poses is not None else np.full(len(solved), np.nan)
     for f in range(len(solved)):
         values = ",".join(f"{v:.3f}" if np.isfinite(v) else "" for v in
-                          (error[f], estimated[f], consistency[f], measured[f], pose[f]))
+                          (error[f], estimated[f], consistency[f], pose[f]))
         lost_names = ";".join(names[lost[f]]) if lost[f].any() else ""
         ghost_names = ";".join(names[flagged[f]]) if flagged[f].any() else ""
+        measured_text = f"{measured[f]:.3f}" if np.isfinite(measured[f]) else ""
         out.write(f"{f},{int(solved[f])},{values},{int(lost[f].sum())},{lost_names},"
-                  f"{int(flagged[f].sum())},{ghost_names}\n")
+                  f"{int(flagged[f].sum())},{ghost_names},{measured_text}\n")
     return out.getvalue()
 
 
