@@ -313,9 +313,9 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, *,
 
 def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any], *,
              solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
-             measured: np.ndarray, measured_labels: list[str], missing: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
-             mismatch: NeutralMismatch | None, adapted: bool, mesh: dict[str, Any],
-             outputs: list[str], notes: list[str]) -> dict[str, Any]:
+             measured: np.ndarray, measured_labels: list[str], missing: np.ndarray,
+             flagged: np.ndarray, poses: HeadPoses | None, mismatch: NeutralMismatch | None,
+             adapted: bool, mesh: dict[str, Any], outputs: list[str], notes: list[str]) -> dict[str, Any]:
     lost_rate = missing.mean(axis=0) if len(missing) else np.zeros(missing.shape[1])
     head: dict[str, Any] = {"removed_and_restored": poses is not None and not poses.still,
                             "rigid_labels": list(solver.rigid_labels)}
