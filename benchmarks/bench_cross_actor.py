@@ -5,8 +5,11 @@ estimated error against the measured one, and ``--adapt-neutral``.
 
 Pairs: blenderFace Subject_01 <-> Subject_02 (``../shared/data``; read at 25 Hz, units 187.6 as
 docs/formats.md says) and, with ``--synth``, the bundled sample's actor against two ``mocaptk synth``
-actors of other ICT-FaceKit identities (same markers, same seed). Each session gets its default
-layout (``mocaptk cluster``); the other actor's whole capture is solved from its layout markers.
+actors of other ICT-FaceKit identities (same markers, same seed). Held-out pairs (``--synth``; not
+looked at while the estimate's rule was chosen): the sample against a third identity, and the
+first synth actor's own session (its own layout) against the second actor's capture. Each session
+gets its default layout (``mocaptk cluster``); the other actor's whole capture is solved from its
+layout markers.
 Measured error: RMSE over the capture's markers outside the layout, against the capture itself
 (blenderFace: real markers) or its noise-free truth (synth).
 """
@@ -27,6 +30,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MOCAPTK_SHARED_DATA", REPO.parent / "shared" / "data"))
 #: Identities of the synth actors (ICT-FaceKit's 3 identity coefficients).
 IDENTITIES = ("2,0,0", "0,-2,1.5")
+#: A third identity, held out from the choice of the estimate's rule.
+HELD_OUT_IDENTITY = "-1.5,1.5,-1"
 SYNTH = ("--half", "--spacing", "8", "--rig", "cara", "--seed", "7", "--noise", "0.2", "--expressions", "5",
          "--rest", "1.5", "--hold", "2.0", "--performance", "20", "--dropout", "0.01", "--ghosts", "0.002",
          "--max-gap", "6", "--quiet", "--force")
@@ -54,6 +59,7 @@ def measure(layout: Path, capture: Path, truth: np.ndarray | None, out: Path, *e
             "estimated_mm": summary["estimated_error_mm"]["mean"],
             "expected_mm": summary["expected_error_mm"]["mean"],
             "consistency_mm": summary["consistency_mm"]["mean"],
+            "measured_at_stabilization_mm": summary["measured_error_mm"]["mean"],
             "neutral": summary["neutral"]}
 
 
@@ -68,9 +74,7 @@ def blenderface(out: Path) -> dict:
     rows = {}
     for a, b in (("01", "01"), ("01", "02"), ("02", "01")):
         layout = out / f"S{a}_layout" / "layout.json"
-        rows[f"blenderFace S{a} -> S{b}"] = {
-            "plain": measure(layout, sessions[b], None, out / f"s{a}{b}"),
-            "adapted": measure(layout, sessions[b], None, out / f"s{a}{b}a", "--adapt-neutral")}
+        rows[f"blenderFace S{a} -> S{b}"] = pair(layout, sessions[b], None, out / f"s{a}{b}")
     return rows
 
 
@@ -83,17 +87,26 @@ def synth_actors(out: Path) -> dict:
     for name in ("dense_halfface.c3d", "dense_halfface_takes.json", "dense_halfface_regions.json"):
         (base / name).write_bytes((REPO / "sample_c3d" / name).read_bytes())
     mocaptk("cluster", base / "dense_halfface.c3d", "--out", base / "layout", "--formats", "none", "--force", "-q")
-    for k, identity in enumerate(IDENTITIES):
+    actors = []
+    for k, identity in enumerate(IDENTITIES + (HELD_OUT_IDENTITY,)):
         path = out / f"actor{k}.c3d"
         if not path.exists():
             mocaptk("synth", path, *SYNTH, f"--identity={identity}")
-        perf = path.with_name(f"actor{k}_performance.c3d")
-        truth = load_ground_truth(path.with_name(f"actor{k}_performance_truth.npz")).positions
-        layout = base / "layout" / "layout.json"
-        rows[f"synth sample -> identity {identity}"] = {
-            "plain": measure(layout, perf, truth, out / f"id{k}"),
-            "adapted": measure(layout, perf, truth, out / f"id{k}a", "--adapt-neutral")}
+        actors.append((path.with_name(f"actor{k}_performance.c3d"),
+                       load_ground_truth(path.with_name(f"actor{k}_performance_truth.npz")).positions))
+        held_out = " (held out)" if identity == HELD_OUT_IDENTITY else ""
+        rows[f"synth sample -> identity {identity}{held_out}"] = pair(base / "layout" / "layout.json",
+                                                                     *actors[-1], out / f"id{k}")
+    mocaptk("cluster", out / "actor0.c3d", "--out", out / "actor0_layout", "--formats", "none", "--force", "-q")
+    rows[f"synth identity {IDENTITIES[0]} -> {IDENTITIES[1]} (held out)"] = pair(
+        out / "actor0_layout" / "layout.json", *actors[1], out / "id01")
     return rows
+
+
+def pair(layout: Path, capture: Path, truth: np.ndarray | None, out: Path) -> dict:
+    """One session -> capture pair, plain and with ``--adapt-neutral``."""
+    return {"plain": measure(layout, capture, truth, out),
+            "adapted": measure(layout, capture, truth, out.with_name(out.name + "a"), "--adapt-neutral")}
 
 
 def main(argv: list[str]) -> None:
@@ -105,9 +118,10 @@ def main(argv: list[str]) -> None:
     (out / "cross_actor.json").write_text(json.dumps(rows, indent=2))
     for name, row in rows.items():
         p, a = row["plain"], row["adapted"]
-        print(f"{name:36s} measured {p['measured_mm']:.2f} estimated {p['estimated_mm']:.2f} "
-              f"(expected {p['expected_mm']:.2f}) warned {p['neutral'].get('mismatch')} | adapted: "
-              f"measured {a['measured_mm']:.2f} estimated {a['estimated_mm']:.2f}")
+        print(f"{name:52s} measured {p['measured_mm']:.2f} estimated {p['estimated_mm']:.2f} "
+              f"({p['estimated_mm'] / p['measured_mm']:.2f}x; expected {p['expected_mm']:.2f}) warned "
+              f"{p['neutral'].get('mismatch')} | adapted: measured {a['measured_mm']:.2f} estimated "
+              f"{a['estimated_mm']:.2f} ({a['estimated_mm'] / a['measured_mm']:.2f}x)")
 
 
 if __name__ == "__main__":

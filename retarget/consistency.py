@@ -16,6 +16,11 @@ leave-one-out residual at once.
 - **Consistency** (mm, per frame): the RMS leave-one-out residual of the markers kept. On the
   training session it is ``Screen.training_mm``; a capture far above it is not explained by the
   model (another face, another scale, markers placed elsewhere), whatever its expected error says.
+- **The solve's error, measured** (:func:`stabilization_residuals`): the layout's stabilization
+  markers outside its face markers are in the capture but not solved from; where the head pose was
+  not fitted to them frame by frame, the distance between where the solve puts them and where the
+  capture has them is its error on markers it did not see (the ghost test above drops a capture's
+  stray points first).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy as np
 from mocaptk.clustering.reconstruction_models import DEFAULT_RIDGE, check_frames
 from mocaptk.errors import OptionError
 
-__all__ = ["LayoutGaussian", "Screen", "screen_frames"]
+__all__ = ["LayoutGaussian", "Screen", "screen_frames", "stabilization_residuals"]
 
 #: Measurement noise added to the covariance's diagonal (mm, per coordinate): a capture is noisier
 #: than the session's mean shape, and the floor keeps ``Σ`` invertible for rigid-moving pairs.
@@ -207,6 +212,24 @@ def screen_frames(gauss: LayoutGaussian, screen: Screen, x: np.ndarray) -> tuple
     total = np.where(np.isfinite(sq), sq, 0.0).sum(axis=1)
     consistency = np.where(count >= 2, np.sqrt(total / np.maximum(count, 1)), np.nan)
     return flagged, consistency
+
+
+def stabilization_residuals(solved: np.ndarray, captured: np.ndarray, *, floor_mm: float = OUTLIER_FLOOR_MM,
+                            spreads: float = OUTLIER_SPREADS) -> np.ndarray:
+    """Distances (F, R) mm between markers the solve reconstructed, ``solved`` (F, R, 3), and the
+    capture's own points of them, ``captured`` (F, R, 3), in the same frame. NaN where either is
+    missing, or where the residual departs from the marker's median residual over the capture by
+    more than ``max(floor_mm, spreads × its median departure)`` (a ghost or a swap in the capture,
+    not the solve's error: the layout markers' outlier test)."""
+    r = np.asarray(solved, dtype=np.float64) - np.asarray(captured, dtype=np.float64)
+    distance = np.linalg.norm(r, axis=2)
+    seen = np.isfinite(distance).any(axis=0)
+    median = np.zeros(r.shape[1:])
+    median[seen] = np.nanmedian(r[:, seen], axis=0)
+    departure = np.linalg.norm(r - median, axis=2)
+    typical = np.zeros(r.shape[1])
+    typical[seen] = np.nanmedian(departure[:, seen], axis=0)
+    return np.where(departure > np.maximum(floor_mm, spreads * typical), np.nan, distance)
 
 
 def _rms(r: np.ndarray) -> float:

@@ -28,7 +28,7 @@ from mocaptk.jsonio import write_json
 from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
-from .consistency import capture_screen
+from .consistency import capture_screen, stabilization_residuals
 from .head_pose import HeadPoses
 from .build import check_surface
 from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
@@ -143,7 +143,10 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                 block = slice(first, min(first + step, rows.stop))
                 frames_file[block] = mesh.apply(dense[block], None if poses is None else
                                                 (poses.rotations[block], poses.translations[block]))
-    estimated = estimated_error(error, consistency, solver.training_consistency_mm)
+    measured, measured_labels = measured_error(solver, capture, dense, poses)
+    estimated = estimated_error(error, consistency, solver.training_consistency_mm, measured=measured,
+                                n_outside=len(solver.labels) - len(solver.layout_labels))
+    measured_rms = np.full(n_frames, np.nan) if measured is None else _rms_rows(measured)
     solved = np.isfinite(dense).all(axis=2).any(axis=1)
     written = ["dense.c3d", "solve_frames.csv", "solve.json"]
     say("writing dense.c3d")
@@ -154,8 +157,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     write_c3d(Trajectories(dense, solver.labels, capture.rate, capture.first_frame, residual, meta),
               staging / "dense.c3d")
     write_text(staging / "solve_frames.csv",
-               _frames_csv(solved, error, estimated, consistency, missing & ~flagged, flagged,
-                           poses, solver.layout_labels))
+               _frames_csv(solved, error, estimated, consistency, measured_rms, missing & ~flagged,
+                           flagged, poses, solver.layout_labels))
     if save_trained:
         save_model(solver.model, staging / "model.npz", header=solver.header(), extra=solver.extra_arrays())
         written.append("model.npz")
@@ -188,7 +191,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
             (staging / "mesh_frames.npy").unlink()
     mesh_info.update(vertices=int(mesh.vertices.shape[0]), triangles=int(mesh.faces.shape[0]))
     summary = _summary(solver, capture, capture_source, solved=solved, error=error, estimated=estimated,
-                       consistency=consistency, missing=missing, flagged=flagged, poses=poses,
+                       consistency=consistency, measured=measured_rms, measured_labels=measured_labels,
+                       missing=missing, flagged=flagged, poses=poses,
                        mismatch=mismatch, adapted=adaptation is not None, mesh=mesh_info,
                        outputs=sorted(written), notes=notes)
     write_json(staging / "solve.json", summary)
@@ -237,30 +241,62 @@ def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layo
 
 
 def _frames_csv(solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
-                lost: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
+                measured: np.ndarray, lost: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
                 labels: Sequence[str]) -> str:
     names = np.asarray(labels, dtype=object)
     out = io.StringIO()
     out.write("frame,solved,expected_error_mm,estimated_error_mm,consistency_mm,pose_residual_mm,"
-              "missing_count,missing_markers,flagged_count,flagged_markers\n")
+              "missing_count,missing_markers,flagged_count,flagged_markers,measured_error_mm\n")
     pose = poses.residual_mm if poses is not None else np.full(len(solved), np.nan)
     for f in range(len(solved)):
         values = ",".join(f"{v:.3f}" if np.isfinite(v) else "" for v in
                           (error[f], estimated[f], consistency[f], pose[f]))
         lost_names = ";".join(names[lost[f]]) if lost[f].any() else ""
         ghost_names = ";".join(names[flagged[f]]) if flagged[f].any() else ""
+        measured_text = f"{measured[f]:.3f}" if np.isfinite(measured[f]) else ""
         out.write(f"{f},{int(solved[f])},{values},{int(lost[f].sum())},{lost_names},"
-                  f"{int(flagged[f].sum())},{ghost_names}\n")
+                  f"{int(flagged[f].sum())},{ghost_names},{measured_text}\n")
     return out.getvalue()
 
 
-def estimated_error(expected: np.ndarray, consistency: np.ndarray, training_mm: float) -> np.ndarray:
-    """Per frame the error the solve reports (mm): the model's expected error, raised where the
-    layout markers agree less with each other than on the training session (consistency above
-    ``training_mm``: a face or expression the model does not explain)."""
+def measured_error(solver: FaceSolver, capture: Trajectories, dense: np.ndarray,
+                   poses: HeadPoses | None) -> tuple[np.ndarray | None, list[str]]:
+    """The solve's error (F, R) mm measured at the capture's stabilization markers outside the
+    layout (:func:`~.consistency.stabilization_residuals`; ``dense`` (F, M, 3) the solved markers),
+    and their labels; None when the capture has none of them, or when its head poses were fitted
+    to them frame by frame (their distance from the solve is then the pose fit's residual)."""
+    layout = set(solver.layout_labels)
+    labels = [label for label in solver.rigid_labels if label not in layout and label in capture.labels]
+    if not labels or (poses is not None and not poses.still):
+        return None, []
+    solved = dense[:, [solver.labels.index(label) for label in labels]]
+    return stabilization_residuals(solved, capture.positions[:, capture.index(labels)]), labels
+
+
+def estimated_error(expected: np.ndarray, consistency: np.ndarray, training_mm: float, *,
+                    measured: np.ndarray | None = None, n_outside: int = 0) -> np.ndarray:
+    """Per frame the error the solve reports (mm) over the ``n_outside`` dense markers outside
+    the layout: the model's expected error, raised where the layout markers agree less with each
+    other than on the training session (consistency above ``training_mm``: a face or expression
+    the model does not explain); where the error is ``measured`` (F, R) mm at some of those
+    markers (:func:`measured_error`; NaN = not measured), their measured squares replace that
+    estimate for their share of the markers."""
     excess = np.where(np.isfinite(consistency), consistency ** 2 - training_mm ** 2, 0.0) \
         if np.isfinite(training_mm) else np.zeros_like(expected)
-    return np.sqrt(expected ** 2 + CONSISTENCY_WEIGHT ** 2 * np.maximum(excess, 0.0))
+    sq = expected ** 2 + CONSISTENCY_WEIGHT ** 2 * np.maximum(excess, 0.0)
+    if measured is not None and n_outside >= measured.shape[1]:
+        seen = np.isfinite(measured)
+        total = np.where(seen, measured, 0.0) ** 2
+        sq = (total.sum(axis=1) + (n_outside - seen.sum(axis=1)) * sq) / n_outside
+    return np.sqrt(sq)
+
+
+def _rms_rows(values: np.ndarray) -> np.ndarray:
+    """Per row the RMS of the finite ``values`` (F, R) (NaN where none)."""
+    seen = np.isfinite(values)
+    total = np.where(seen, values, 0.0) ** 2
+    count = seen.sum(axis=1)
+    return np.where(count > 0, np.sqrt(total.sum(axis=1) / np.maximum(count, 1)), np.nan)
 
 
 def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, *,
@@ -283,9 +319,9 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, *,
 
 def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any], *,
              solved: np.ndarray, error: np.ndarray, estimated: np.ndarray, consistency: np.ndarray,
-             missing: np.ndarray, flagged: np.ndarray, poses: HeadPoses | None,
-             mismatch: NeutralMismatch | None, adapted: bool, mesh: dict[str, Any],
-             outputs: list[str], notes: list[str]) -> dict[str, Any]:
+             measured: np.ndarray, measured_labels: list[str], missing: np.ndarray,
+             flagged: np.ndarray, poses: HeadPoses | None, mismatch: NeutralMismatch | None,
+             adapted: bool, mesh: dict[str, Any], outputs: list[str], notes: list[str]) -> dict[str, Any]:
     lost_rate = missing.mean(axis=0) if len(missing) else np.zeros(missing.shape[1])
     head: dict[str, Any] = {"removed_and_restored": poses is not None and not poses.still,
                             "rigid_labels": list(solver.rigid_labels)}
@@ -313,6 +349,7 @@ def _summary(solver: FaceSolver, capture: Trajectories, source: Mapping[str, Any
         "expected_error_mm": _stats(error),
         "consistency_mm": _stats(consistency),
         "estimated_error_mm": _stats(estimated),
+        "measured_error_mm": {**_stats(measured), "markers": measured_labels},
         "neutral": {**(mismatch.as_dict() if mismatch is not None else {}), "adapted": adapted},
         "mesh": mesh,
         "outputs": outputs, "notes": notes,

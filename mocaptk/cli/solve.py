@@ -52,7 +52,10 @@ def summary_text(summary: dict) -> str:
              f"lost markers, {frames['with_flagged_markers']} with markers flagged as ghosts; error "
              f"mean {mean('estimated_error_mm'):.2f} mm estimated (model expected {mean('expected_error_mm'):.2f} mm, "
              f"layout-marker consistency {mean('consistency_mm'):.2f} mm vs "
-             f"{model['training_consistency_mm']:.2f} mm in training)"]
+             f"{model['training_consistency_mm']:.2f} mm in training"
+             + (f", measured {mean('measured_error_mm'):.2f} mm at the stabilization markers "
+                f"{', '.join(summary['measured_error_mm']['markers'])}"
+                if summary.get("measured_error_mm", {}).get("mean") is not None else "") + ")"]
     if frames["unsolved"]:
         lines.append(f"warning: {frames['unsolved']} frames without any layout marker (or head pose) "
                      "are not solved (see solve_frames.csv)")
