@@ -29,8 +29,8 @@ from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["blend_corners", "cap_weights", "corner_joints", "mirror_maps", "pin_fade", "region_masks",
-           "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
+__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "mirror_maps", "pin_fade",
+           "region_masks", "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
 
 
 def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: np.ndarray, *,
@@ -101,6 +101,33 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     shaped[empty] = clipped[empty]
     total[empty] = clipped[empty].sum(axis=1, keepdims=True)
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
+
+
+def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndarray,
+                     faces: np.ndarray, *, min_support: float) -> np.ndarray:
+    """``weights`` (V, J) with the rows whose ``support`` (V,) is below ``min_support`` replaced
+    by the harmonic interpolation of the other rows over the mesh (``vertices`` (V, 3) mm,
+    ``faces`` (T, 3)); negatives clipped, rows renormalized. Vertices in no triangle keep theirs.
+
+    ``support``: each row's masked thin-shell weight before renormalizing
+    (:func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
+    numbers, so neighbours' rows swung between joints: an edge behind the ear stretched 2.06x
+    at the widest jaw (issue 30). Filled, the weights there continue the face's smoothly."""
+    import igl
+
+    w = np.array(weights, dtype=float)
+    used = np.zeros(len(w), dtype=bool)
+    used[np.asarray(faces, dtype=np.int64).ravel()] = True
+    unknown = used & (np.asarray(support) < min_support)
+    known = np.flatnonzero(used & ~unknown)
+    if not unknown.any() or known.size == 0:
+        return w
+    filled = igl.harmonic(np.ascontiguousarray(vertices, dtype=float),
+                          np.ascontiguousarray(faces, dtype=np.int64), known.astype(np.int64),
+                          np.ascontiguousarray(w[known]), 1)
+    rows = np.clip(filled[unknown], 0.0, None)
+    w[unknown] = rows / rows.sum(axis=1, keepdims=True)
+    return w
 
 
 def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
