@@ -40,8 +40,8 @@ from mocaptk.trajectories import Trajectories
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
-from .default_face import (CORNER_JOINTS_MM, CORNER_PIN_FADE_MM, EYE_CORNER_MM, MOUTH_CORNER_MM,
-                           default_face, lip_anchors)
+from .default_face import (CORNER_JOINTS_MM, CORNER_LEFT_OUT_FADE_MM, CORNER_PIN_FADE_MM,
+                           EYE_CORNER_MM, MOUTH_CORNER_MM, default_face, lip_anchors)
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import FittedTemplate, fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
@@ -558,7 +558,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     if face is not None:  # around the mouth corners, one set of joints: no step where they change
         weights = corner_joints(weights, vertices, mouth_corners, inner_mm=CORNER_JOINTS_MM[0],
                                 outer_mm=CORNER_JOINTS_MM[1], count=options.max_influences,
-                                pinned=joint_vertices, pin_fade_mm=CORNER_PIN_FADE_MM)
+                                pinned=joint_vertices, pin_fade_mm=CORNER_PIN_FADE_MM,
+                                others_fade_mm=CORNER_LEFT_OUT_FADE_MM)
     # (V, J, 3) differences squared in place: one such temporary, not three (V 37,149 x J 458 at 10k)
     nearest = np.argmin(vector_lengths(vertices[:, None] - vertices[joint_vertices][None]), axis=1)
     mirror = _weight_mirror(layout, cloud, vertices, spacing,
