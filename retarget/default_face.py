@@ -32,7 +32,7 @@ import numpy as np
 from .align import SurfaceProximity
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
-__all__ = ["CORNER_JOINTS_MM", "CORNER_PIN_FADE_MM", "EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace",
+__all__ = ["CORNER_JOINTS_MM", "CORNER_LEFT_OUT_FADE_MM", "CORNER_PIN_FADE_MM", "EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace",
            "Lid", "along_rim", "closing_field", "default_face", "flip_slivers", "lip_anchors",
            "loop_area",
            "split_loop", "template_openings", "triangle_angles"]
@@ -49,9 +49,12 @@ LIP_REACH_MM = 14.0
 #: full blink at 8 mm stretched the lid's skin 2.26x, 1.98x at 12 mm; the rig calibrates what
 #: its markers show of the wider blink, see :mod:`~mocaptk.retarget.lid_joints`).
 LID_REACH_MM = 12.0
-#: The same for ``solve``'s mesh, whose blink is not calibrated on the session: 8 mm puts the
-#: eye region's marker-driven error within 4 % of the marker surface's (12 mm: +23 %) and the
-#: aperture at a full blink at 11 % of rest (12 mm: 36 %).
+#: ``solve``'s mesh, whose blink is not calibrated on the session, senses it with a blink of
+#: this reach (mm): the markers under the brow move less than the 12 mm field says, so sensed
+#: with it the lid closed to 36 % of rest. Its lids close with the 12 mm field as the rig's
+#: (sample: the upper lids' crease 2.27x -> 1.92x at most, the aperture at a full blink 11 % ->
+#: 9 % of rest; the eye region's error against the true markers +2.6 %, from the skin 8-12 mm
+#: off the rims moving with the lid).
 SOLVE_LID_REACH_MM = 8.0
 #: The template's triangles with a smallest angle below this (degrees) are flipped with a
 #: neighbour (:func:`flip_slivers`): ICT-FaceKit has two such slivers inside the mouth corners
@@ -78,6 +81,10 @@ CORNER_PIN_FADE_MM = 3.0
 #: joints, back to their own at the second (:func:`~mocaptk.retarget.weights.corner_joints`;
 #: sample: the 4-influence cap swapped weights up to 0.2 across an edge below the corner).
 CORNER_JOINTS_MM = (10.0, 16.0)
+#: ... and fade in over this (mm) from the vertices of the joints the corner's set leaves out
+#: (sample: 2.081x -> 2.077x at the widest jaw, 5 mm the same, 6 mm 2.12x; the 45-joint identity
+#: actor: 20 -> 13 backward triangles, 3.85x -> 2.98x).
+CORNER_LEFT_OUT_FADE_MM = 8.0
 #: ... and towards its eyes' corners within this (mm; sample, most folded triangles at the
 #: fullest blink: 22 with none, 2 at 8 mm, 0 at 12 mm; the eye region's error +0.5 %).
 EYE_CORNER_MM = 12.0
@@ -85,12 +92,14 @@ EYE_CORNER_MM = 12.0
 
 @dataclass(frozen=True, eq=False)
 class Lid:
-    """One eye: ``upper``/``lower`` rim vertices (corner to corner, both with the corners) and
-    ``blink`` (V, 3) mm, each vertex's displacement at a full blink."""
+    """One eye: ``upper``/``lower`` rim vertices (corner to corner, both with the corners),
+    ``blink`` (V, 3) mm, each vertex's displacement at a full blink, and ``sensed`` (V, 3) mm
+    the displacement a marker there is taken to show at a full blink (None: ``blink``)."""
 
     upper: np.ndarray
     lower: np.ndarray
     blink: np.ndarray
+    sensed: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,10 +196,12 @@ def split_loop(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.n
 
 def default_face(points: np.ndarray, *, spacing: float,
                  plane: tuple[np.ndarray, np.ndarray] | None = None,
-                 lid_reach_mm: float = LID_REACH_MM) -> DefaultFace | None:
+                 lid_reach_mm: float = LID_REACH_MM,
+                 sense_reach_mm: float | None = None) -> DefaultFace | None:
     """The ICT-FaceKit face fitted to the dense neutral ``points`` (N, 3) mm (rig frame: Y up,
     facing +Z; ``spacing`` their marker spacing, mm); ``plane`` ``(point, unit normal)`` makes it
-    mirror-symmetric; ``lid_reach_mm`` how far the blink reaches from an eye. None when the
+    mirror-symmetric; ``lid_reach_mm`` how far the blink reaches from an eye, ``sense_reach_mm``
+    that of the lids' ``sensed`` blink (None: the same field). None when the
     template does not fit (see :func:`fit_template`)."""
     points = np.asarray(points, dtype=float)
     template = fit_template(points, spacing=spacing)
@@ -206,12 +217,18 @@ def default_face(points: np.ndarray, *, spacing: float,
     closed = vertices + closing_field(vertices, faces, [(upper, lower, 0.5)], reach_mm=LIP_REACH_MM)
     if plane is not None:
         closed = _symmetric(closed, mirror, *plane)
-    lids = [Lid(top, bottom, closing_field(closed, faces, [(top, bottom, 0.0)], reach_mm=lid_reach_mm))
+    lids = [Lid(top, bottom, *(closing_field(closed, faces, [(top, bottom, 0.0)], reach_mm=reach)
+                               for reach in ([lid_reach_mm] if sense_reach_mm is None
+                                             else [lid_reach_mm, sense_reach_mm])))
             for top, bottom in eyes]
     if plane is not None:  # the other eye's blink: the mirror image of the first's
         normal = np.asarray(plane[1], float) / np.linalg.norm(plane[1])
-        image = lids[0].blink[mirror]
-        lids[1] = Lid(lids[1].upper, lids[1].lower, image - 2.0 * (image @ normal)[:, None] * normal)
+
+        def image(field: np.ndarray | None) -> np.ndarray | None:
+            return None if field is None else (field[mirror]
+                                               - 2.0 * (field[mirror] @ normal)[:, None] * normal)
+
+        lids[1] = Lid(lids[1].upper, lids[1].lower, image(lids[0].blink), image(lids[0].sensed))
     return DefaultFace(closed, vertices, faces, uv, upper, lower, tuple(lids),
                        None if plane is None else mirror)
 

@@ -103,7 +103,7 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
-        from .default_face import CORNER_PIN_FADE_MM, SOLVE_LID_REACH_MM, default_face
+        from .default_face import CORNER_PIN_FADE_MM, LID_REACH_MM, SOLVE_LID_REACH_MM, default_face
 
         neutral = np.asarray(neutral, dtype=np.float64)
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
@@ -120,7 +120,7 @@ class MeshMap:
         points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
         rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
         face = default_face(points, spacing=marker_spacing(points), plane=rig_plane,
-                            lid_reach_mm=SOLVE_LID_REACH_MM)
+                            lid_reach_mm=LID_REACH_MM, sense_reach_mm=SOLVE_LID_REACH_MM)
         if face is None:
             return None
         nearest, dist = anchor_vertices(face.fitted, face.faces, points)
@@ -163,7 +163,8 @@ class MeshMap:
         blinks = []
         for lid in lids:
             shape = lid.blink @ rotation
-            full = np.where((anchors >= 0)[:, None], shape[np.maximum(anchors, 0)], 0.0)
+            sensed = shape if lid.sensed is None else lid.sensed @ rotation
+            full = np.where((anchors >= 0)[:, None], sensed[np.maximum(anchors, 0)], 0.0)
             sensors = np.flatnonzero(np.linalg.norm(full, axis=1) > SENSOR_MIN_MM)  # as the rig
             if sensors.size:
                 made = mesh.matrix @ full  # what the map already makes of the sensors' blink

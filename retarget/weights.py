@@ -29,8 +29,8 @@ from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["blend_corners", "cap_weights", "corner_joints", "mirror_maps", "pin_fade", "region_masks",
-           "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
+__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "mirror_maps", "pin_fade",
+           "region_masks", "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
 
 
 def thin_shell_weights(vertices: np.ndarray, faces: np.ndarray, joint_vertices: np.ndarray, *,
@@ -103,6 +103,33 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
 
 
+def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndarray,
+                     faces: np.ndarray, *, min_support: float) -> np.ndarray:
+    """``weights`` (V, J) with the rows whose ``support`` (V,) is below ``min_support`` replaced
+    by the harmonic interpolation of the other rows over the mesh (``vertices`` (V, 3) mm,
+    ``faces`` (T, 3)); negatives clipped, rows renormalized. Vertices in no triangle keep theirs.
+
+    ``support``: each row's masked thin-shell weight before renormalizing
+    (:func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
+    numbers, so neighbours' rows swung between joints: an edge behind the ear stretched 2.06x
+    at the widest jaw (issue 30). Filled, the weights there continue the face's smoothly."""
+    import igl
+
+    w = np.array(weights, dtype=float)
+    used = np.zeros(len(w), dtype=bool)
+    used[np.asarray(faces, dtype=np.int64).ravel()] = True
+    unknown = used & (np.asarray(support) < min_support)
+    known = np.flatnonzero(used & ~unknown)
+    if not unknown.any() or known.size == 0:
+        return w
+    filled = igl.harmonic(np.ascontiguousarray(vertices, dtype=float),
+                          np.ascontiguousarray(faces, dtype=np.int64), known.astype(np.int64),
+                          np.ascontiguousarray(w[known]), 1)
+    rows = np.clip(filled[unknown], 0.0, None)
+    w[unknown] = rows / rows.sum(axis=1, keepdims=True)
+    return w
+
+
 def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
                   reach_mm: float, pinned: np.ndarray, pin_fade_mm: float = 0.0) -> np.ndarray:
     """``weights`` (V, J) blended towards each of the ``corners`` (C,) vertex's own row, fully at
@@ -144,10 +171,13 @@ def pin_fade(vertices: np.ndarray, pinned: np.ndarray, *, fade_mm: float) -> np.
 
 def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
                   inner_mm: float, outer_mm: float, count: int, pinned: np.ndarray,
-                  pin_fade_mm: float) -> np.ndarray:
+                  pin_fade_mm: float, others_fade_mm: float) -> np.ndarray:
     """``weights`` (V, J) led, within ``inner_mm`` of each of the ``corners`` (C,), onto that
     corner's ``count`` strongest joints (their weights renormalized), fading back to the rows
-    as they are at ``outer_mm`` (smoothstep) and near the ``pinned`` vertices (:func:`pin_fade`).
+    as they are at ``outer_mm`` (smoothstep) and near the ``pinned`` (J,) vertices
+    (:func:`pin_fade`): over ``pin_fade_mm``, and over ``others_fade_mm`` from the joints the
+    corner's set leaves out (their own vertex keeps weight 1 on them, the rows around it had
+    none: a spike; sample, 2.08x beside MOUTH_11 below a corner; a 45-joint actor, 3.85x).
 
     Blended towards a corner (:func:`blend_corners`), a row has its own joints and the corner's:
     up to 8 where the skin keeps 4, so the kept ones changed from one vertex to the next and the
@@ -155,12 +185,15 @@ def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray
     2.5x at the widest jaw; issue 30). Around the corner the rows now share one set of joints."""
     w = np.array(weights, dtype=float)
     v = np.asarray(vertices, dtype=float)
+    pinned = np.asarray(pinned, dtype=np.int64)
     keep = pin_fade(v, pinned, fade_mm=pin_fade_mm)
     for corner in np.asarray(corners, dtype=np.int64):
         t = np.clip((outer_mm - np.linalg.norm(v - v[corner], axis=1)) / (outer_mm - inner_mm),
                     0.0, 1.0)
-        beta = t * t * (3.0 - 2.0 * t) * keep
         own = np.argsort(-w[corner], kind="stable")[:count]
+        left_out = pinned[np.setdiff1d(np.arange(w.shape[1]), own)]
+        beta = t * t * (3.0 - 2.0 * t) * np.minimum(keep, pin_fade(v, left_out,
+                                                                   fade_mm=others_fade_mm))
         led = np.zeros_like(w)
         led[:, own] = w[:, own]
         total = led.sum(axis=1)

@@ -46,8 +46,8 @@ def test_solve_mesh_is_the_whole_face_with_uvs(solved):
 
 
 def test_solve_mesh_closes_lips_and_lids(solved):
-    """Mouth seam at rest <= 5 % of the widest opening (measured 0.02 %), lids at the true full
-    blink <= 20 % of their rest aperture (measured 11 %), open when there is no blink, and both
+    """Mouth seam at rest <= 5 % of the widest opening (measured 1.3 %), lids at the true full
+    blink <= 20 % of their rest aperture (measured 9 %), open when there is no blink, and both
     halves move: the mirrored half's lower lip drops at the widest jaw as the captured one's."""
     from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.retarget.default_face import loop_area, template_openings
@@ -75,8 +75,9 @@ def test_solve_mesh_neither_folds_nor_tears_at_the_mouth(solved):
     """No triangle of solve's face faces backward against its rest in any frame of the held-out
     performance (was 2: the template's slivers inside the mouth corners), and within 20 mm of a
     mouth corner the largest stretch is 2.04x (was 2.35x, at a lip marker's vertex blended
-    towards the corner). Elsewhere it is 2.27x, at the upper lids' crease in a blink (issue 30:
-    <= 2x is not met yet)."""
+    towards the corner). Elsewhere it is 1.95x at most (was 2.27x at the upper lids' crease in
+    a blink: the lids now close with the rig's 12 mm field, the blink still sensed with 8 mm;
+    issue 30: <= 2x everywhere is not met yet, 2.04x at the mouth corners)."""
     from mocaptk.retarget.default_face import template_openings
 
     _, _, mesh, frames = solved
@@ -95,6 +96,10 @@ def test_solve_mesh_neither_folds_nor_tears_at_the_mouth(solved):
     length = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
     stretch = np.linalg.norm(frames[:, edges[:, 0]] - frames[:, edges[:, 1]], axis=2) / length
     assert np.nanmax(stretch) <= 2.1, np.nanmax(stretch)
+    edges = np.unique(np.sort(faces[~near][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    length = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+    stretch = np.linalg.norm(frames[:, edges[:, 0]] - frames[:, edges[:, 1]], axis=2) / length
+    assert np.nanmax(stretch) <= 2.0, np.nanmax(stretch)
 
 
 def test_template_slivers_are_flipped():

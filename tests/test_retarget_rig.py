@@ -553,8 +553,9 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     the full blink and 4.71x, from lid weights dropped by the capping, a blink counted twice and
     the eye corners' torn weights). Over the whole face no triangle faces backward either (the
     template's two slivers inside the mouth corners are flipped) and the largest stretch is
-    2.08x, below the mouth corners at the widest jaw (was 2.62x; <= 2x is not met yet,
-    docs/default-face.md)."""
+    2.077x, below the mouth corners at the widest jaw (was 2.62x; <= 2x is not met yet,
+    docs/default-face.md). Farther than 20 mm from them it is 1.99x (was 2.06x behind the ears,
+    where the weights were ratios of tiny masked thin-shell weights; now filled harmonically)."""
     from scipy.spatial import cKDTree
 
     from mocaptk.acquisition.formats import read_trajectories
@@ -584,3 +585,8 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     rest = np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1)
     stretch = np.linalg.norm(posed[:, edges[:, 0]] - posed[:, edges[:, 1]], axis=2) / rest
     assert stretch.max() <= 2.1 and np.percentile(stretch.max(axis=0), 99.9) <= 2.0
+    (upper, _), _, _ = template_openings()
+    middle = rig.vertices[edges].mean(axis=1)
+    corners = rig.vertices[[upper[0], upper[-1]]]
+    far = np.linalg.norm(middle[:, None] - corners, axis=2).min(axis=1) >= 20
+    assert stretch[:, far].max() <= 2.0, stretch[:, far].max()
