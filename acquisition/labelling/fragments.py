@@ -4,7 +4,8 @@ A fragment is a run of consecutive frames in which one column holds a point (cap
 breaks a trajectory at every occlusion; a column may hold several fragments one after another).
 Untracked per-frame clouds (each frame's points in arbitrary columns) are first linked into
 fragments here: a point continues the previous frame's nearest point when the two are mutual
-nearest neighbours, well inside the marker spacing and clearly nearer than any other point.
+nearest neighbours, well inside the marker spacing, and each clearly nearer to the other than
+to any other point (both ways: a ghost passing close to a marker must not carry on its trajectory).
 """
 
 from __future__ import annotations
@@ -77,12 +78,16 @@ def _link_back(positions, radius, ratio, start, stop, ids):  # pragma: no cover 
         n = _present(positions, f, cur)
         if not n or n_prev < 2:
             continue
-        for j in range(n_prev):  # each previous point's nearest current point
-            best, back[j] = np.inf, -1
+        for j in range(n_prev):  # each previous point's nearest current point, if clearly the nearest
+            best, second, back[j] = np.inf, np.inf, -1
             for i in range(n):
                 d = _d2(positions, f - 1, prev[j], f, cur[i])
                 if d < best:
-                    best, back[j] = d, i
+                    best, second, back[j] = d, best, i
+                elif d < second:
+                    second = d
+            if second < ratio * ratio * best:  # a ghost beside the marker: either may continue it
+                back[j] = -1
         for i in range(n):  # each current point's nearest and second-nearest previous points
             d0, d1, near = np.inf, np.inf, -1
             for j in range(n_prev):
