@@ -73,6 +73,11 @@ FALLOFF_SPACINGS = 3.0
 #: The default mesh's border turns inwards by at most this (degrees) at a marker: deeper notches
 #: are filled (a zigzag top of the forehead; sample: 44 -> 14 degrees on the rig's top border).
 RIM_NOTCH_DEG = 30.0
+#: A user mesh's skin this close (mm) to a mouth corner is capped continuously
+#: (:func:`~mocaptk.retarget.weights.cap_weights`): the ICT-FaceKit head's uncut lips swapped
+#: their 4th joint between neighbours 6 mm below the corners (sample: 4 triangles folded -> 0;
+#: largest stretch 2.50x -> 2.68x there; MediaPipe 1.86x -> 1.90x).
+MESH_CORNER_CONTINUOUS_MM = 8.0
 
 
 @dataclass(frozen=True)
@@ -585,6 +590,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
                            nearest)
+    if opened is not None and mouth_corners is not None:
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(vertices[mouth_corners]).query(vertices)[0] < MESH_CORNER_CONTINUOUS_MM
+        lid_rows = np.asarray(lid_rows, bool) | (near & np.isin(np.arange(len(vertices)),
+                                                                 faces[:opened.skin]))
     index, value = cap_weights(weights, max_influences=options.max_influences,
                                min_weight=options.min_weight, fallback=nearest, mirror=mirror,
                                continuous=lid_rows)
