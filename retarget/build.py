@@ -47,8 +47,8 @@ from .face_template import FittedTemplate, fit_template
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
-from .mesh_openings import CORNERS, OpenedMesh, lip_midcurve, open_mesh
-from .mesh_parts import beyond_markers, part_weights
+from .mesh_openings import CORNERS, OpenedMesh, open_mesh, parts_follow
+from .mesh_parts import head_jaw_rows
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -77,6 +77,11 @@ MIN_SUPPORT = 0.05
 #: The default mesh's border turns inwards by at most this (degrees) at a marker: deeper notches
 #: are filled (a zigzag top of the forehead; sample: 44 -> 14 degrees on the rig's top border).
 RIM_NOTCH_DEG = 30.0
+#: A user mesh's skin this close (mm) to a mouth corner is capped continuously
+#: (:func:`~mocaptk.retarget.weights.cap_weights`): the ICT-FaceKit head's uncut lips swapped
+#: their 4th joint between neighbours 6 mm below the corners (sample: 4 triangles folded -> 0;
+#: largest stretch 2.50x -> 2.68x there; MediaPipe 1.86x -> 1.90x).
+MESH_CORNER_CONTINUOUS_MM = 8.0
 
 
 @dataclass(frozen=True)
@@ -592,6 +597,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
                            nearest)
+    if opened is not None and mouth_corners is not None:
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(vertices[mouth_corners]).query(vertices)[0] < MESH_CORNER_CONTINUOUS_MM
+        lid_rows = np.asarray(lid_rows, bool) | (near & np.isin(np.arange(len(vertices)),
+                                                                 faces[:opened.skin]))
     index, value = cap_weights(weights, max_influences=options.max_influences,
                                min_weight=options.min_weight, fallback=nearest, mirror=mirror,
                                continuous=lid_rows)
@@ -633,27 +644,20 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
 def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud: DenseCloud,
                   rep_idx: np.ndarray, template: FittedTemplate | None, options: RigOptions,
                   spacing: float) -> np.ndarray:
-    """A user mesh's skin beyond the markers towards the head
-    (:func:`~mocaptk.retarget.mesh_parts.beyond_markers`) and the rows of its parts other than
-    the skin (:func:`~mocaptk.retarget.mesh_parts.part_weights`): the head's row is the layout
-    joint that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
-    joints, equally."""
+    """A user mesh's skin beyond the markers and its parts other than the skin
+    (:func:`~mocaptk.retarget.mesh_openings.parts_follow`): the head's row is the layout joint
+    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
+    joints, equally (:func:`~mocaptk.retarget.mesh_parts.head_jaw_rows`)."""
     bind = cloud.neutral[rep_idx]
     moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
-    head = np.zeros(weights.shape[1])
-    head[int(np.argmin(np.nan_to_num(moved, nan=np.inf)))] = 1.0
-    lower = np.flatnonzero(jaw_members([c.region for c in layout.clusters], bind))
-    lower = lower[np.argsort(bind[lower, 1], kind="stable")[:options.max_influences]]
-    jaw = np.zeros(weights.shape[1])
-    jaw[lower] = 1.0 / len(lower)
-    skin = np.unique(opened.faces[:opened.skin])
-    nose_y = float(opened.vertices[skin[np.argmax(opened.vertices[skin, 2])], 1])
-    mouth_y = (float(lip_midcurve(template)[:, 1].mean()) if template is not None
-               else float(bind[lower, 1].max()))
-    weights = beyond_markers(weights, opened.vertices, cloud.neutral, head=head, spacing=spacing,
-                             mouth_y=mouth_y)
-    return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
-                        mouth_y=mouth_y, nose_y=nose_y)
+    head, jaw = head_jaw_rows(int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
+                              [c.region for c in layout.clusters], bind,
+                              count=options.max_influences)
+    jaw_top_y = float(bind[jaw > 0, 1].max())
+    extra = np.zeros(weights.shape[1] - len(bind))  # the lids' joints, after the layout's
+    head, jaw = np.concatenate([head, extra]), np.concatenate([jaw, extra])
+    return parts_follow(weights, opened, cloud.neutral, head=head, jaw=jaw, spacing=spacing,
+                        template=template, jaw_top_y=jaw_top_y)
 
 
 def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:

@@ -15,7 +15,7 @@ blink gives exactly the lid's shape.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -29,6 +29,7 @@ from mocaptk.errors import OptionError
 from mocaptk.surface_mesh import marker_surface_mesh
 
 from .align import Alignment, SurfaceProximity, align_mesh_to_markers
+from .face_template import FittedTemplate
 from .influence import anchor_vertices
 from .mesh_openings import OpenedMesh
 
@@ -38,6 +39,9 @@ __all__ = ["Blink", "MeshMap", "Mirror"]
 MESH_NEIGHBOURS = 8
 #: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
 ANCHOR_REACH_MM = 5.0
+#: The jaw's row of a user mesh's parts (teeth, gums): its lowest jaw markers, equally (as the
+#: rig's 4 influences).
+PART_JAW_MARKERS = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,7 +222,8 @@ class MeshMap:
     def fitted(cls, vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray, *,
                reach_mm: float = ANCHOR_REACH_MM, lateral: np.ndarray | None = None,
                corners: Mapping[str, int] | None = None,
-               landmarks: Mapping[int, int] | None = None
+               landmarks: Mapping[int, int] | None = None, head: int | None = None,
+               regions: Sequence[str] | None = None
                ) -> tuple[MeshMap, Alignment, int, OpenedMesh]:
         """A user's mesh ``vertices`` (V, 3) (any unit, Y up, facing +Z), ``faces`` (T, 3) aligned
         onto the dense neutral ``neutral`` (M, 3) mm (NaN = unseen) by ICP with scale and opened
@@ -228,7 +233,9 @@ class MeshMap:
         unless it is more than ``reach_mm`` from the surface (beyond the mesh's border), then
         :meth:`anchored`, its openings' corners blended and its lids blinking. Returns the map,
         the alignment, how many markers were pinned and the opened mesh (rig frame).
-        ``landmarks`` {dense marker: vertex} start the alignment (``rig --landmarks``)."""
+        ``landmarks`` {dense marker: vertex} start the alignment (``rig --landmarks``). With
+        ``head`` (the dense marker that moves least) and ``regions`` (M,) (each dense marker's),
+        the mesh's parts other than its skin move as the rig's (:meth:`_with_parts`)."""
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
@@ -256,7 +263,43 @@ class MeshMap:
         mesh = cls.anchored(placed, opened.faces, anchors, neutral)
         mesh = mesh._with_openings(opened.vertices, opened.mouth_corners, opened.lids, anchors,
                                    neutral, rotation, eye_corner_mm=opened.eye_corner_mm)
+        if head is not None and regions is not None:
+            mesh = mesh._with_parts(opened, points, seen, head, [regions[m] for m in seen],
+                                    template, neutral)
         return mesh, alignment, int(close.sum()), opened
+
+    def _with_parts(self, opened: OpenedMesh, points: np.ndarray, seen: np.ndarray, head: int,
+                    regions: Sequence[str], template: FittedTemplate | None,
+                    columns: np.ndarray) -> MeshMap:
+        """This map of a user's ``opened`` mesh with its parts' rows (and their share of the lids'
+        blinks) set as the rig sets its weights (:func:`~mocaptk.retarget.mesh_openings.parts_follow`):
+        ``points`` (S, 3) mm the ``seen`` dense markers in the rig frame, ``head`` the dense
+        marker that moves least, ``regions`` (S,) theirs, ``columns`` (M, 3) mm as :meth:`anchored`."""
+        from mocaptk.surface_mesh import marker_spacing
+
+        from .mesh_openings import parts_follow
+        from .mesh_parts import head_jaw_rows
+
+        m = self.matrix.shape[1]
+        row = np.flatnonzero(seen == head)
+        if not row.size:
+            return self
+        head_row, jaw_row = head_jaw_rows(int(row[0]), regions, points, count=PART_JAW_MARKERS)
+        matrix = np.asarray(self.matrix, dtype=np.float64)
+        # each lid's own blink shape (V, 3) goes along as 3 more columns: a lash takes its lid's
+        lids = [b.shape + matrix[:, b.sensors] @ b.full for b in self.blinks]
+        extra = np.zeros(3 * len(lids))
+        wide = np.zeros((2, m))
+        wide[:, seen] = head_row, jaw_row
+        rows = parts_follow(np.concatenate([matrix] + lids, axis=1), opened, points,
+                            head=np.concatenate([wide[0], extra]), jaw=np.concatenate([wide[1], extra]),
+                            spacing=marker_spacing(points), template=template,
+                            jaw_top_y=float(points[jaw_row > 0, 1].max()))
+        matrix = rows[:, :m]
+        blinks = tuple(replace(b, shape=rows[:, m + 3 * i:m + 3 * i + 3] - matrix[:, b.sensors] @ b.full)
+                       for i, b in enumerate(self.blinks))
+        return replace(self, matrix=matrix.astype(np.float32), blinks=blinks,
+                       offset=self.vertices - matrix @ np.nan_to_num(columns))
 
     @classmethod
     def learned(cls, vertices: np.ndarray, faces: np.ndarray, markers: np.ndarray,

@@ -37,10 +37,10 @@ from .default_face import (EYE_CORNER_MM, LID_REACH_MM, Lid, along_rim, closing_
                            split_loop, template_openings)
 from .eye_openings import eye_loops
 from .face_template import FittedTemplate
-from .mesh_parts import skin_faces
+from .mesh_parts import beyond_markers, nose_height, part_weights, skin_faces
 
 __all__ = ["CORNERS", "LipCut", "OpenedMesh", "cut_lip_line", "kept_out", "mesh_lids", "lip_midcurve",
-           "lip_path", "lips_joined", "open_mesh", "split_along", "eye_corner_reach"]
+           "lip_path", "lips_joined", "open_mesh", "parts_follow", "split_along", "eye_corner_reach"]
 
 #: Corner landmarks: the ends of the mouth's and each eye's rims, subject's right (R, smaller X)
 #: to left, as the template's rims run.
@@ -430,3 +430,20 @@ def eye_corner_reach(vertices: np.ndarray, lids: tuple[Lid, ...], template: Fitt
     theirs = np.mean([loop_area(template.vertices[np.concatenate([upper, lower[::-1][1:-1]])])
                       for upper, lower in eyes])
     return EYE_CORNER_MM * float(np.clip(own / theirs, 0.5, 1.0))
+
+
+def parts_follow(weights: np.ndarray, opened: OpenedMesh, markers: np.ndarray, *, head: np.ndarray,
+                 jaw: np.ndarray, spacing: float, template: FittedTemplate | None,
+                 jaw_top_y: float) -> np.ndarray:
+    """``weights`` (V, J) of ``opened``'s vertices (rig frame) with its skin beyond the dense
+    ``markers`` (M, 3) mm blended towards the ``head`` row
+    (:func:`~mocaptk.retarget.mesh_parts.beyond_markers`) and the rows of its parts other than
+    the skin set (:func:`~mocaptk.retarget.mesh_parts.part_weights`; ``head``/``jaw`` (J,)), as
+    ``rig --mesh`` and ``solve --mesh`` both weight them. The mouth's line is the ``template``'s
+    lip mid-curve, without one ``jaw_top_y`` mm (the jaw's highest joint)."""
+    nose_y = nose_height(opened.vertices, opened.faces, opened.skin)
+    mouth_y = float(lip_midcurve(template)[:, 1].mean()) if template is not None else float(jaw_top_y)
+    weights = beyond_markers(weights, opened.vertices, markers, head=head, spacing=spacing,
+                             mouth_y=mouth_y)
+    return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
+                        mouth_y=mouth_y, nose_y=nose_y)

@@ -21,9 +21,12 @@ stretch, 715 triangles facing backward). Instead every part moves with what it b
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-__all__ = ["BEYOND_SPACINGS", "beyond_markers", "part_weights", "skin_faces"]
+__all__ = ["BEYOND_SPACINGS", "beyond_markers", "head_jaw_rows", "nose_height", "part_weights", "parts",
+           "skin_faces"]
 
 #: Skin this many marker spacings from the nearest dense marker starts to blend towards the
 #: head's row, and follows it wholly at twice that.
@@ -52,19 +55,40 @@ def part_weights(weights: np.ndarray, vertices: np.ndarray, faces: np.ndarray, s
     """``weights`` (V, J) with the rows of the parts other than the skin (``faces[skin:]``) set
     as the module says: ``head``/``jaw`` (J,) the rigid rows, ``mouth_y``/``nose_y`` mm the
     heights of the mouth's line and the nose tip (rig frame, Y up)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    from mocaptk.surface_mesh import boundary_edges
-
     faces = np.asarray(faces, dtype=np.int64)
-    others = faces[skin:]
-    if not len(others):
-        return weights
     weights = np.array(weights, dtype=float)
     on = np.unique(faces[:skin])
     tree = cKDTree(vertices[on])
+    for members, kind in parts(vertices, faces, skin, nose_y=nose_y):
+        y = vertices[members, 1]
+        if kind == "rigid":  # a tooth, an eyeball: one row
+            low = np.full(len(members), float(y.mean() < mouth_y))
+        elif kind == "lid":  # lashes: with the lid
+            weights[members] = weights[on[tree.query(vertices[members])[1]]]
+            continue
+        else:  # gums and tongue: from the head's at its top to the jaw's at its bottom
+            low = (y.max() - y) / max(float(np.ptp(y)), 1e-9)
+        weights[members] = (1.0 - low)[:, None] * head + low[:, None] * jaw
+    return weights
+
+
+def parts(vertices: np.ndarray, faces: np.ndarray, skin: int, *, nose_y: float
+          ) -> list[tuple[np.ndarray, str]]:
+    """The connected parts of ``faces[skin:]`` (the mesh's pieces other than its skin), each as
+    ``(vertices (K,), kind)``: ``"rigid"`` a closed piece (a tooth, an eyeball), ``"lid"`` an
+    open one above the nose tip's height ``nose_y`` mm (lashes, the eye's wet rim and shading
+    shells: they follow the lids, and are drawn with an alpha or transparent material),
+    ``"blend"`` an open one below it (gums and tongue)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from mocaptk.surface_mesh import boundary_edges
+
+    others = np.asarray(faces, dtype=np.int64)[skin:]
+    if not len(others):
+        return []
     used = np.unique(others)
     new = np.full(len(vertices), -1, dtype=np.int64)
     new[used] = np.arange(len(used))
@@ -72,20 +96,37 @@ def part_weights(weights: np.ndarray, vertices: np.ndarray, faces: np.ndarray, s
     pairs = np.concatenate([local[:, [0, 1]], local[:, [1, 2]]])
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(used),) * 2)
     _, part = connected_components(graph, directed=False)
-    nearest = tree.query(vertices[used])[1]
     open_parts = np.unique(part[new[boundary_edges(others).ravel()]])
+    found = []
     for p in range(part.max() + 1):
         members = used[part == p]
-        y = vertices[members, 1]
-        if p not in open_parts:  # a tooth, an eyeball: one row
-            low = np.full(len(members), float(y.mean() < mouth_y))
-        elif y.mean() > nose_y:  # lashes: with the lid
-            weights[members] = weights[on[nearest[part == p]]]
-            continue
-        else:  # gums and tongue: from the head's at its top to the jaw's at its bottom
-            low = (y.max() - y) / max(float(np.ptp(y)), 1e-9)
-        weights[members] = (1.0 - low)[:, None] * head + low[:, None] * jaw
-    return weights
+        kind = ("rigid" if p not in open_parts else
+                "lid" if vertices[members, 1].mean() > nose_y else "blend")
+        found.append((members, kind))
+    return found
+
+
+def nose_height(vertices: np.ndarray, faces: np.ndarray, skin: int) -> float:
+    """The nose tip's height (mm, Y up): of the skin's (``faces[:skin]``) most forward (+Z)
+    vertex."""
+    on = np.unique(np.asarray(faces)[:skin])
+    return float(vertices[on[np.argmax(vertices[on, 2])], 1])
+
+
+def head_jaw_rows(head: int, regions: Sequence[str], positions: np.ndarray, *,
+                  count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The head's and the jaw's rows (J,) over J columns (the rig's joints, solve's dense
+    markers): the head's all on column ``head`` (one that moves least), the jaw's on the
+    ``count`` lowest jaw columns (:func:`~mocaptk.retarget.rig_hierarchy.jaw_members` of their
+    ``regions`` and ``positions`` (J, 3) mm, rig frame, Y up), equally."""
+    from .rig_hierarchy import jaw_members
+
+    positions = np.asarray(positions, dtype=float)
+    lower = np.flatnonzero(jaw_members(list(regions), positions))
+    lower = lower[np.argsort(positions[lower, 1], kind="stable")[:count]]
+    jaw = np.zeros(len(positions))
+    jaw[lower] = 1.0 / len(lower)
+    return np.eye(len(positions))[int(head)], jaw
 
 
 def beyond_markers(weights: np.ndarray, vertices: np.ndarray, markers: np.ndarray, *,

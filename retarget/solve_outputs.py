@@ -113,7 +113,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     if mesh_path is not None:
         say(f"aligning {Path(mesh_path).name} to the dense neutral")
         mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral, layout=layout,
-                                    landmarks=landmarks, labels=solver.labels)
+                                    landmarks=landmarks, labels=solver.labels,
+                                    head=(solver.fallback_labels or (None,))[0])
     elif surface == "face":
         say("fitting the face to the dense neutral")
         mesh = face_mesh(solver, layout)
@@ -210,13 +211,16 @@ def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
 
 
 def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layout | None = None,
-              landmarks: Mapping[str, int] | None = None, labels: Sequence[str] = ()
-              ) -> tuple[MeshMap, dict[str, Any]]:
+              landmarks: Mapping[str, int] | None = None, labels: Sequence[str] = (),
+              head: str | None = None) -> tuple[MeshMap, dict[str, Any]]:
     """The mesh file ``path`` (OBJ, PLY, glTF/GLB, STL, OFF; any unit, Y up, facing +Z) aligned
     to the dense neutral (M, 3) mm (dense marker ``labels``), opened as ``rig --mesh`` opens it
     and following the dense markers (:meth:`MeshMap.fitted`), and its summary for
     ``solve.json``. ``landmarks`` as ``rig --landmarks``: {marker label: vertex} pairs start the
-    alignment, the :data:`~mocaptk.retarget.mesh_openings.CORNERS` keys steer the openings."""
+    alignment, the :data:`~mocaptk.retarget.mesh_openings.CORNERS` keys steer the openings.
+    ``head``: the layout marker that moves least (the solver's first fallback pose marker); with
+    it and ``layout``, the mesh's teeth, eyeballs, lashes and gums move as ``rig --mesh`` moves
+    them (with the head, the jaw or the lids)."""
     from .mesh_io import load_mesh
     from .mesh_openings import CORNERS
 
@@ -229,9 +233,12 @@ def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layo
     unknown = [k for k in pairs if k not in index]
     if unknown:
         raise OptionError(f"--landmarks: not dense markers of the model: {', '.join(unknown[:6])}")
+    region_of = {} if layout is None else {m: c.region for c in layout.clusters for m in c.members}
     mesh, alignment, pinned, opened = MeshMap.fitted(
         loaded.vertices, loaded.faces, neutral, lateral=lateral, corners=corners,
-        landmarks={index[k]: v for k, v in pairs.items()} or None)
+        landmarks={index[k]: v for k, v in pairs.items()} or None,
+        head=index.get(head) if head is not None else None,
+        regions=[region_of.get(label, "") for label in labels] if layout is not None else None)
     return mesh, {"kind": "user mesh", "source": str(path), "pinned_markers": pinned,
                   "alignment": {"method": alignment.method, "scale": alignment.transform.scale,
                                 "rms_residual_mm": alignment.rms_mm,

@@ -10,7 +10,12 @@ width, smallest eye aperture) and used for every face. Usage (from the repositor
     python scripts/render_faces.py [out folder, default docs/renders] [--mesh-only]
 
 ``--mesh-only``: the ``--mesh`` faces only (the poses still come from the default rig). A
-mesh's parts other than its skin (teeth, eyeballs, lashes) are drawn in a lighter colour.
+mesh's parts other than its skin (teeth, eyeballs) are drawn in a lighter colour; the open
+pieces around its eyes (:func:`~mocaptk.retarget.mesh_parts.parts` ``"lid"``: the ICT-FaceKit
+head's lash cards, eye-occlusion and eye-blend shells and wet rims, alpha-textured or
+transparent in their own material) dark and translucent, as a renderer with their materials
+shows them: drawn opaque they hid the lids and stood out past the brow. Each view is framed to
+fit the face in all four poses.
 """
 
 from __future__ import annotations
@@ -29,6 +34,9 @@ VIEWS = {"front": (0.0, 0.0, 1.0), "three-quarter": (0.62, 0.05, 0.78)}
 POSES = ("rest", "widest jaw", "strongest smile", "full blink")
 SKIN = (0.80, 0.62, 0.52)
 PARTS = (0.93, 0.91, 0.86)
+OVERLAY = ((0.12, 0.08, 0.06), 0.35)  # colour, opacity
+WINDOW = (480, 560)
+VIEW_ANGLE_DEG = 22.0
 
 
 def cells_of(faces: np.ndarray) -> np.ndarray:
@@ -42,7 +50,6 @@ def main(argv: list[str]) -> None:
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
     from mocaptk.retarget.build import build_rig
     from mocaptk.retarget.mesh_io import load_mesh
-    from mocaptk.retarget.mesh_parts import skin_faces
     from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
     from mocaptk.retarget.solve_outputs import face_mesh
 
@@ -72,7 +79,7 @@ def main(argv: list[str]) -> None:
         for name, path, title in user_meshes(Path(tmp)):
             user = build_rig(layout, session, mesh=load_mesh(path), check=False)
             render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title,
-                   skin=skin_faces(user.rig.faces))
+                   kinds=face_kinds(user.rig.vertices, user.rig.faces))
 
 
 def user_meshes(tmp: Path) -> list[tuple[str, Path, str]]:
@@ -116,30 +123,59 @@ def pose_frames(build, posed: np.ndarray) -> list[int]:
             int(np.argmin(eye))]
 
 
+def face_kinds(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each triangle's kind (T,) of a user mesh's rig (its skin's triangles first): 0 skin, 1 a
+    part drawn opaque (teeth, eyeballs, gums), 2 a translucent piece around the eyes."""
+    from mocaptk.retarget.mesh_parts import nose_height, parts, skin_faces
+
+    count = int(skin_faces(faces).sum())
+    kinds = np.where(np.arange(len(faces)) < count, 0, 1)
+    for members, kind in parts(vertices, faces, count, nose_y=nose_height(vertices, faces, count)):
+        if kind == "lid":
+            kinds[np.isin(faces[:, 0], members)] = 2
+    return kinds
+
+
+def camera_distance(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> float:
+    """How far (mm) from ``centre`` along the unit ``direction`` the camera fits ``points``
+    (V, 3) mm in the window with a 6 % margin on each side (both its width and its height)."""
+    back = -direction / np.linalg.norm(direction)
+    right = np.cross(back, (0.0, 1.0, 0.0))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, back)
+    rel = points - centre
+    tan_y = np.tan(np.radians(VIEW_ANGLE_DEG) / 2.0) / 1.06
+    tan_x = tan_y * WINDOW[0] / WINDOW[1]
+    toward = rel @ -back  # how much nearer the camera than the centre
+    return float(np.max(np.maximum(np.abs(rel @ right) / tan_x, np.abs(rel @ up) / tan_y) + toward))
+
+
 def render(poses: np.ndarray, faces: np.ndarray, path: Path, title: str, *,
-           skin: np.ndarray | None = None) -> None:
+           kinds: np.ndarray | None = None) -> None:
     """A 2 x 4 grid (views x poses) of ``poses`` (4, V, 3) mm, rig frame, into ``path``;
-    ``skin`` (T,) bool: the skin's triangles (the others drawn lighter)."""
+    ``kinds`` (T,) as :func:`face_kinds` (default: all skin)."""
     import matplotlib.pyplot as plt
     import pyvista as pv
 
     pv.OFF_SCREEN = True
-    skin = np.ones(len(faces), bool) if skin is None else skin
-    parts = [(skin, SKIN), (~skin, PARTS)]
+    kinds = np.zeros(len(faces), int) if kinds is None else kinds
+    looks = [(0, SKIN, 1.0), (1, PARTS, 1.0), (2, *OVERLAY)]
     centre = poses[0].mean(axis=0)
-    size = float(np.ptp(poses[0][:, 1]))
     fig, axes = plt.subplots(2, 4, figsize=(12, 7.6))
     for row, (view, direction) in enumerate(VIEWS.items()):
+        direction = np.array(direction) / np.linalg.norm(direction)
+        distance = camera_distance(poses.reshape(-1, 3), centre, direction)  # every pose in view
         for col, (pose, points) in enumerate(zip(POSES, poses)):
-            plotter = pv.Plotter(off_screen=True, window_size=(480, 560))
+            plotter = pv.Plotter(off_screen=True, window_size=WINDOW)
             plotter.set_background("white")
-            for part, colour in parts:
-                if part.any():
-                    plotter.add_mesh(pv.PolyData(np.asarray(points, float), cells_of(faces[part])),
-                                     color=colour, smooth_shading=True, specular=0.2)
-            plotter.camera_position = [tuple(centre + 2.6 * size * np.array(direction)),
-                                       tuple(centre), (0.0, 1.0, 0.0)]
-            plotter.camera.view_angle = 22.0
+            plotter.enable_depth_peeling()  # the translucent pieces in depth order
+            for kind, colour, opacity in looks:
+                if (kinds == kind).any():
+                    plotter.add_mesh(pv.PolyData(np.asarray(points, float), cells_of(faces[kinds == kind])),
+                                     color=colour, opacity=opacity, smooth_shading=True, specular=0.2)
+            plotter.camera_position = [tuple(centre + distance * direction), tuple(centre),
+                                       (0.0, 1.0, 0.0)]
+            plotter.camera.view_angle = VIEW_ANGLE_DEG
             axes[row, col].imshow(plotter.screenshot(return_img=True))
             plotter.close()
             axes[row, col].set_axis_off()

@@ -4,10 +4,14 @@ skin, teeth, gums and tongue, eyeballs, lashes): each moves with what it belongs
 from __future__ import annotations
 
 import tarfile
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from conftest import shared_path
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_c3d"
 
 
 def test_ict_head_parts_move_with_the_head_the_jaw_or_the_lids(tmp_path):
@@ -60,3 +64,63 @@ def test_ict_head_parts_move_with_the_head_the_jaw_or_the_lids(tmp_path):
         kinds[kind] += 1
     # 16 upper teeth + 4 eyeball pieces, 16 lower teeth, 2 x 6 lashes + 2 x 3 eye pieces, the gums
     assert kinds == {"head": 20, "jaw": 16, "skin": 18, "blend": 1}
+
+
+@pytest.mark.slow
+def test_solve_moves_a_meshs_parts_as_the_rig_does(tmp_path):
+    """``solve --mesh`` (:func:`~mocaptk.retarget.solve_outputs.user_mesh`) on the MediaPipe face
+    with an upper and a lower tooth and an eyeball added (closed pieces): over the held-out
+    performance each stays rigid, the lower tooth drops with the jaw's markers at the widest
+    opening, the upper one and the eyeball move with the head's marker (before, the pieces took
+    the thin-shell weights of a piece no marker is pinned to, and stayed where they were)."""
+    import trimesh
+
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
+    from mocaptk.retarget.mesh_io import load_mesh
+    from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
+    from mocaptk.retarget.solve_outputs import user_mesh
+
+    face = load_mesh(shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    vertices, faces = [face.vertices], [face.faces]
+    pieces = {"upper": ((0.0, -3.7, 4.6), 0.25), "lower": ((0.0, -4.9, 4.6), 0.25),
+              "eye": ((-3.18, 2.6, 2.7), 1.0)}  # cm, as the MediaPipe face
+    where = {}
+    for name, (centre, radius) in pieces.items():
+        start = sum(len(v) for v in vertices)
+        where[name] = np.arange(start, start + len(ball.vertices))
+        vertices.append(np.asarray(ball.vertices) * radius + centre)
+        faces.append(np.asarray(ball.faces) + start)
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.concatenate(vertices)]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.concatenate(faces)]
+    (tmp_path / "parts.obj").write_text("\n".join(lines) + "\n")
+
+    truth = load_ground_truth(SAMPLES / "dense_halfface_truth.npz")
+    session = truth.trajectories()
+    layout = cluster_session(session, options=ClusterOptions(
+        factor=1.1, stabilize=False, takes=truth.takes)).layout
+    solver = train_solver(layout, session, {"path": "sample", "sha256": None})
+    perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
+    dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, perf, "p"))])
+    mesh, info = user_mesh(tmp_path / "parts.obj", solver.model.neutral, layout=layout,
+                           labels=solver.labels, head=solver.fallback_labels[0])
+    # the skin's removed vertices (the eyes' insides) come before the pieces' (lip copies after)
+    offset = -len(info["eye_openings"]["vertices_removed"])
+    posed = mesh.apply(dense)
+    head = solver.labels.index(solver.fallback_labels[0])
+    chin = [i for i, label in enumerate(solver.labels) if label.startswith("CHIN")]
+    drop = solver.model.neutral[chin, 1] - dense[:, chin, 1]  # session frame: Y up, head-relative
+    jaw = int(np.argmax(drop.mean(axis=1)))
+    for name, (_, radius) in pieces.items():
+        index = where[name] + offset
+        move = posed[:, index] - mesh.vertices[index]
+        # rigid: every vertex moved alike (a translation, as the rig's joints)
+        assert np.abs(move - move[:, :1]).max() < 1e-3
+        shift = move[jaw, 0]
+        if name == "lower":
+            # the jaw's lowest markers' drop: 20.0 mm (the chin's markers 2.7-24.5 mm)
+            assert np.median(drop[jaw]) < -shift[1] <= drop[jaw].max() and -shift[1] > 10.0
+        else:  # with the head's marker, the layout marker that moves least (a brow's: 2.9 mm)
+            np.testing.assert_allclose(move[:, 0], dense[:, head] - solver.model.neutral[head], atol=1e-3)
