@@ -10,6 +10,7 @@ GIL, so threads do it: each photo is one task (read + detect), each video one ta
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -17,9 +18,11 @@ import numpy as np
 
 from .blob_detection import Blobs, detect_blobs
 from .image_sequences import ImageSource, read_grey
+from .scratch import Scratch
 
 #: (frame name, (width, height) px, the image (first frame only, else None), its blobs)
 _Result = tuple[str, tuple[int, int], np.ndarray | None, Blobs]
+_buffers = threading.local()
 
 
 def detect_sources(sources: list[ImageSource], *, min_area: int, max_area: int,
@@ -49,12 +52,22 @@ def detect_sources(sources: list[ImageSource], *, min_area: int, max_area: int,
 
 
 def _photo(file: Path, options: dict, keep: bool) -> _Result:
-    image = read_grey(file)
-    return file.name, (image.shape[1], image.shape[0]), image if keep else None, \
-        detect_blobs(image, **options)
+    scratch = _scratch()
+    image = read_grey(file, scratch=scratch)
+    return file.name, (image.shape[1], image.shape[0]), image.copy() if keep else None, \
+        detect_blobs(image, scratch=scratch, **options)
 
 
 def _video(source: ImageSource, options: dict) -> list[_Result]:
+    scratch = _scratch()
     return [(name, (image.shape[1], image.shape[0]), None if index else image,
-             detect_blobs(image, **options))
+             detect_blobs(image, scratch=scratch, **options))
             for index, (name, image) in enumerate(source.frames())]
+
+
+def _scratch() -> Scratch:
+    """The calling thread's buffers (a pool thread runs one task at a time)."""
+    if not hasattr(_buffers, "scratch"):
+        _buffers.scratch = Scratch()
+    return _buffers.scratch
+

@@ -17,6 +17,9 @@ import numpy as np
 
 from mocaptk.errors import InputFileError
 
+from .scratch import Scratch
+from .stored_png import read_stored, stored_size
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
@@ -83,9 +86,31 @@ class ImageSource:
             capture.release()
 
 
-def read_grey(file: Path) -> np.ndarray:
-    """One photo as an 8-bit grey image (OpenCV decodes it without holding the GIL)."""
-    image = cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE)
+def read_grey(file: Path, *, scratch: Scratch | None = None) -> np.ndarray:
+    """One photo as an 8-bit grey image. An uncompressed grey PNG (``synth --images``) is copied
+    out of the file (:mod:`.stored_png`), anything else decoded by OpenCV (which releases the
+    GIL). With ``scratch`` the image lives in its buffer until the next read into it."""
+    scratch = scratch or Scratch()
+    try:
+        with open(file, "rb") as handle:
+            size = stored_size(handle.read(33))
+            total = os.fstat(handle.fileno()).st_size
+            # only a file the size of its rows is read whole: a deflated one goes to OpenCV as is
+            if size is not None and total <= size[1] * (size[0] + 1) * 1.01 + 4096:
+                data = scratch.array("file", (total,), np.uint8)
+                handle.seek(0)
+                if handle.readinto(data) == total:
+                    image = scratch.array("image", size[::-1], np.uint8)
+                    if read_stored(memoryview(data), image,
+                                   scratch.array("rows", (size[1], size[0] + 1), np.uint8)):
+                        return image
+                    return _decoded(file, cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
+    except OSError as exc:
+        raise InputFileError(file, f"cannot read this image ({exc.strerror})") from None
+    return _decoded(file, cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE))
+
+
+def _decoded(file: Path, image: np.ndarray | None) -> np.ndarray:
     if image is None:
         raise InputFileError(file, "cannot decode this image")
     return image
