@@ -1,7 +1,8 @@
 """Bright marker blobs in one grey image: sub-pixel centres, size and shape filters, merge flag.
 
 A pixel belongs to a blob when it is ``THRESHOLD`` of the way from the image's background level
-(its median: markers cover a tiny fraction) to white; OpenCV's connected components label them.
+(its median: markers cover a tiny fraction) to white; its 8-connected components (as OpenCV's,
+found from the rows' runs of bright pixels: :func:`.blob_kernel.label_components`) are the blobs.
 The centre is the intensity-weighted centroid of ``(I - background)`` over a disc around the
 component (its blurred rim included, other blobs' pixels excluded). Blobs smaller than
 ``min_area`` px (specular glints, noise) or larger than ``max_area`` are dropped; a blob much
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .blob_kernel import blob_moments
+from .blob_kernel import blob_moments, label_components
 from .scratch import Scratch
 
 THRESHOLD = 0.35
@@ -54,9 +55,11 @@ def detect_blobs(image: np.ndarray, *, min_area: int = 6, max_area: int = 2000,
     x0, y0, box_w, box_h = cv2.boundingRect(mask)
     if box_w == 0:
         return _NONE
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(
-        mask[y0:y0 + box_h, x0:x0 + box_w], labels=scratch.array("labels", (box_h, box_w), np.uint16),
-        connectivity=8, ltype=cv2.CV_16U)
+    box = mask[y0:y0 + box_h, x0:x0 + box_w]
+    bright = cv2.countNonZero(box)
+    # 16-bit labels unless the frame is flooded with more possible blobs than they can number
+    labels = scratch.array("labels", (box_h, box_w), np.uint16 if bright < 65535 else np.int32)
+    count, stats = label_components(box, labels, bright)
     area = stats[1:, cv2.CC_STAT_AREA]
     keep = np.nonzero((area >= min_area) & (area <= max_area))[0] + 1
     if len(keep) == 0:

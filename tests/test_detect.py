@@ -160,3 +160,19 @@ def test_an_mjpg_frame_that_cannot_be_decoded(rendered, tmp_path, run_cli):
     result = run_cli("detect", video, "--out", tmp_path / "d.npz")
     assert result.exit_code == 2 and "frame 1: cannot decode this MJPG frame" in result.stderr
     assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
+def test_components_from_runs_are_opencvs(rendered):
+    """Labels, their numbering and stats as cv2.connectedComponentsWithStats (8-connected) gives
+    them, on a rendered frame's bright pixels and on random masks up to nearly full."""
+    from mocaptk.acquisition.blob_kernel import label_components
+
+    rng = np.random.default_rng(5)
+    image = rendered[1][0][0]
+    masks = [cv2.threshold(image, 160, 255, cv2.THRESH_BINARY)[1][200:700, 100:600]]
+    masks += [(rng.random((41, 67)) < p).astype(np.uint8) * 255 for p in (0.05, 0.3, 0.5, 0.7, 0.95)]
+    for mask, dtype in zip(masks + masks[1:2], [np.uint16] * len(masks) + [np.int32]):
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        ours = np.full(mask.shape, 7, dtype)  # not zeroed beforehand: the kernel clears it
+        found, our_stats = label_components(mask, ours, cv2.countNonZero(mask))
+        assert found == count and np.array_equal(our_stats[1:], stats[1:]) and np.array_equal(ours, labels)
