@@ -122,8 +122,10 @@ def read_grey(file: Path, *, scratch: Scratch | None = None) -> np.ndarray:
         with open(file, "rb") as handle:
             size = stored_size(handle.read(33))
             total = os.fstat(handle.fileno()).st_size
-            # only a file the size of its rows is read whole: a deflated one goes to OpenCV as is
-            if size is not None and total <= size[1] * (size[0] + 1) * 1.01 + 4096:
+            # only a file the size of its rows is read whole (a deflated one goes to OpenCV as
+            # is), so what is allocated is never more than the file holds
+            rows = size[1] * (size[0] + 1) if size is not None else 0
+            if size is not None and rows <= total <= rows * 1.01 + 4096:
                 data = scratch.array("file", (total,), np.uint8)
                 handle.seek(0)
                 if handle.readinto(data) == total:

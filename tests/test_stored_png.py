@@ -65,3 +65,14 @@ def test_a_cut_stored_png_is_an_error(tmp_path, image):
     file.write_bytes(data[:len(data) // 2])
     with pytest.raises(InputFileError, match="cannot decode"):
         read_grey(file)
+
+
+def test_a_png_header_claiming_a_huge_image_allocates_nothing_big(tmp_path, image):
+    data = bytearray(png_bytes(image))
+    data[16:24] = (60000).to_bytes(4, "big") * 2  # IHDR: 60000 x 60000 px, 3.6 GB of rows
+    file = tmp_path / "frame.png"
+    file.write_bytes(bytes(data))
+    scratch = Scratch()
+    with pytest.raises(InputFileError, match="cannot decode"):
+        read_grey(file, scratch=scratch)
+    assert not scratch._buffers  # left to OpenCV, which refuses it
