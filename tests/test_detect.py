@@ -118,3 +118,61 @@ def test_synth_images_refuses_a_full_folder_before_writing(tmp_path, run_cli):
     result = run_cli("synth", tmp_path / "s.c3d", "--images", tmp_path / "img")
     assert result.exit_code == 2 and "not empty" in result.stderr
     assert not (tmp_path / "s.c3d").exists()
+
+
+def _mjpg(path, frames):
+    height, width = frames[0].shape
+    video = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 60, (width, height), isColor=False)
+    for frame in frames:
+        video.write(frame)
+    video.release()
+    return path
+
+
+def test_mjpg_frames_are_decoded_on_threads_in_frame_order(rendered, tmp_path):
+    from mocaptk.acquisition.detect_images import detect_sources
+    from mocaptk.acquisition.image_sequences import ImageSource, decode_jpeg
+
+    _, images = rendered
+    sources = [ImageSource(_mjpg(tmp_path / f"cam{c}.avi", images[c])) for c in range(2)]
+    packets = list(sources[0].jpeg_frames())
+    assert [name for name, _ in packets] == ["frame 0", "frame 1", "frame 2"]
+    by_ffmpeg = [image for _, image in sources[0].frames()]  # FFmpeg, then BGR -> grey
+    for (_, packet), image in zip(packets, by_ffmpeg):
+        assert np.abs(decode_jpeg(packet).astype(int) - image).max() <= 1
+    one, firsts = detect_sources(sources, min_area=6, max_area=2000, threads=1)
+    two, _ = detect_sources(sources, min_area=6, max_area=2000, threads=2)
+    assert all(np.array_equal(a.centres, b.centres) and np.array_equal(a.merged, b.merged)
+               for row_a, row_b in zip(one, two) for a, b in zip(row_a, row_b))
+    assert [len(row) for row in one] == [3, 3] and firsts[0].shape == images[0][0].shape
+    ffmpeg = detect_blobs(by_ffmpeg[2], split=True)
+    assert len(ffmpeg.centres) == len(one[0][2].centres)
+    assert np.abs(ffmpeg.centres - one[0][2].centres).max() < 0.05
+
+
+def test_an_mjpg_frame_that_cannot_be_decoded(rendered, tmp_path, run_cli):
+    _, images = rendered
+    video = _mjpg(tmp_path / "cam1.avi", images[0])
+    data = bytearray(video.read_bytes())
+    second = data.index(b"\xff\xd8\xff", data.index(b"\xff\xd8\xff") + 3)
+    data[second:second + 3] = b"\x00\x00\x00"  # frame 1 no longer starts as a JPEG
+    video.write_bytes(bytes(data))
+    result = run_cli("detect", video, "--out", tmp_path / "d.npz")
+    assert result.exit_code == 2 and "frame 1: cannot decode this MJPG frame" in result.stderr
+    assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
+def test_components_from_runs_are_opencvs(rendered):
+    """Labels, their numbering and stats as cv2.connectedComponentsWithStats (8-connected) gives
+    them, on a rendered frame's bright pixels and on random masks up to nearly full."""
+    from mocaptk.acquisition.blob_kernel import label_components
+
+    rng = np.random.default_rng(5)
+    image = rendered[1][0][0]
+    masks = [cv2.threshold(image, 160, 255, cv2.THRESH_BINARY)[1][200:700, 100:600]]
+    masks += [(rng.random((41, 67)) < p).astype(np.uint8) * 255 for p in (0.05, 0.3, 0.5, 0.7, 0.95)]
+    for mask, dtype in zip(masks + masks[1:2], [np.uint16] * len(masks) + [np.int32]):
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        ours = np.full(mask.shape, 7, dtype)  # not zeroed beforehand: the kernel clears it
+        found, our_stats = label_components(mask, ours, cv2.countNonZero(mask))
+        assert found == count and np.array_equal(our_stats[1:], stats[1:]) and np.array_equal(ours, labels)
