@@ -51,7 +51,9 @@ def mocaptk(*args) -> None:
 def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
     """(name, session, performance, performance truth) for the sample, the synthetic full face and
     the same actor with a fuller ROM (20 expressions per region: every action several times, so
-    its extremes come closer to the rig's 1). ``BENCH_RETARGET_SETS`` picks some (0,1,2)."""
+    its extremes come closer to the rig's 1); ``BENCH_RETARGET_SETS`` picks some (0,1,2), and 3
+    adds ``benchmarks/testbed``'s ``tb-full-a-hb`` (no mocaptk code made it; its markers leave
+    the eyelids out, its performance has gaze saccades)."""
     sets = []
     for folder, expressions in (("full", 5), ("fullrom", 20)):
         full = work / folder
@@ -65,6 +67,13 @@ def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
     every = [("sample (half face)", SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d",
               SAMPLES / "dense_halfface_performance_truth.npz"), *sets]
     chosen = os.environ.get("BENCH_RETARGET_SETS")
+    if chosen and "3" in chosen.split(","):  # the independent generator: made on demand (minutes)
+        sys.path.insert(0, str(REPO / "benchmarks"))
+        from testbed.sets import ensure_set, ict_tarball
+
+        folder = ensure_set(ict_tarball(), work / "sets", "tb-full-a-hb")
+        every.append(("testbed tb-full-a-hb (independent generator)", folder / "rom.c3d",
+                      folder / "performance.c3d", folder / "performance_truth.npz"))
     return [every[int(i)] for i in chosen.split(",")] if chosen else every
 
 
@@ -74,9 +83,29 @@ def arkit_truth(truth) -> np.ndarray:
     out = np.zeros((len(truth.weights), 52))
     for j, name in enumerate(truth.blendshape_names):
         split = arkit_name(name) is None
-        out[:, ARKIT_NAMES.index(arkit_name(name) or arkit_name(name[:-2]))] += \
-            truth.weights[:, j] * (0.5 if split else 1.0)
+        target = arkit_name(name) or arkit_name(name[:-2])
+        if target is None:  # the testbed's ICT cheekRaiser_L/_R: no ARKit shape
+            continue
+        out[:, ARKIT_NAMES.index(target)] += truth.weights[:, j] * (0.5 if split else 1.0)
     return out
+
+
+def truth_weights(path: Path, *, rom: bool = False) -> np.ndarray:
+    """(F, 52) ARKit weights of a performance truth file (``rom``: of its session's truth), from
+    ``synth``'s truth or the testbed's (its ICT expression names from the testbed's own reader)."""
+    from types import SimpleNamespace
+
+    from mocaptk.acquisition.synth_session import load_ground_truth
+
+    if path.name == "performance_truth.npz":  # the testbed
+        from testbed.ict import load_ict
+        from testbed.sets import ict_tarball
+
+        with np.load(path.with_name("rom_truth.npz") if rom else path) as data:
+            weights = data["weights"].astype(np.float64)
+        return arkit_truth(SimpleNamespace(blendshape_names=load_ict(ict_tarball()).expression_names,
+                                           weights=weights))
+    return arkit_truth(load_ground_truth(path.with_name(path.name.replace("_performance", "")) if rom else path))
 
 
 def scores(weights: np.ndarray, truth: np.ndarray, rig) -> dict:
@@ -185,7 +214,6 @@ def dense_calibrated(cal, dense: np.ndarray) -> np.ndarray:
 
 def accuracy() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.retarget.character_files import load_character
 
     generic = load_character("arkit")
@@ -195,8 +223,7 @@ def accuracy() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         for name, session, performance, truth_path in datasets(work):
-            truth = arkit_truth(load_ground_truth(truth_path))
-            rom = arkit_truth(load_ground_truth(truth_path.with_name(truth_path.name.replace("_performance", ""))))
+            truth, rom = truth_weights(truth_path), truth_weights(truth_path, rom=True)
             capture = read_c3d(performance)
             reached = rom.max(axis=0)[(rom > 0.1).any(axis=0)]
             print(f"\n## {name}: the ROM reaches {np.median(reached):.2f} of the rig's range (median over "
@@ -240,7 +267,6 @@ def reach() -> None:
     from scipy.signal import find_peaks
 
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
@@ -251,9 +277,7 @@ def reach() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         for name, session_path, performance, truth_path in datasets(work):
-            truth = arkit_truth(load_ground_truth(truth_path))
-            true_reach = arkit_truth(load_ground_truth(
-                truth_path.with_name(truth_path.name.replace("_performance", "")))).max(axis=0)
+            truth, true_reach = truth_weights(truth_path), truth_weights(truth_path, rom=True).max(axis=0)
             capture, session = read_c3d(performance), read_c3d(session_path)
             folder = work / f"layout_{session_path.parent.name}_{session_path.stem}_default"
             if not (folder / "layout.json").is_file():
@@ -293,7 +317,6 @@ def reach() -> None:
 def lost() -> None:
     """Weights error as layout markers are lost: 0/5/20 % per frame at random, lower lip 10 s."""
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import retarget_capture
@@ -304,7 +327,7 @@ def lost() -> None:
         print("| actor | lost | mean MAE | mean r | mesh RMSE mm | NaN weights |\n|---|---|---|---|---|---|")
         for name, session, performance, truth_path in datasets(work):
             actor = Actor(session, load_character("arkit"))
-            truth = arkit_truth(load_ground_truth(truth_path))
+            truth = truth_weights(truth_path)
             capture = read_c3d(performance)
             folder = work / f"layout_{session.parent.name}_{session.stem}_default"
             if not (folder / "layout.json").is_file():
