@@ -3,6 +3,7 @@
     python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
     BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
         python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
+    python benchmarks/bench_retarget.py gain         # where the ROM calibration's gain is (range step / learned shapes)
     python benchmarks/bench_retarget.py reach        # ROM extremes vs truth; Ribera's alignment variants
     python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
     python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
@@ -254,6 +255,52 @@ def accuracy() -> None:
                                     f"{k} {v[0]:.3f}/{v[1]:.2f}" for k, v in s["per_shape"].items()) + " | | | |")
 
 
+def gain() -> None:
+    """Where the ROM calibration's gain is: the range step alone (``calibrate(rounds=0)``) vs the
+    learned shapes alone vs both, default layout, both characters; and each calibrated shape's
+    amplitude at the dense markers against the actor's own motion (the generic rig through its
+    correspondence) — median |log ratio|, and its correlation with the stylized factors."""
+    from dataclasses import replace
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.character_files import load_character
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+    from mocaptk.retarget.rom_calibration import Calibration, calibrate
+    from mocaptk.retarget.solve import train_solver
+
+    generic = load_character("arkit")
+    other, factor = stylized(generic)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        for name, session_path, performance, truth_path in datasets(work):
+            truth, capture, session = truth_weights(truth_path), read_c3d(performance), read_c3d(session_path)
+            folder = work / f"layout_{session_path.parent.name}_{session_path.stem}_default"
+            if not (folder / "layout.json").is_file():
+                mocaptk("cluster", session_path, "--out", folder, "--formats", "none", "--quiet", "--force")
+            solver = train_solver(read_layout(folder / "layout.json"), session, {})
+            own = fit_retargeter(generic, session).correspondence.shape_basis(generic)  # the actor's motion
+            norm = np.linalg.norm(own.reshape(len(own), -1), axis=1)
+            moving = norm > 0.5 * np.median(norm[norm > 0])
+            for rig in (generic, other):
+                fitted = fit_retargeter(rig, session)
+                cal, prior, n = fitted.calibration, fitted.correspondence.shape_basis(rig), len(rig.names)
+                variants = {"no calibration": Calibration(prior, cal.neutral, cal.ties, np.ones(n), np.ones(n)),
+                            "range step only": calibrate(session.positions, cal.neutral, prior, cal.ties, rounds=0),
+                            "learned shapes only": replace(cal, basis=cal.basis / cal.stretch[:, None, None],
+                                                           stretch=np.ones(n)),
+                            "both (default)": cal}
+                print(f"\n## {name} onto {rig.source}\n| calibration | MAE | r | mesh mm | amplitude vs the actor's: "
+                      f"median abs log ratio | corr with the stylized factors |\n|---|---|---|---|---|---|")
+                for label, variant in variants.items():
+                    s = scores(retarget_capture(replace(fitted, calibration=variant), solver, capture,
+                                                "capture").weights, truth, rig)
+                    ratio = (np.linalg.norm(variant.basis.reshape(n, -1), axis=1) / np.maximum(norm, 1e-12))[moving]
+                    follows = f"{np.corrcoef(ratio, factor[moving])[0, 1]:.2f}" if rig is other else "-"
+                    print(f"| {label} | {s['mae']:.3f} | {s['r']:.3f} | {s['mesh_rmse_mm']:.2f} | "
+                          f"{np.median(np.abs(np.log(ratio))):.3f} | {follows} |", flush=True)
+
+
 #: ``reach``: a shape "shows its extreme" when its 2nd-highest ROM peak is this close to the highest.
 PEAK_AGREEMENT = 0.9
 
@@ -418,4 +465,5 @@ print(long.n_frames, 'frames; peak RSS', resource.getrusage(resource.RUSAGE_SELF
 
 
 if __name__ == "__main__":
-    {"accuracy": accuracy, "reach": reach, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()
+    {"accuracy": accuracy, "gain": gain, "reach": reach, "lost": lost, "speed": speed,
+     "memory": memory}[sys.argv[1]]()
