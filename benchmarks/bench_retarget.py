@@ -3,6 +3,7 @@
     python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
     BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
         python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
+    python benchmarks/bench_retarget.py gain         # where the ROM calibration's gain is (range step / learned shapes)
     python benchmarks/bench_retarget.py reach        # ROM extremes vs truth; Ribera's alignment variants
     python benchmarks/bench_retarget.py lost         # 0/5/20 % lost per frame, lower lip lost 10 s
     python benchmarks/bench_retarget.py speed        # frames/s: 52 shapes from 50 markers, vs lsq_linear
@@ -51,7 +52,9 @@ def mocaptk(*args) -> None:
 def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
     """(name, session, performance, performance truth) for the sample, the synthetic full face and
     the same actor with a fuller ROM (20 expressions per region: every action several times, so
-    its extremes come closer to the rig's 1). ``BENCH_RETARGET_SETS`` picks some (0,1,2)."""
+    its extremes come closer to the rig's 1); ``BENCH_RETARGET_SETS`` picks some (0,1,2), and 3
+    adds ``benchmarks/testbed``'s ``tb-full-a-hb`` (no mocaptk code made it; its markers leave
+    the eyelids out, its performance has gaze saccades)."""
     sets = []
     for folder, expressions in (("full", 5), ("fullrom", 20)):
         full = work / folder
@@ -65,6 +68,13 @@ def datasets(work: Path) -> list[tuple[str, Path, Path, Path]]:
     every = [("sample (half face)", SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d",
               SAMPLES / "dense_halfface_performance_truth.npz"), *sets]
     chosen = os.environ.get("BENCH_RETARGET_SETS")
+    if chosen and "3" in chosen.split(","):  # the independent generator: made on demand (minutes)
+        sys.path.insert(0, str(REPO / "benchmarks"))
+        from testbed.sets import ensure_set, ict_tarball
+
+        folder = ensure_set(ict_tarball(), work / "sets", "tb-full-a-hb")
+        every.append(("testbed tb-full-a-hb (independent generator)", folder / "rom.c3d",
+                      folder / "performance.c3d", folder / "performance_truth.npz"))
     return [every[int(i)] for i in chosen.split(",")] if chosen else every
 
 
@@ -74,9 +84,29 @@ def arkit_truth(truth) -> np.ndarray:
     out = np.zeros((len(truth.weights), 52))
     for j, name in enumerate(truth.blendshape_names):
         split = arkit_name(name) is None
-        out[:, ARKIT_NAMES.index(arkit_name(name) or arkit_name(name[:-2]))] += \
-            truth.weights[:, j] * (0.5 if split else 1.0)
+        target = arkit_name(name) or arkit_name(name[:-2])
+        if target is None:  # the testbed's ICT cheekRaiser_L/_R: no ARKit shape
+            continue
+        out[:, ARKIT_NAMES.index(target)] += truth.weights[:, j] * (0.5 if split else 1.0)
     return out
+
+
+def truth_weights(path: Path, *, rom: bool = False) -> np.ndarray:
+    """(F, 52) ARKit weights of a performance truth file (``rom``: of its session's truth), from
+    ``synth``'s truth or the testbed's (its ICT expression names from the testbed's own reader)."""
+    from types import SimpleNamespace
+
+    from mocaptk.acquisition.synth_session import load_ground_truth
+
+    if path.name == "performance_truth.npz":  # the testbed
+        from testbed.ict import load_ict
+        from testbed.sets import ict_tarball
+
+        with np.load(path.with_name("rom_truth.npz") if rom else path) as data:
+            weights = data["weights"].astype(np.float64)
+        return arkit_truth(SimpleNamespace(blendshape_names=load_ict(ict_tarball()).expression_names,
+                                           weights=weights))
+    return arkit_truth(load_ground_truth(path.with_name(path.name.replace("_performance", "")) if rom else path))
 
 
 def scores(weights: np.ndarray, truth: np.ndarray, rig) -> dict:
@@ -185,7 +215,6 @@ def dense_calibrated(cal, dense: np.ndarray) -> np.ndarray:
 
 def accuracy() -> None:
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.retarget.character_files import load_character
 
     generic = load_character("arkit")
@@ -195,8 +224,7 @@ def accuracy() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         for name, session, performance, truth_path in datasets(work):
-            truth = arkit_truth(load_ground_truth(truth_path))
-            rom = arkit_truth(load_ground_truth(truth_path.with_name(truth_path.name.replace("_performance", ""))))
+            truth, rom = truth_weights(truth_path), truth_weights(truth_path, rom=True)
             capture = read_c3d(performance)
             reached = rom.max(axis=0)[(rom > 0.1).any(axis=0)]
             print(f"\n## {name}: the ROM reaches {np.median(reached):.2f} of the rig's range (median over "
@@ -227,6 +255,52 @@ def accuracy() -> None:
                                     f"{k} {v[0]:.3f}/{v[1]:.2f}" for k, v in s["per_shape"].items()) + " | | | |")
 
 
+def gain() -> None:
+    """Where the ROM calibration's gain is: the range step alone (``calibrate(rounds=0)``) vs the
+    learned shapes alone vs both, default layout, both characters; and each calibrated shape's
+    amplitude at the dense markers against the actor's own motion (the generic rig through its
+    correspondence) — median |log ratio|, and its correlation with the stylized factors."""
+    from dataclasses import replace
+
+    from mocaptk.acquisition.c3d_read import read_c3d
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.character_files import load_character
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
+    from mocaptk.retarget.rom_calibration import Calibration, calibrate
+    from mocaptk.retarget.solve import train_solver
+
+    generic = load_character("arkit")
+    other, factor = stylized(generic)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
+        for name, session_path, performance, truth_path in datasets(work):
+            truth, capture, session = truth_weights(truth_path), read_c3d(performance), read_c3d(session_path)
+            folder = work / f"layout_{session_path.parent.name}_{session_path.stem}_default"
+            if not (folder / "layout.json").is_file():
+                mocaptk("cluster", session_path, "--out", folder, "--formats", "none", "--quiet", "--force")
+            solver = train_solver(read_layout(folder / "layout.json"), session, {})
+            own = fit_retargeter(generic, session).correspondence.shape_basis(generic)  # the actor's motion
+            norm = np.linalg.norm(own.reshape(len(own), -1), axis=1)
+            moving = norm > 0.5 * np.median(norm[norm > 0])
+            for rig in (generic, other):
+                fitted = fit_retargeter(rig, session)
+                cal, prior, n = fitted.calibration, fitted.correspondence.shape_basis(rig), len(rig.names)
+                variants = {"no calibration": Calibration(prior, cal.neutral, cal.ties, np.ones(n), np.ones(n)),
+                            "range step only": calibrate(session.positions, cal.neutral, prior, cal.ties, rounds=0),
+                            "learned shapes only": replace(cal, basis=cal.basis / cal.stretch[:, None, None],
+                                                           stretch=np.ones(n)),
+                            "both (default)": cal}
+                print(f"\n## {name} onto {rig.source}\n| calibration | MAE | r | mesh mm | amplitude vs the actor's: "
+                      f"median abs log ratio | corr with the stylized factors |\n|---|---|---|---|---|---|")
+                for label, variant in variants.items():
+                    s = scores(retarget_capture(replace(fitted, calibration=variant), solver, capture,
+                                                "capture").weights, truth, rig)
+                    ratio = (np.linalg.norm(variant.basis.reshape(n, -1), axis=1) / np.maximum(norm, 1e-12))[moving]
+                    follows = f"{np.corrcoef(ratio, factor[moving])[0, 1]:.2f}" if rig is other else "-"
+                    print(f"| {label} | {s['mae']:.3f} | {s['r']:.3f} | {s['mesh_rmse_mm']:.2f} | "
+                          f"{np.median(np.abs(np.log(ratio))):.3f} | {follows} |", flush=True)
+
+
 #: ``reach``: a shape "shows its extreme" when its 2nd-highest ROM peak is this close to the highest.
 PEAK_AGREEMENT = 0.9
 
@@ -240,7 +314,6 @@ def reach() -> None:
     from scipy.signal import find_peaks
 
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture
@@ -251,9 +324,7 @@ def reach() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(os.environ.get("BENCH_RETARGET_WORK", tmp))
         for name, session_path, performance, truth_path in datasets(work):
-            truth = arkit_truth(load_ground_truth(truth_path))
-            true_reach = arkit_truth(load_ground_truth(
-                truth_path.with_name(truth_path.name.replace("_performance", "")))).max(axis=0)
+            truth, true_reach = truth_weights(truth_path), truth_weights(truth_path, rom=True).max(axis=0)
             capture, session = read_c3d(performance), read_c3d(session_path)
             folder = work / f"layout_{session_path.parent.name}_{session_path.stem}_default"
             if not (folder / "layout.json").is_file():
@@ -293,7 +364,6 @@ def reach() -> None:
 def lost() -> None:
     """Weights error as layout markers are lost: 0/5/20 % per frame at random, lower lip 10 s."""
     from mocaptk.acquisition.c3d_read import read_c3d
-    from mocaptk.acquisition.synth_session import load_ground_truth
     from mocaptk.clustering.layout import read_layout
     from mocaptk.retarget.character_files import load_character
     from mocaptk.retarget.retarget_outputs import retarget_capture
@@ -304,7 +374,7 @@ def lost() -> None:
         print("| actor | lost | mean MAE | mean r | mesh RMSE mm | NaN weights |\n|---|---|---|---|---|---|")
         for name, session, performance, truth_path in datasets(work):
             actor = Actor(session, load_character("arkit"))
-            truth = arkit_truth(load_ground_truth(truth_path))
+            truth = truth_weights(truth_path)
             capture = read_c3d(performance)
             folder = work / f"layout_{session.parent.name}_{session.stem}_default"
             if not (folder / "layout.json").is_file():
@@ -395,4 +465,5 @@ print(long.n_frames, 'frames; peak RSS', resource.getrusage(resource.RUSAGE_SELF
 
 
 if __name__ == "__main__":
-    {"accuracy": accuracy, "reach": reach, "lost": lost, "speed": speed, "memory": memory}[sys.argv[1]]()
+    {"accuracy": accuracy, "gain": gain, "reach": reach, "lost": lost, "speed": speed,
+     "memory": memory}[sys.argv[1]]()

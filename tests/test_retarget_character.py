@@ -442,3 +442,25 @@ def test_few_marker_poses_leave_a_still_head_unposed_and_follow_a_moving_one(wor
     turned = capture.replace(positions=np.einsum("fij,fmj->fmi", rot, capture.positions - centre) + centre)
     posed = retarget_capture(retargeter, solver, turned, "turned")
     assert np.abs(np.degrees(posed.head[:, 0]) - yaw).max() < 1.5 and mean_r(posed.weights) > 0.8
+
+
+@pytest.mark.slow
+def test_rom_reach_scales_each_performed_shape_so_its_rom_extreme_is_q():
+    """``--rom-reach Q`` (off by default): the learned shapes are the default's; every shape the
+    ROM performs (extreme >= 0.2) is scaled so its ROM extreme is Q, others keep the default rule.
+    On the sample's ROM, which takes its shapes to 0.47-1.00 of their range, that overshoots:
+    mouthFunnel (taken to 0.52 of its range) gets 1 / 0.52 times its weight at Q = 1."""
+    from mocaptk.retarget.retarget_outputs import fit_retargeter
+    from mocaptk.retarget.rom_calibration import MIN_PERFORMED
+
+    session, rig = read_c3d(SAMPLES / "dense_halfface.c3d"), load_character("arkit")
+    default, reached = (fit_retargeter(rig, session, reach=q).calibration for q in (None, 1.0))
+    np.testing.assert_allclose(reached.rom_extreme, default.rom_extreme)
+    performed = default.rom_extreme >= MIN_PERFORMED
+    assert performed.sum() >= 20
+    np.testing.assert_allclose(reached.stretch[performed], default.rom_extreme[performed])
+    np.testing.assert_array_equal(reached.stretch[~performed], default.stretch[~performed])
+    unscaled = default.basis / default.stretch[:, None, None]
+    np.testing.assert_allclose(reached.basis, unscaled * reached.stretch[:, None, None])
+    funnel = rig.names.index("mouthFunnel")
+    assert 0.4 < default.rom_extreme[funnel] < 0.65  # the ROM's funnel: about half the rig's

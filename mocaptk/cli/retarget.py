@@ -45,8 +45,9 @@ def retarget(
                                 "towards the character's (default 1)."),
     rom_reach: float = typer.Option(None, "--rom-reach", metavar="Q", help="The ROM performs every shape "
                                     "to Q of its range (Ribera's full protocol: 1): each shape it performs "
-                                    "is scaled so its extreme is Q. Default: the character's amplitude, "
-                                    "stretched only where the ROM goes past 1."),
+                                    "is scaled so its extreme is Q. Off by default (the character's amplitude, "
+                                    "stretched only where the ROM goes past 1): right only for a ROM that "
+                                    "takes each shape to Q; ours do not, and it loses (docs/retarget.md)."),
     formats: str = typer.Option("glb,usd,fbx", "--formats", help="Character files: glb, usd, fbx "
                                 "(or none)."),
     renders: bool = typer.Option(True, "--renders/--no-renders", help="Write retarget_frames.png "
