@@ -351,3 +351,21 @@ def pose_errors(estimate: CameraRig, truth: CameraRig, *, align: bool = False) -
     centre_mm = np.linalg.norm(centers_e - centers_t, axis=1)
     cos = (np.einsum("cij,cij->c", rot_e, rot_t) - 1) / 2  # trace(Re Rt^T) = 1 + 2 cos(angle)
     return centre_mm, np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def pairwise_errors(estimate: CameraRig, truth: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+    """Gauge-free errors of ``estimate`` against ``truth``, with no frame chosen and nothing
+    fitted: for every camera pair, the error of the distance between their centres (mm) and the
+    angle of the error of their relative rotation (deg); each ``(pairs,)``. A rig's centres are
+    fixed up to a rigid motion by their distances, its orientations by their relative rotations."""
+    i, j = np.triu_indices(len(truth), k=1)
+
+    def pairs(rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+        centres = np.stack([cam.center for cam in rig])
+        rotations = np.stack([cam.rotation for cam in rig])
+        return (np.linalg.norm(centres[i] - centres[j], axis=1),
+                np.einsum("pab,pcb->pac", rotations[i], rotations[j]))  # R_i R_j^T
+    dist_e, rel_e = pairs(estimate)
+    dist_t, rel_t = pairs(truth)
+    cos = (np.einsum("pab,pab->p", rel_e, rel_t) - 1) / 2
+    return np.abs(dist_e - dist_t), np.degrees(np.arccos(np.clip(cos, -1, 1)))

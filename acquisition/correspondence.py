@@ -7,7 +7,9 @@ its reprojection (one compiled pass over all frames, :mod:`.correspondence_kerne
 with the same views are one hypothesis. Hypotheses of three or more views are chosen by a
 global assignment per frame: the set that uses each blob at most once with the largest total
 weight (views minus half the mean error in tolerances: the most views explained, then the
-smallest error), solved exactly per group of hypotheses that share blobs. Then a two-view
+smallest error), solved exactly per group of hypotheses that share blobs; a loser that lost a
+blob keeps its free views, a two-view match when two remain (a marker hidden in one camera
+where another's blob lies on its ray collects that blob, and would go with it). Then a two-view
 hypothesis is accepted only when it lies within ``link_mm`` of a point of the previous frame,
 when its two blobs are each other's only epipolar partner among the blobs still unused, or
 when it lies within ``SURFACE_MM`` of the face as the points accepted so far sample it (two-view
@@ -100,6 +102,8 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     # >= 3 views: the most views (then the smallest error) over each whole frame at once
     many = np.nonzero(n_views >= 3)[0]
     chosen = many[_packing(frame[many], keys[many], _weight(n_views[many], error[many] / tolerance_px))]
+    frame, keys, error, point = _lost_pairs(frame, keys, error, point, np.setdiff1d(many, chosen), chosen)
+    n_views = (keys >= 0).sum(axis=1)
     chosen = list(_two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm))
     if not chosen:
         empty = np.zeros((n_frames, 0))
@@ -123,6 +127,30 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     out[frames, slot] = points
     out_views[frames, slot] = counts
     return Reconstruction(out, out_views, link_fragments(out, link_mm=link_mm))
+
+
+def _lost_pairs(frame, keys, error, point, lost, chosen):
+    """The hypotheses with the two-view ones that the packing's losers leave: a hypothesis of
+    >= 3 views that lost a blob to a chosen one (a marker hidden in a camera where another
+    marker's blob lies on its ray) keeps its free views, offered as a two-view match when two
+    remain and no such hypothesis exists (it then meets the two-view tests like any other)."""
+    n_cams, width = keys.shape[1], int(keys.max()) + 2 if len(keys) else 1
+
+    def codes(rows):  # (rows, C) one integer per (frame, camera, blob); -1 where no blob
+        k = keys[rows]
+        return np.where(k >= 0, (frame[rows, None] * n_cams + np.arange(n_cams)) * width + k, -1)
+
+    taken = codes(chosen)
+    reduced = np.where(np.isin(codes(lost), taken[taken >= 0]), -1, keys[lost])
+    two = (reduced >= 0).sum(axis=1) == 2
+    rows, reduced = lost[two], reduced[two]
+    existing = np.nonzero((keys >= 0).sum(axis=1) == 2)[0]
+    sets = np.vstack([np.column_stack([frame[existing], keys[existing]]), np.column_stack([frame[rows], reduced])])
+    first = np.unique(sets, axis=0, return_index=True)[1]  # an existing pair comes first
+    index = np.sort(first[first >= len(existing)]) - len(existing)
+    rows, reduced = rows[index], reduced[index]
+    return (np.concatenate([frame, frame[rows]]), np.concatenate([keys, reduced]),
+            np.concatenate([error, error[rows]]), np.concatenate([point, point[rows]]))
 
 
 def _weight(n_views: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -271,6 +299,7 @@ def _two_view_choices(frame, keys, point, n_views, chosen, n_frames, link_mm):
     n_cams = keys.shape[1]
     cams = np.arange(n_cams)
     pairs = np.nonzero(n_views == 2)[0]
+    pairs = pairs[np.argsort(frame[pairs], kind="stable")]  # the lost pairs come last
     bounds = np.searchsorted(frame[pairs], np.arange(n_frames + 1))
     chosen_bounds = np.searchsorted(frame[chosen], np.arange(n_frames + 1))
     width = int(keys.max()) + 2 if len(keys) else 1

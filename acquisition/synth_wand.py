@@ -54,3 +54,23 @@ def wand_images(camera: Camera, ends: np.ndarray, *, seed: int = 0) -> Iterator[
     pixels, radius = wand_pixels(camera, ends)
     for f in range(len(ends)):
         yield render_markers(background, pixels[f], radius[f], rng=rng)[0]
+
+
+def write_wand_views(folder, rig: CameraRig, *, n_frames: int, length: float = WAND_LENGTH_MM,
+                     spread_mm: float = 600.0, seed: int = 0) -> np.ndarray:
+    """Render a wand waved ``n_frames`` times into ``folder/<camera>/wand_NNN.png`` (frame k of
+    every camera is the same instant), the input of ``mocaptk detect`` then ``calibrate --wand``;
+    returns its ends ``(n_frames, 2, 3)`` mm. ``folder`` must exist (staged by the caller)."""
+    from pathlib import Path
+
+    import cv2
+
+    from mocaptk.atomic import write_bytes
+
+    folder = Path(folder)
+    ends = wand_positions(rig, n_frames, length=length, spread_mm=spread_mm, seed=seed)
+    for c, camera in enumerate(rig):
+        (folder / camera.name).mkdir()
+        for f, image in enumerate(wand_images(camera, ends, seed=seed + c)):
+            write_bytes(folder / camera.name / f"wand_{f:03d}.png", cv2.imencode(".png", image)[1].tobytes())
+    return ends

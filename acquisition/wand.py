@@ -41,7 +41,9 @@ def wand_from_blobs(points2d: np.ndarray, rig: CameraRig, length: float) -> Wand
     """Wand observations from blob detections ``points2d (C, F, B, 2)`` px (NaN-padded) of a
     wand: frames where at least ``MIN_CAMERAS`` cameras see exactly two blobs; the ends are
     matched across cameras by ``rig``'s epipolar geometry (a board calibration is close enough)
-    and a frame is kept when its triangulated length is within ``LENGTH_TOLERANCE``."""
+    and a frame is kept when its triangulated length is within ``LENGTH_TOLERANCE``.
+
+    Raises ValueError (saying what was seen) when no frame is kept."""
     n_cams, n_frames = points2d.shape[:2]
     counts = np.isfinite(points2d[..., 0]).sum(axis=2)
     pixels = np.full((n_cams, n_frames, 2, 2), np.nan)
@@ -58,6 +60,13 @@ def wand_from_blobs(points2d: np.ndarray, rig: CameraRig, length: float) -> Wand
     measured = np.linalg.norm(ends[0::2] - ends[1::2], axis=1)
     with np.errstate(invalid="ignore"):
         good = np.abs(measured / length - 1) <= LENGTH_TOLERANCE
+    if not good.any():
+        candidates = np.isfinite(measured)
+        seen = (f"; their median length is {np.median(measured[candidates]):.1f} mm"
+                if candidates.any() else "")
+        raise ValueError(f"the wand was not found: {candidates.sum()} of {n_frames} frames show two blobs "
+                         f"in >= {MIN_CAMERAS} cameras{seen}, none within {LENGTH_TOLERANCE:.0%} of "
+                         f"{length:g} mm")
     return Wand(pixels=pixels[:, good], length=float(length))
 
 

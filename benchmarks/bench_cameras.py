@@ -28,7 +28,8 @@ from scipy.spatial import cKDTree
 from mocaptk.acquisition.blob_detection import detect_blobs
 from mocaptk.acquisition.boards import Board
 from mocaptk.acquisition.calibration import (View, bundle_adjust, calibrate_intrinsics,
-                                             chained_stereo, pose_errors, rig_from_poses)
+                                             chained_stereo, pairwise_errors, pose_errors,
+                                             rig_from_poses)
 from mocaptk.acquisition.cameras import cara_rig, load_rig, room_rig
 from mocaptk.acquisition.correspondence import reconstruct
 from mocaptk.acquisition.image_sequences import ImageSource
@@ -97,8 +98,9 @@ def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: flo
           f"+-{spread_mm or 0.3 * max(board.size_mm()):g} mm) ({board.corners[0]}x{board.corners[1]}, "
           f"{board.square:g} mm)")
     print("| seed | method | centre err mm, camera-1 frame (max / mean) | deg, camera-1 frame (max / mean) | "
-          "centre err mm, aligned (max / mean) | deg, aligned (max / mean) | RMS px | CPU s |")
-    print("|---|---|---|---|---|---|---|---|")
+          "centre err mm, aligned (max / mean) | deg, aligned (max / mean) | "
+          "pairwise: centre distance err mm / relative rotation deg (max) | RMS px | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for seed in seeds:
         poses = board_poses(rig, board, n_views, seed=seed, max_tilt_deg=30.0, spread_mm=spread_mm)
         resolution = texture_resolution(rig, board, poses)
@@ -129,9 +131,11 @@ def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: flo
         for method, estimate, rms, clk in rows:
             mm, deg = pose_errors(estimate, rig)
             amm, adeg = pose_errors(estimate, rig, align=True)
+            pmm, pdeg = pairwise_errors(estimate, rig)
             print(f"| {seed} | {method} | {mm.max():.3f} / {mm[1:].mean():.3f} | {deg.max():.3f} / "
                   f"{deg[1:].mean():.3f} | {amm.max():.3f} / {amm.mean():.3f} | {adeg.max():.3f} / "
-                  f"{adeg.mean():.3f} | {rms:.3f} | {clk.cpu:.1f} |", flush=True)
+                  f"{adeg.mean():.3f} | {pmm.max():.3f} / {pdeg.max():.3f} | {rms:.3f} | {clk.cpu:.1f} |",
+                  flush=True)
     print(f"\n(last seed: render+detect {render}; views per camera {[len(f.view_rms) for f in fits]})\n")
 
 

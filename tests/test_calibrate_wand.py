@@ -4,14 +4,19 @@ focal length)."""
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
+import pytest
 
 from mocaptk.acquisition.calibration import (View, bundle_adjust, calibrate_intrinsics,
                                              chained_stereo, pose_errors, rig_from_poses)
-from mocaptk.acquisition.cameras import room_rig
-from mocaptk.acquisition.synth_board_views import PRESET_BOARDS, board_poses
-from mocaptk.acquisition.synth_wand import wand_pixels, wand_positions
+from mocaptk.acquisition.cameras import load_rig, room_rig
+from mocaptk.acquisition.detections_file import pack, save_detections
+from mocaptk.acquisition.image_sequences import ImageSource
+from mocaptk.acquisition.synth_board_views import PRESET_BOARDS, board_poses, write_board_views
+from mocaptk.acquisition.synth_wand import wand_pixels, wand_positions, write_wand_views
 from mocaptk.acquisition.wand import wand_from_blobs
 
 
@@ -82,3 +87,108 @@ def test_wand_pins_the_camera_distances_that_board_views_leave_loose():
                                    rig, align=True)
     assert after.max() < 0.5 * before.max(), (before, after)
     assert after.max() < 0.5 and after_deg.max() < 0.05, (after, after_deg)
+
+
+def test_a_wand_never_seen_is_refused_with_what_was_seen():
+    rig, rng = room_rig(n_cameras=4), np.random.default_rng(0)
+    blobs = _wand_blobs(rig, wand_positions(rig, 20, seed=3), rng, 0.05)
+    with pytest.raises(ValueError, match=r"the wand was not found: 20 of 20 frames .* median length is (39\d|40\d)\.\d mm"):
+        wand_from_blobs(blobs, rig, 500.0)  # the wrong length
+    blobs[:, :, 1] = np.nan  # one blob per image: a glint, never the wand
+    with pytest.raises(ValueError, match="the wand was not found: 0 of 20 frames show two blobs"):
+        wand_from_blobs(blobs, rig, 400.0)
+
+
+# -- calibrate --wand on the command line: rendered board and wand footage -> detect -> calibrate
+
+BOARD_ARGS = ("--board", "charuco", "--corners", "6x4", "--square", "100", "--marker", "50", "--synced")
+
+
+@pytest.fixture(scope="module")
+def room_footage(tmp_path_factory):
+    """A 6-camera room ring at half resolution (1024x544 px, focal 1500 px: the same view as
+    the room preset): 16 ChArUco views and a 400 mm wand waved 24 times, rendered as PNGs."""
+    rig = room_rig(n_cameras=6, image_size=(1024, 544), focal_px=1500.0)
+    folder = tmp_path_factory.mktemp("room_wand")
+    (folder / "boards").mkdir()
+    (folder / "wand").mkdir()
+    write_board_views(folder / "boards", rig, PRESET_BOARDS["room"], n_views=16, seed=1)
+    write_wand_views(folder / "wand", rig, n_frames=24, seed=1)
+    return rig, folder
+
+
+@pytest.mark.slow
+def test_calibrate_with_a_detected_wand_beats_the_boards_alone(room_footage, run_cli, tmp_path):
+    rig, folder = room_footage
+    detected = run_cli("detect", folder / "wand", "--out", tmp_path / "wand.npz", "--quiet")
+    assert detected.exit_code == 0, detected.stderr
+    out = tmp_path / "rig.json"
+    result = run_cli("calibrate", folder / "boards", *BOARD_ARGS, "--wand", tmp_path / "wand.npz",
+                     "--wand-length", "400", "--out", out)
+    assert result.exit_code == 0, result.stderr
+    assert "wand 24 of 24 frames" in result.stdout, result.stdout
+    calibrated = load_rig(out)
+    assert calibrated.metadata["wand"] == {"length_mm": 400.0, "frames": 24, "frames_kept": 24}
+    # the same board detections without the wand (the bundle adjustment `calibrate --synced` runs)
+    board = PRESET_BOARDS["room"]
+    views = [[View(name, *board.detect(image)) for name, image in ImageSource(folder / "boards" / c).frames()]
+             for c in rig.names]
+    fits = [calibrate_intrinsics(board, v, cam.image_size) for v, cam in zip(views, rig)]
+    alone = bundle_adjust(board, views, fits, chained_stereo(board, views, fits))
+    sizes = [c.image_size for c in rig]
+    alone_mm, alone_deg = pose_errors(rig_from_poses(rig.names, alone.intrinsics, alone.rig_poses, sizes),
+                                      rig, align=True)
+    wand_mm, wand_deg = pose_errors(calibrated, rig, align=True)
+    assert wand_mm.max() < alone_mm.max() and wand_deg.max() < alone_deg.max(), (
+        alone_mm, wand_mm, alone_deg, wand_deg)
+
+
+@pytest.mark.slow
+def test_calibrate_refuses_a_wand_of_another_length(room_footage, run_cli, tmp_path):
+    _, folder = room_footage
+    assert run_cli("detect", folder / "wand", "--out", tmp_path / "wand.npz", "--quiet").exit_code == 0
+    result = run_cli("calibrate", folder / "boards", *BOARD_ARGS, "--wand", tmp_path / "wand.npz",
+                     "--wand-length", "500", "--out", tmp_path / "rig.json", "--quiet")
+    assert result.exit_code == 2
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        f"mocaptk: error: {tmp_path / 'wand.npz'}: the wand was not found: "), result.stderr
+    assert re.search(r"median length is (39\d|40\d)\.\d mm, none within 2% of 500 mm", result.stderr)
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "rig.json").exists()
+
+
+def _tiny_cameras(folder, n):
+    """``n`` camera folders of one blank PNG each (enough for the checks made before any work)."""
+    for c in range(n):
+        (folder / f"cam{c}").mkdir()
+        cv2.imwrite(str(folder / f"cam{c}" / "view_000.png"), np.zeros((8, 8), np.uint8))
+    return [folder / f"cam{c}" for c in range(n)]
+
+
+def test_calibrate_refuses_a_wand_file_of_another_camera_count(run_cli, tmp_path):
+    cameras = _tiny_cameras(tmp_path, 2)
+    save_detections(pack([[(np.zeros((2, 2)), np.zeros(2, bool), np.ones(2))]] * 3, ["a", "b", "c"]),
+                    tmp_path / "wand.npz", force=False)
+    result = run_cli("calibrate", *cameras, *BOARD_ARGS, "--wand", tmp_path / "wand.npz", "--wand-length",
+                     "400", "--out", tmp_path / "rig.json")
+    assert result.exit_code == 2
+    assert result.stderr.strip() == (f"mocaptk: error: {tmp_path / 'wand.npz'}: 3 cameras, but 2 are "
+                                     "calibrated: detect the wand footage of the same cameras, in the same order")
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--wand", "w.npz"), "--wand and --wand-length go together"),
+    (("--wand-length", "400"), "--wand and --wand-length go together"),
+    (("--wand", "w.npz", "--wand-length", "-4"), "--wand-length must be > 0 mm, got -4"),
+])
+def test_calibrate_wand_options_are_checked_first(run_cli, tmp_path, args, message):
+    result = run_cli("calibrate", *_tiny_cameras(tmp_path, 2), *BOARD_ARGS, *args, "--out", tmp_path / "r.json")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1 and lines[0].startswith(f"mocaptk: error: {message}"), lines
+
+
+def test_calibrate_wand_needs_synced(run_cli, tmp_path):
+    result = run_cli("calibrate", *_tiny_cameras(tmp_path, 2), "--wand", "w.npz", "--wand-length", "400",
+                     "--out", tmp_path / "r.json")
+    assert result.exit_code == 2
+    assert result.stderr.strip() == "mocaptk: error: --wand needs --synced: the wand refines the rig's extrinsics"

@@ -10,6 +10,7 @@ import json
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from clustering_synthetic import planted_session, save_session
@@ -104,6 +105,12 @@ def f(tmp_path_factory) -> dict[str, Path]:
     (d / "layout_version.json").write_text(json.dumps({**doc, "version": 999}))
     (d / "layout_malformed.json").write_text(json.dumps({**doc, "clusters": 5}))
     np.savez(d / "obs_none.npz", other=np.zeros(3))
+    for cam in ("cam0", "cam1"):  # two cameras of one blank photo each; a wand file of three
+        (d / "cam_images" / cam).mkdir(parents=True)
+        (d / "cam_images" / cam / "view_000.png").write_bytes(cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+    from mocaptk.acquisition.detections_file import pack, save_detections
+    save_detections(pack([[(np.zeros((2, 2)), np.zeros(2, bool), np.ones(2))]] * 3, ["a", "b", "c"]),
+                    d / "wand_3cams.npz", force=False)
     np.savez(d / "obs_shape.npz", points2d=np.zeros((len(rig.names), 2, 3)))
     np.savez(d / "obs_cams.npz", points2d=np.zeros((1, 2, 3, 2)))
     np.savez(d / "obs_names.npz", points2d=np.zeros((len(rig.names), 2, 3, 2)),
@@ -234,6 +241,8 @@ CATALOGUE = [
     ("E-CLU-STEP-BIG", lambda f: ["cluster", S(f), "--step", "100000", "--out", f["dir"] / "o3"],
      "is not smaller than the session's"),
     ("E-CLU-METHOD", lambda f: ["cluster", S(f), "--method", "magic", "--out", f["dir"] / "o4"], "unknown --method 'magic'"),
+    ("E-CLU-FILL-GAPS", lambda f: ["cluster", S(f), S(f), "--fill-gaps", "--out", f["dir"] / "o4f"],
+     "--fill-gaps takes one session"),
     ("E-CLU-MARKERS", lambda f: ["cluster", S(f), "--markers", "0", "--out", f["dir"] / "o4m"], "--markers must be >= 1"),
     ("E-CLU-MARKERS-REGIONS", lambda f: ["cluster", S(f), "--markers", "1", "--method", "paper", "--no-stabilize",
                                          "--formats", "none", "--out", f["dir"] / "o4r"], "fewer than the"),
@@ -405,6 +414,11 @@ CATALOGUE = [
      "--min-area must be >= 1"),
     ("E-CAL-CORNERS", lambda f: ["calibrate", f["dir"], "--corners", "abc", "--out", f["dir"] / "c.json"],
      "--corners must be COLSxROWS inner corners"),
+    ("E-CAL-WAND-OPTIONS", lambda f: ["calibrate", f["dir"], "--wand", f["obs_none.npz"], "--out", f["dir"] / "c.json"],
+     "--wand and --wand-length go together"),
+    ("E-CAL-WAND-CAMERAS", lambda f: ["calibrate", f["cam_images"], "--board", "charuco", "--synced", "--wand",
+                                      f["wand_3cams.npz"], "--wand-length", "400", "--out", f["dir"] / "c.json"],
+     "wand_3cams.npz: 3 cameras, but 2 are calibrated"),
     ("E-SOLVE-MODEL-SESSION", lambda f: ["solve", f["layout.json"], S(f), "--out", f["dir"] / "s5", "--model",
                                          f["other_model.npz"]], "the model was trained on another session"),
     ("E-SOLVE-UNLABELLED", lambda f: ["solve", f["layout.json"], f["unlabelled.c3d"], "--out", f["dir"] / "s8"],

@@ -4,6 +4,10 @@ rig's extrinsics) from photos or videos of a checkerboard or ChArUco board.
 Each CAMERA is a folder of photos or a video file (sampled every ``--step`` frames), in camera
 order, or one folder of camera folders (sorted by name). Beside RIG.json it writes ``<stem>_corners.png``: per camera, the view with the largest
 error, detected corners against their reprojections.
+
+With ``--synced``, ``--wand WAND.npz --wand-length MM`` adds a wand (two markers a known distance
+apart, waved through the volume) to the bundle adjustment: WAND.npz is ``mocaptk detect``'s output
+for the wand footage, the same cameras in the same order.
 """
 
 from __future__ import annotations
@@ -44,11 +48,17 @@ def calibrate(
     synced: bool = typer.Option(False, "--synced",
                                 help="Photo/frame k of every camera is the same instant: also solve "
                                      "the rig's extrinsics by bundle adjustment (ChArUco)."),
+    wand_file: Path = typer.Option(None, "--wand", metavar="WAND.npz",
+                                   help="With --synced: `mocaptk detect`'s detections of a waved wand "
+                                        "(same cameras, same order), added to the bundle adjustment."),
+    wand_length: float = typer.Option(None, "--wand-length", metavar="MM",
+                                      help="Distance between the wand's two marker centres, mm."),
     force: bool = typer.Option(False, "--force", help="Overwrite outputs."),
     quiet: Quiet = False,
 ) -> None:
     """Calibrate cameras from board photos or videos; write a rig JSON and a check picture."""
     import cv2
+    import numpy as np
 
     from mocaptk.acquisition.boards import Board
     from mocaptk.acquisition.calibration import (View, bundle_adjust, calibrate_intrinsics,
@@ -64,6 +74,12 @@ def calibrate(
     if synced and board_kind != "charuco":
         raise OptionError("--synced needs --board charuco: a checkerboard's corners have no ids, so "
                           "two cameras cannot tell which corner is which")
+    if (wand_file is None) != (wand_length is None):
+        raise OptionError("--wand and --wand-length go together (the wand's detections and its length in mm)")
+    if wand_file is not None and not synced:
+        raise OptionError("--wand needs --synced: the wand refines the rig's extrinsics")
+    if wand_length is not None and not wand_length > 0:
+        raise OptionError(f"--wand-length must be > 0 mm, got {wand_length:g}")
     try:
         board = Board(board_kind, parse_corners(corners), square,
                       marker=marker or 0.75 * square, dictionary=dictionary)
@@ -73,6 +89,14 @@ def calibrate(
     for path in (out, picture):
         check_writable(path, force=force)
     cameras = [ImageSource(path, step=step) for path in camera_sources(sources)]
+    wand_blobs = None
+    if wand_file is not None:  # checked before the slow part
+        from mocaptk.acquisition.detections_file import load_detections
+
+        wand_blobs = load_detections(wand_file).points2d
+        if len(wand_blobs) != len(cameras):
+            raise InputFileError(wand_file, f"{len(wand_blobs)} cameras, but {len(cameras)} are calibrated: "
+                                            "detect the wand footage of the same cameras, in the same order")
 
     views, sizes, fits = [], [], []
     for source in cameras:
@@ -107,19 +131,35 @@ def calibrate(
             start = chained_stereo(board, views, fits)
         except ValueError as exc:
             raise OptionError(f"--synced: {exc}") from None
-        result = bundle_adjust(board, views, fits, start)
+        wand, wand_note, wand_record = None, "", {}
+        if wand_blobs is not None:
+            from mocaptk.acquisition.wand import LENGTH_TOLERANCE, wand_from_blobs
+
+            board_rig = rig_from_poses(names, intrinsics, start, sizes)
+            try:
+                wand = wand_from_blobs(wand_blobs, board_rig, wand_length)
+            except ValueError as exc:
+                raise InputFileError(wand_file, str(exc)) from None
+            wand_note = f", wand {wand.n_frames} of {wand_blobs.shape[1]} frames"
+            if not quiet:
+                seen = np.isfinite(wand.pixels[..., 0, 0]).sum(axis=1)
+                typer.echo(f"wand: {wand.n_frames} of {wand_blobs.shape[1]} frames kept (both ends seen by "
+                           f">= 2 cameras, length within {LENGTH_TOLERANCE:.0%}); frames per camera: "
+                           + ", ".join(f"{name} {n}" for name, n in zip(names, seen)))
+            wand_record = {"wand": {"length_mm": wand_length, "frames": int(wand_blobs.shape[1]),
+                                    "frames_kept": wand.n_frames}}
+        result = bundle_adjust(board, views, fits, start, wand=wand)
         poses, intrinsics = result.rig_poses, result.intrinsics
         for name, rms in zip(names, result.camera_rms):
             report[name]["bundle_rms_px"] = rms
-        extrinsics = f"bundle adjustment (RMS {result.initial_rms:.3f} -> {result.final_rms:.3f} px)"
+        extrinsics = (f"bundle adjustment (RMS {result.initial_rms:.3f} -> {result.final_rms:.3f} px"
+                      f"{wand_note})")
     else:
-        import numpy as np
-
-        poses = [(np.eye(3), np.zeros(3))] * len(cameras)
+        poses, wand_record = [(np.eye(3), np.zeros(3))] * len(cameras), {}
         extrinsics = "not calibrated (every camera at the origin; use --synced with a ChArUco board)"
     rig = rig_from_poses(names, intrinsics, poses, sizes, name=out.stem,
                          metadata={"calibration": report, "board": board.__dict__,
-                                   "extrinsics": extrinsics})
+                                   "extrinsics": extrinsics, **wand_record})
 
     panels = []
     for source, found, fit in zip(cameras, views, fits):

@@ -246,12 +246,12 @@ def cluster(
     check_layout_options(method=method, markers=markers, rig=rig, shapes=character is not None)  # fail early
     if character is not None and len(sessions) > 1:
         raise OptionError("--character takes one session (the character is placed on its neutral)")
+    if fill_gaps and len(sessions) > 1:
+        raise OptionError("--fill-gaps takes one session")
     out_dir = claim_output(out or default_out_dir(session), force=force, folder=True,  # before the slow part
                            hint=OUT_HINT)
     console = Console(stderr=True, quiet=quiet)
     if len(sessions) > 1:
-        if fill_gaps:
-            raise OptionError("--fill-gaps takes one session")
         if rig is not None:
             raise OptionError("--rig takes one session; several sessions (actors) with a rig are not supported")
         from mocaptk.clustering.multi_actor import load_actors
