@@ -321,10 +321,18 @@ def end_to_end(step: int, folder: Path) -> None:
     labelled = run("label", folder / "raw.c3d", "--template", folder / "session_performance.c3d",
                    "--out", folder / "labelled.c3d", "--drop-unlabelled", "--force").strip().splitlines()[0]
     rows = []
+    # gaps move the paper's rule's count, so the last two rows take the truth layout's count (like for like)
     for name, capture, extra in (("labelled truth capture (baseline)", "truth.c3d", ()),
                                  ("images -> detect -> reconstruct -> label", "labelled.c3d", ()),
-                                 ("the same, cluster --fill-gaps", "labelled.c3d", ("--fill-gaps",))):
-        out = folder / f"layout_{Path(capture).stem}{'_filled' if extra else ''}"
+                                 ("the same, cluster --fill-gaps", "labelled.c3d", ("--fill-gaps",)),
+                                 ("the same at the truth layout's count", "labelled.c3d", ("--markers",)),
+                                 ("the same, --fill-gaps, at the truth layout's count", "labelled.c3d",
+                                  ("--fill-gaps", "--markers"))):
+        if "--markers" in extra:
+            truth_layout = json.loads((folder / "layout_truth" / "layout.json").read_text())
+            measured = sum(c["mirrored_from"] is None for c in truth_layout["clusters"])
+            extra = tuple(a for a in extra if a != "--markers") + ("--markers", str(measured))
+        out = folder / "_".join([f"layout_{Path(capture).stem}", *(a.strip('-').replace('-', '_') for a in extra)])
         run("cluster", folder / capture, "--regions", folder / "session_regions.json", "--takes",
             folder / "takes_sub.json", "--step", "1", "--formats", "none", "--out", out, "--force", "--quiet",
             *extra)
@@ -344,7 +352,9 @@ def end_to_end(step: int, folder: Path) -> None:
     print("|---|---|---|---|")
     for name, count, rmse, random in rows:
         print(f"| {name} | {count} | {rmse:.4f} | {random:.4f} |")
-    print(f"\nratio {rows[1][2] / rows[0][2]:.3f}, with --fill-gaps {rows[2][2] / rows[0][2]:.3f} (target <= 1.05)\n")
+    print(f"\nratio {rows[1][2] / rows[0][2]:.3f}, with --fill-gaps {rows[2][2] / rows[0][2]:.3f} (each at its own "
+          f"count); at the truth layout's count {rows[3][2] / rows[0][2]:.3f}, with --fill-gaps "
+          f"{rows[4][2] / rows[0][2]:.3f} (target <= 1.05)\n")
 
 
 def main() -> None:
