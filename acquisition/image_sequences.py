@@ -136,7 +136,12 @@ def read_grey(file: Path, *, scratch: Scratch | None = None) -> np.ndarray:
                     return _decoded(file, cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
     except OSError as exc:
         raise InputFileError(file, f"cannot read this image ({exc.strerror})") from None
-    return _decoded(file, cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE))
+    except cv2.error:  # OpenCV refuses, e.g. a header claiming more pixels than it allows
+        raise InputFileError(file, "cannot decode this image") from None
+    try:
+        return _decoded(file, cv2.imread(os.fspath(file), cv2.IMREAD_GRAYSCALE))
+    except cv2.error:
+        raise InputFileError(file, "cannot decode this image") from None
 
 
 def decode_jpeg(data: np.ndarray) -> np.ndarray | None:

@@ -106,6 +106,23 @@ def test_a_video_that_cannot_be_decoded(tmp_path, run_cli):
     assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
 
 
+def test_a_png_whose_valid_header_claims_more_pixels_than_opencv_allows(tmp_path, run_cli):
+    """OpenCV raises (not returns None) on a well-formed header of 60000 x 60000 px: one line, exit 2."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    (tmp_path / "cam1").mkdir()
+    (tmp_path / "cam1" / "000000.png").write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000, 8, 0, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(bytes(10), 0)) + chunk(b"IEND", b""))
+    result = run_cli("detect", tmp_path / "cam1", "--out", tmp_path / "d.npz")
+    assert result.exit_code == 2 and "cannot decode this image" in result.stderr
+    assert result.stderr.count("\n") == 1 and not (tmp_path / "d.npz").exists()
+
+
 def test_synth_images_needs_a_rig(tmp_path, run_cli):
     result = run_cli("synth", tmp_path / "s.c3d", "--rig", "none", "--images", tmp_path / "img")
     assert result.exit_code == 2 and "--images needs a camera rig" in result.stderr
