@@ -61,7 +61,8 @@ def label_components(mask, labels, capacity):  # pragma: no cover (compiled)
     """8-connected components of the nonzero pixels of ``mask (H, W)``, as OpenCV's
     ``connectedComponentsWithStats`` gives them (labels 1.. in the raster order of each
     component's first pixel; ``labels (H, W)`` painted, 0 elsewhere) but from the rows' runs of
-    bright pixels, so the cost follows the few bright pixels rather than the box. Returns the
+    bright pixels: one pass over the box finds the runs, and the union-find and stats then cost
+    per run, not per pixel. Returns the
     label count (with the background) and ``stats (count, 5)``: left, top, width, height, area
     px. ``capacity``: at least the number of nonzero pixels."""
     height, width = mask.shape

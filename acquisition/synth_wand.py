@@ -10,7 +10,7 @@ import numpy as np
 
 from .cameras import Camera, CameraRig
 from .synth_board_views import aim_point
-from .synth_images import render_markers
+from .synth_images import png_bytes, render_markers
 
 WAND_LENGTH_MM = 400.0
 WAND_MARKER_MM = 14.0
@@ -63,8 +63,6 @@ def write_wand_views(folder, rig: CameraRig, *, n_frames: int, length: float = W
     returns its ends ``(n_frames, 2, 3)`` mm. ``folder`` must exist (staged by the caller)."""
     from pathlib import Path
 
-    import cv2
-
     from mocaptk.atomic import write_bytes
 
     folder = Path(folder)
@@ -72,5 +70,5 @@ def write_wand_views(folder, rig: CameraRig, *, n_frames: int, length: float = W
     for c, camera in enumerate(rig):
         (folder / camera.name).mkdir()
         for f, image in enumerate(wand_images(camera, ends, seed=seed + c)):
-            write_bytes(folder / camera.name / f"wand_{f:03d}.png", cv2.imencode(".png", image)[1].tobytes())
+            write_bytes(folder / camera.name / f"wand_{f:03d}.png", png_bytes(image))
     return ends

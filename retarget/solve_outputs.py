@@ -132,6 +132,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         frames_file = np.lib.format.open_memmap(staging / "mesh_frames.npy", mode="w+", dtype=np.float32,
                                                 shape=(n_frames, mesh.vertices.shape[0], 3))
         reserve(staging / "mesh_frames.npy", frames_file.offset + frames_file.nbytes)  # full disk: no SIGBUS
+    step = max(1, MESH_BLOCK_BYTES // (24 * mesh.vertices.shape[0]))  # frames mapped at once
     for part in solve_chunks(solver, x, poses, screen=screen, adaptation=adaptation, chunk=chunk):
         say(f"solving frames {part.start}-{part.start + len(part.positions)} of {n_frames}")
         rows = slice(part.start, part.start + len(part.positions))
@@ -139,7 +140,6 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         if part.flagged is not None:
             flagged[rows], consistency[rows] = part.flagged, part.consistency_mm
         if frames_file is not None:
-            step = max(1, MESH_BLOCK_BYTES // (24 * mesh.vertices.shape[0]))
             for first in range(rows.start, rows.stop, step):
                 block = slice(first, min(first + step, rows.stop))
                 frames_file[block] = mesh.apply(dense[block], None if poses is None else

@@ -106,6 +106,20 @@ def test_a_saved_model_is_reused_with_the_same_result(workspace, solved, tmp_pat
     assert not (tmp_path / "again" / "model.npz").exists()
 
 
+def test_landmarks_that_name_no_dense_marker_are_blamed_on_the_landmarks_file(workspace, solved, tmp_path):
+    """With --model, a --landmarks label the model does not know is the landmarks file's fault
+    (it was reported as the model's), found before the solve, and nothing is written."""
+    root, _ = workspace
+    out, _ = solved
+    (tmp_path / "marks.json").write_text('{"NO_SUCH_MARKER": 1, "ALSO_NOT": 2, "NOR_THIS": 3}')
+    done = mocaptk("solve", root / "layout" / "layout.json", root / "perf_layout.c3d", "--out",
+                   tmp_path / "o", "--model", out / "model.npz", "--mesh", out / "mesh_neutral.obj",
+                   "--landmarks", tmp_path / "marks.json")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "marks.json: not dense markers of the model: NO_SUCH_MARKER" in done.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_usd_reads_back_with_pxr_and_passes_the_usd_validators(solved):
     from pxr import Usd, UsdGeom, UsdValidation
 

@@ -170,6 +170,12 @@ def solve(
                                   rigid_labels=rigid or ())
         check_members(lay, solver.labels, layout_path=layout, session_name="the model's session"
                       if model is not None else path.name)
+        if pairs:  # before the solve, and blamed on the landmarks file, not on --model
+            from mocaptk.retarget.mesh_openings import CORNERS
+
+            strange = [k for k in pairs if k not in CORNERS and k not in set(solver.labels)]
+            if strange:
+                raise InputFileError(landmarks, f"not dense markers of the model: {', '.join(strange[:6])}")
         notes = []
         if label:
             from .label import label_for_layout
