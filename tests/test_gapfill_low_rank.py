@@ -51,3 +51,16 @@ def test_never_seen_markers_stay_gaps_and_complete_sessions_unchanged():
 def test_fill_gaps_takes_one_session(run_cli, tmp_path):
     result = run_cli("cluster", SAMPLE, SAMPLE, "--fill-gaps", "--out", tmp_path / "out")
     assert result.exit_code == 2 and "--fill-gaps takes one session" in result.stderr, result.stderr
+
+
+def test_the_layout_records_that_its_session_was_gap_filled(run_cli, tmp_path):
+    """layout.json's source says the layout was chosen on the filled session (solve, evaluate and
+    rig read the raw file), and only then."""
+    import json
+
+    for flags, out in ((("--fill-gaps",), "filled"), ((), "raw")):
+        result = run_cli("cluster", SAMPLE, *flags, "--formats", "none", "--out", tmp_path / out, "--quiet")
+        assert result.exit_code == 0, result.stderr
+    source = json.loads((tmp_path / "filled" / "layout.json").read_text())["source"]
+    assert source["gaps_filled"] == "low-rank"
+    assert "gaps_filled" not in json.loads((tmp_path / "raw" / "layout.json").read_text())["source"]

@@ -269,6 +269,8 @@ def cluster(
             traj = traj.replace(positions=fill_low_rank(traj.positions), residuals=None)
     # how the file was read, for evaluate, solve and rig to read it alike
     source = {**source, "reading": session_reading(traj, rate=rate, units=units)}
+    if fill_gaps:  # solve, evaluate and rig read the raw session: say the layout saw it filled
+        source["gaps_filled"] = "low-rank"
     neutral = None
     if len(sessions) == 1:  # one median pass for the face check and the layout
         import numpy as np
