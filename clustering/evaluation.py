@@ -223,14 +223,37 @@ def compare_layouts(positions: np.ndarray, layouts: Mapping[str, Sequence[np.nda
     ``layouts`` maps a method name to one or more layouts (e.g. random seeds). With several,
     the summary holds the mean over them plus ``rmse_sd_mm`` / ``p95_sd_mm`` (sample sd).
     """
+    return _compared(positions, layouts, splits, test=test, regions=regions, ridge=ridge)[0]
+
+
+def _compared(positions: np.ndarray, layouts: Mapping[str, Sequence[np.ndarray]],
+              splits: Sequence[tuple[np.ndarray, np.ndarray]], *, test: np.ndarray | None,
+              regions: Mapping[str, Sequence[int]] | None, ridge: float) -> tuple[dict[str, dict], np.ndarray]:
+    """:func:`compare_layouts` and the held-out errors (frames, markers) mm of the first layout.
+
+    Every layout is an independent computation, shared among the CPUs (:func:`shared_map`: the
+    same bits as one after another); the first one's errors are computed in this process."""
+    from mocaptk.background import shared_map
+
+    flat = [idx for group in layouts.values() for idx in group]
+
+    def summarised(item: tuple[int, np.ndarray]) -> tuple[dict, np.ndarray | None]:
+        errors = heldout_errors(positions, item[1], splits, test=test, ridge=ridge)
+        return error_summary(errors, regions=regions), errors if item[0] == 0 else None
+
+    done = iter(shared_map(summarised, list(enumerate(flat)), what="a held-out evaluation"))
     out: dict[str, dict] = {}
+    first = None
     for name, group in layouts.items():
-        summaries = [error_summary(heldout_errors(positions, idx, splits, test=test, ridge=ridge),
-                                   regions=regions) for idx in group]
+        summaries = []
+        for _ in group:
+            summary, errors = next(done)
+            summaries.append(summary)
+            first = errors if first is None else first
         out[name] = _mean_summary(summaries)
         out[name]["count"] = int(np.unique(np.asarray(group[0])).size)
         out[name]["layouts"] = len(group)
-    return out
+    return out, first
 
 
 def _mean_summary(summaries: list[dict]) -> dict:
@@ -248,6 +271,17 @@ def _mean_summary(summaries: list[dict]) -> dict:
                    for key in ("rmse_mm", "p95_mm")}
             for name in summaries[0]["regions"]}
     return out
+
+
+@dataclass(frozen=True)
+class LayoutEvaluation:
+    """:func:`layout_evaluation`'s result: ``result`` as :func:`evaluate_layout`'s, the compared
+    ``layouts`` (name → marker indices, the layout under test first) and ``errors`` (frames,
+    markers) mm, the layout's held-out errors (NaN: never tested)."""
+
+    result: dict
+    layouts: dict[str, list[np.ndarray]]
+    errors: np.ndarray
 
 
 def evaluate_layout(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
@@ -270,11 +304,22 @@ def evaluate_layout(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarra
     -------
     dict ``{"count", "protocol", "methods": {name: summary, "random": ..., ...}}``.
     """
+    return layout_evaluation(positions, layout_idx, takes=takes, test=test, regions=regions, name=name,
+                             split=split, folds=folds, n_random=n_random, seed=seed, ridge=ridge).result
+
+
+def layout_evaluation(positions: np.ndarray, layout_idx: Sequence[int] | np.ndarray, *,
+                      takes: Sequence[Take] = (), test: np.ndarray | None = None,
+                      regions: Mapping[str, Sequence[int]] | None = None, name: str = "layout",
+                      split: str = "blocks", folds: int = 5, n_random: int = 10, seed: int = 0,
+                      ridge: float = DEFAULT_RIDGE) -> LayoutEvaluation:
+    """:func:`evaluate_layout` with the layouts it compared and the layout's held-out errors, for
+    callers that go on with them (``evaluate``'s lost-marker column and report)."""
     idx = np.unique(np.asarray(layout_idx, dtype=np.intp))
     splits = [] if test is not None else holdout_splits(positions.shape[0], takes, split=split, folds=folds)
     layouts = {name: [idx], **baseline_layouts(positions, idx.size, n_random=n_random, seed=seed)}
     protocol = ({"test": "separate performance", "frames": int(test.shape[0])} if test is not None
                 else {"test": f"held-out {split}", "folds": len(splits)})
     protocol.update({"ridge": ridge, "random_seeds": n_random})
-    return {"count": int(idx.size), "protocol": protocol,
-            "methods": compare_layouts(positions, layouts, splits, test=test, regions=regions, ridge=ridge)}
+    methods, errors = _compared(positions, layouts, splits, test=test, regions=regions, ridge=ridge)
+    return LayoutEvaluation({"count": int(idx.size), "protocol": protocol, "methods": methods}, layouts, errors)

@@ -150,10 +150,15 @@ def pooled_worst_lost(folds: Sequence[CrossValidatedError], layouts: Sequence[np
 def lost_marker_summaries(folds: CrossValidatedError, layouts: dict[str, Sequence[np.ndarray]],
                           labels: Sequence[str] | None = None) -> dict[str, dict]:
     """Per named method: intact and worst-lost-marker RMSE (mm; mean over its layouts, e.g. random
-    seeds) and, for a single layout, the label of the marker whose loss hurts most."""
+    seeds) and, for a single layout, the label of the marker whose loss hurts most. The layouts
+    are shared among the CPUs (:func:`~mocaptk.background.shared_map`: the same bits)."""
+    from mocaptk.background import shared_map
+
+    done = iter(shared_map(lambda layout: worst_lost_marker(folds, layout),
+                           [layout for group in layouts.values() for layout in group], what="a lost-marker error"))
     out = {}
     for name, group in layouts.items():
-        results = [worst_lost_marker(folds, layout) for layout in group]
+        results = [next(done) for _ in group]
         entry = {"intact_rmse_mm": float(np.mean([r.intact_rmse_mm for r in results])),
                  "lost_rmse_mm": float(np.mean([r.lost_rmse_mm for r in results]))}
         if len(results) == 1:

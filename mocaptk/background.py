@@ -1,8 +1,10 @@
-"""Run one output writer (or check) in a forked process while the caller goes on with its own work.
+"""Run one output writer (or check) in a forked process while the caller goes on with its own work,
+or share independent computations among this process and one forked child per further CPU.
 
 The outputs of a run are independent files, so writing two of them side by side changes no byte;
-it halves their wall time on two cores. Where fork is not safe (macOS frameworks, Windows) or this
-process has one CPU, the task simply runs first, in this process.
+it halves their wall time on two cores. Each shared computation runs alone with the same inputs
+and one BLAS thread, so its numbers are the same bits wherever it ran. Where fork is not safe
+(macOS frameworks, Windows) or this process has one CPU, everything runs in this process.
 """
 
 from __future__ import annotations
@@ -11,16 +13,36 @@ import os
 import pickle
 import signal
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from typing import Any
 
 from mocaptk.errors import MocaptkError
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity where the system has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def can_fork() -> bool:
     """Linux with two or more CPUs for this process."""
-    return sys.platform.startswith("linux") and len(os.sched_getaffinity(0)) > 1
+    return sys.platform.startswith("linux") and usable_cpus() > 1
+
+
+def shared_map(function: Callable[[Any], Any], items: Sequence[Any], *, what: str) -> list[Any]:
+    """``[function(item) for item in items]``, the items dealt round-robin to this process (the
+    first item is always computed here, so its result is never pickled) and one forked child per
+    further usable CPU. Results come back pickled: keep them small. Errors as :func:`beside`."""
+    workers = max(1, min(usable_cpus(), len(items))) if can_fork() else 1
+    results: list[Any] = [None] * len(items)
+    with ExitStack() as stack:
+        shares = [stack.enter_context(beside(lambda k=k: [function(x) for x in items[k::workers]], what=what))
+                  for k in range(1, workers)]
+        results[0::workers] = [function(x) for x in items[0::workers]]
+    for k, share in enumerate(shares, start=1):
+        results[k::workers] = share.value
+    return results
 
 
 class Outcome:

@@ -99,3 +99,26 @@ def test_cluster_writes_the_same_files_with_and_without_a_second_process(run_cli
         if (tmp_path / "forked" / name).is_file():
             assert (tmp_path / "forked" / name).read_bytes() == \
                 (tmp_path / "inline" / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("fork", [True, False])
+def test_shared_map_keeps_the_order_and_computes_the_first_item_here(monkeypatch, fork):
+    if fork and not background.can_fork():
+        pytest.skip("fork: Linux with 2+ CPUs only")
+    monkeypatch.setattr(background, "can_fork", lambda: fork)
+    done = background.shared_map(lambda x: (x * x, os.getpid()), list(range(7)), what="a square")
+    assert [value for value, _ in done] == [x * x for x in range(7)]
+    assert done[0][1] == os.getpid()
+    assert len({pid for _, pid in done}) == (min(background.usable_cpus(), 7) if fork else 1)
+    assert background.shared_map(lambda x: x, [], what="nothing") == []
+
+
+@needs_fork
+def test_a_failure_in_a_shared_item_is_raised_here():
+    def item(x):
+        if x == 3:
+            raise OptionError("item 3 is bad")
+        return x
+
+    with pytest.raises(OptionError, match="item 3 is bad"):
+        background.shared_map(item, list(range(6)), what="an item")

@@ -66,3 +66,20 @@ def test_out_is_a_folder_as_for_every_other_command(run_cli, mirrored, tmp_path)
     assert result.exit_code == 0, result.stderr
     assert sorted(p.name for p in out.iterdir()) == ["evaluation.html", "evaluation.json"]
     assert f"wrote {out / 'evaluation.json'}" in result.stdout and f"wrote {out / 'evaluation.html'}" in result.stdout
+
+
+def test_the_layouts_shared_among_processes_give_the_bytes_of_one_process(run_cli, mirrored, tmp_path, monkeypatch):
+    """``evaluate`` shares its layouts' held-out fits and lost-marker errors among a forked process
+    per CPU (``background.shared_map``): the JSON and the report are the bytes of the run in one."""
+    from mocaptk import background
+
+    session, takes, layout = mirrored
+    runs = {}
+    for fork in (True, False):
+        monkeypatch.setattr(background, "can_fork", lambda fork=fork: fork and background.usable_cpus() > 1)
+        runs[fork] = tmp_path / str(fork)
+        result = run_cli("evaluate", session, "--layout", layout, "--takes", takes, "--seeds", "3", "--folds", "3",
+                         "--out", runs[fork], "--quiet")
+        assert result.exit_code == 0, result.stderr
+    for name in ("evaluation.json", "evaluation.html"):
+        assert (runs[True] / name).read_bytes() == (runs[False] / name).read_bytes()

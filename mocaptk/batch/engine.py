@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -61,7 +60,9 @@ def tasks(sessions: list[Path], *, command: str, out: Path, options: list[str], 
 
 def machine_workers() -> int:
     """Worker processes for a LocalCluster on this machine: one per usable core."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    from mocaptk.background import usable_cpus
+
+    return usable_cpus()
 
 
 @contextlib.contextmanager

@@ -51,10 +51,11 @@ def session_arrays(session: Path, *, test: Path | None, stabilized: bool, rate: 
 LOST_MARKER_SEEDS = 3
 
 
-def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, test, split: str,
-                    folds: int, n_random: int, ridge: float) -> None:
-    """Add ``lost_marker`` (intact / worst-lost RMSE, mm; worst marker) to every method of ``result``."""
-    from mocaptk.clustering.evaluation import baseline_layouts, holdout_splits
+def add_lost_marker(result: dict, traj, layouts: dict[str, list[np.ndarray]], *, takes, test, split: str,
+                    folds: int, ridge: float) -> None:
+    """Add ``lost_marker`` (intact / worst-lost RMSE, mm; worst marker) to every method of ``result``
+    (``layouts``: the compared ones, of which the first ``LOST_MARKER_SEEDS`` random ones count)."""
+    from mocaptk.clustering.evaluation import holdout_splits
     from mocaptk.clustering.lost_marker import heldout_folds, lost_marker_summaries
 
     from mocaptk.threads import one_thread
@@ -62,9 +63,8 @@ def add_lost_marker(result: dict, traj, layout: list[int], *, name: str, takes, 
     splits = [] if test is not None else holdout_splits(traj.n_frames, takes, split=split, folds=folds)
     with one_thread():  # many small solves: BLAS threads only contend
         cv = heldout_folds(traj.positions, splits, test=test, ridge=ridge)
-        layouts = {name: [np.asarray(layout)],
-                   **baseline_layouts(traj.positions, len(layout), n_random=min(n_random, LOST_MARKER_SEEDS))}
-        for method, entry in lost_marker_summaries(cv, layouts, traj.labels).items():
+        kept = {name: group[:LOST_MARKER_SEEDS] if name == "random" else group for name, group in layouts.items()}
+        for method, entry in lost_marker_summaries(cv, kept, traj.labels).items():
             result["methods"][method]["lost_marker"] = entry
 
 
@@ -94,7 +94,7 @@ def evaluate(
     from rich.console import Console
 
     from mocaptk.atomic import claim_output
-    from mocaptk.clustering.evaluation import evaluate_layout
+    from mocaptk.clustering.evaluation import layout_evaluation
     from mocaptk.clustering.layout import layout_rigid_set, measured_indices, read_layout
     from mocaptk.clustering.takes import read_takes
     from mocaptk.jsonio import write_json
@@ -131,16 +131,17 @@ def evaluate(
         except OptionError as exc:
             raise source_error(takes or session, f"{exc} (held-out blocks follow its takes)") from None
     with Console(stderr=True, quiet=quiet).status(f"evaluating {len(measured)}-marker layouts"):
-        result = evaluate_layout(traj.positions, [index[m] for m in measured], takes=take_list,
-                                 test=test_positions, regions=regions, name=name, split=split, folds=folds,
-                                 n_random=seeds, ridge=ridge)
-        add_lost_marker(result, traj, [index[m] for m in measured], name=name, takes=take_list,
-                        test=test_positions, split=split, folds=folds, n_random=seeds, ridge=ridge)
+        evaluation = layout_evaluation(traj.positions, [index[m] for m in measured], takes=take_list,
+                                       test=test_positions, regions=regions, name=name, split=split,
+                                       folds=folds, n_random=seeds, ridge=ridge)
+        result = evaluation.result
+        add_lost_marker(result, traj, evaluation.layouts, takes=take_list, test=test_positions, split=split,
+                        folds=folds, ridge=ridge)
     result.update({"format": "mocaptk.evaluation", "version": 1, "units": "mm", "source": source,
                    "layout": layout.name, "test": test.name if test else None})
     report = write_evaluation_report(out_path.with_suffix(".html"), lay, traj, [index[m] for m in measured], result,
-                                     test=test_positions, takes=take_list, split=split, folds=folds,
-                                     ridge=ridge, summary=evaluation_table(result))
+                                     errors=evaluation.errors, test=test_positions,
+                                     summary=evaluation_table(result))
     write_json(out_path, result, force=True)
     mirrored = len(lay.clusters) - len(measured)
     if mirrored:  # after everything that can fail: a note never precedes an error

@@ -32,18 +32,16 @@ def write_cluster_report(result, build, path: Path, *, summary: str) -> str:
     return line
 
 
-def write_evaluation_report(path: Path, layout, session, layout_idx, result: dict, *, test, takes,
-                            split: str, folds: int, ridge: float, summary: str) -> str:
+def write_evaluation_report(path: Path, layout, session, layout_idx, result: dict, *, errors, test,
+                            summary: str) -> str:
     """``mocaptk evaluate``'s report beside its JSON: the layout's per-marker held-out RMSE on
-    the face (same protocol as the result), the method table, session + performance replay.
-    Returns the line stating its size."""
-    from mocaptk.clustering.evaluation import heldout_errors, holdout_splits
+    the face (``errors`` (frames, markers) mm: the result's own held-out errors of the layout),
+    the method table, session + performance replay. Returns the line stating its size."""
     from mocaptk.retarget.report import evaluation_report, per_marker_rmse, write_report
 
-    splits = [] if test is not None else holdout_splits(session.n_frames, takes, split=split, folds=folds)
-    errors = heldout_errors(session.positions, layout_idx, splits, test=test, ridge=ridge)
+    held_out = "held-out performance" if test is not None else result["protocol"]["test"]
     title = (f"mocaptk evaluate: {layout.source.get('path', '')} · {len(layout_idx)}-marker layout"
-             + (" · held-out performance" if test is not None else f" · held-out {split}"))
+             f" · {held_out}")
     data = evaluation_report(layout, session, rmse=per_marker_rmse(errors), result=result,
                              performance=test, summary=summary, title=title)
     written, size = write_report(path, data)
