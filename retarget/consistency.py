@@ -33,7 +33,7 @@ import numpy as np
 from mocaptk.clustering.reconstruction_models import DEFAULT_RIDGE, check_frames
 from mocaptk.errors import OptionError
 
-__all__ = ["LayoutGaussian", "Screen", "screen_frames", "stabilization_residuals"]
+__all__ = ["LayoutGaussian", "Screen", "outlier_threshold", "screen_frames", "stabilization_residuals"]
 
 #: Measurement noise added to the covariance's diagonal (mm, per coordinate): a capture is noisier
 #: than the session's mean shape, and the floor keeps ``Σ`` invertible for rigid-moving pairs.
@@ -173,14 +173,21 @@ def capture_screen(gauss: LayoutGaussian, x: np.ndarray, *, training_mm: float,
     :data:`STATS_FRAMES` of them: a marker's median residual and its median departure from it
     (ghosts are too rare to move either)."""
     step = max(1, -(-len(x) // STATS_FRAMES))
-    r = gauss.loo_residuals(x[::step])
-    median = np.nanmedian(r, axis=0) if np.isfinite(r).any() else np.zeros(r.shape[1:])
-    median = np.nan_to_num(median)
-    departure = np.linalg.norm(r - median, axis=2)
-    seen = np.isfinite(departure).any(axis=0)
+    median, threshold = outlier_threshold(gauss.loo_residuals(x[::step]), floor_mm=floor_mm, spreads=spreads)
+    return Screen(median, threshold, float(training_mm))
+
+
+def outlier_threshold(r: np.ndarray, *, floor_mm: float = OUTLIER_FLOOR_MM,
+                      spreads: float = OUTLIER_SPREADS) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker of residuals ``r`` (F, L, 3) mm (NaN: absent): its median residual (L, 3) and the
+    departure from it (L,) mm beyond which a residual is an outlier, ``max(floor_mm, spreads × its
+    median departure)``; a marker never present gets median 0 and the floor."""
+    seen = np.isfinite(r).all(axis=2).any(axis=0)
+    median = np.zeros(r.shape[1:])
+    median[seen] = np.nanmedian(r[:, seen], axis=0)
     typical = np.zeros(r.shape[1])
-    typical[seen] = np.nanmedian(departure[:, seen], axis=0)
-    return Screen(median, np.maximum(floor_mm, spreads * typical), float(training_mm))
+    typical[seen] = np.nanmedian(np.linalg.norm(r[:, seen] - median[seen], axis=2), axis=0)
+    return median, np.maximum(floor_mm, spreads * typical)
 
 
 def screen_frames(gauss: LayoutGaussian, screen: Screen, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,17 +226,11 @@ def stabilization_residuals(solved: np.ndarray, captured: np.ndarray, *, floor_m
     """Distances (F, R) mm between markers the solve reconstructed, ``solved`` (F, R, 3), and the
     capture's own points of them, ``captured`` (F, R, 3), in the same frame. NaN where either is
     missing, or where the residual departs from the marker's median residual over the capture by
-    more than ``max(floor_mm, spreads × its median departure)`` (a ghost or a swap in the capture,
-    not the solve's error: the layout markers' outlier test)."""
+    more than :func:`outlier_threshold` (a ghost or a swap in the capture, not the solve's error:
+    the layout markers' outlier test)."""
     r = np.asarray(solved, dtype=np.float64) - np.asarray(captured, dtype=np.float64)
-    distance = np.linalg.norm(r, axis=2)
-    seen = np.isfinite(distance).any(axis=0)
-    median = np.zeros(r.shape[1:])
-    median[seen] = np.nanmedian(r[:, seen], axis=0)
-    departure = np.linalg.norm(r - median, axis=2)
-    typical = np.zeros(r.shape[1])
-    typical[seen] = np.nanmedian(departure[:, seen], axis=0)
-    return np.where(departure > np.maximum(floor_mm, spreads * typical), np.nan, distance)
+    median, threshold = outlier_threshold(r, floor_mm=floor_mm, spreads=spreads)
+    return np.where(np.linalg.norm(r - median, axis=2) > threshold, np.nan, np.linalg.norm(r, axis=2))
 
 
 def _rms(r: np.ndarray) -> float:
