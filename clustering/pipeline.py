@@ -53,6 +53,8 @@ class ClusterOptions:
     ``shapes``: (labels, (K, M, 3) mm) a character rig's K shapes at the session's markers
     ``labels`` (``--character``, mapped by the caller): ``set-cover`` covers them instead of the
     session's extreme frames; ``shapes_source`` names them in the layout's parameters.
+    ``fill_gaps``: fill every gap from the session's main motion patterns (low-rank) once the head
+    motion is removed, so that the patterns are the face's, not the head's.
     """
 
     factor: float = 1.1
@@ -67,6 +69,7 @@ class ClusterOptions:
     rig: str | None = None  # camera rig whose per-marker costs the layout method weighs (None: camera-blind)
     shapes: tuple[tuple[str, ...], np.ndarray] | None = None
     shapes_source: str | None = None
+    fill_gaps: bool = False
 
 
 #: A session whose automatically chosen rigid markers already stay this close (RMS, mm) to their
@@ -172,6 +175,23 @@ def check_options(options: ClusterOptions, n_frames: int, *, source: str | None 
         raise source_error(source, f"--step {options.step} is not smaller than the session's {n_frames} frames")
 
 
+def head_frame(traj: Trajectories, *, options: ClusterOptions) -> tuple[Trajectories, dict[str, Any]]:
+    """The session in its head frame (unless ``options.stabilize`` is off) with the stabilization
+    report (its rigid set and their reference shape), then gap-filled if ``options.fill_gaps``:
+    filled after the head motion is removed, the low-rank basis is spent on the face alone."""
+    if options.stabilize:
+        traj, stabilization = stabilize(traj, rigid=options.rigid)  # not applied: see stabilization_note
+    else:  # recorded all the same: a production capture is posed from them
+        stabilization = {"rigid_labels": list(stabilization_markers(traj)), "applied": False,
+                         "rigid_set_motion_rms_mm": None, "rms_residual_mm": None}
+    if stabilization["rigid_labels"]:
+        stabilization["reference"] = rigid_reference(traj, stabilization["rigid_labels"])
+    if options.fill_gaps:
+        from mocaptk.acquisition.gapfill import fill_low_rank
+        traj = traj.replace(positions=fill_low_rank(traj.positions), residuals=None)
+    return traj, stabilization
+
+
 def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOptions(),
                     source: dict[str, Any] | None = None,
                     progress: Callable[[str], None] | None = None,
@@ -206,15 +226,9 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
         raise source_error(file, f"need at least 2 markers with data, the session has {traj.n_markers}")
     if progress:
         progress("stabilizing" if options.stabilize else "choosing the stabilization markers")
-    if options.stabilize:
-        traj, stabilization = stabilize(traj, rigid=options.rigid)  # not applied: see stabilization_note
-    else:  # recorded all the same: a production capture is posed from them
-        stabilization = {"rigid_labels": list(stabilization_markers(traj)), "applied": False,
-                         "rigid_set_motion_rms_mm": None, "rms_residual_mm": None}
-    if stabilization["rigid_labels"]:
-        stabilization["reference"] = rigid_reference(traj, stabilization["rigid_labels"])
+    traj, stabilization = head_frame(traj, options=options)
     labels = list(traj.labels)
-    if neutral is None or stabilization.get("applied"):
+    if neutral is None or stabilization.get("applied") or options.fill_gaps:
         neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
     # up, forward and the actor's left from the face itself; the labels' sides only if they agree

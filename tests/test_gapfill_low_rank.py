@@ -6,9 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mocaptk.acquisition.gapfill import fill_low_rank
 from mocaptk.acquisition.synth_session import load_ground_truth
+from mocaptk.trajectories import Trajectories
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_c3d" / "dense_halfface.c3d"
 
@@ -64,3 +66,51 @@ def test_the_layout_records_that_its_session_was_gap_filled(run_cli, tmp_path):
     source = json.loads((tmp_path / "filled" / "layout.json").read_text())["source"]
     assert source["gaps_filled"] == "low-rank"
     assert "gaps_filled" not in json.loads((tmp_path / "raw" / "layout.json").read_text())["source"]
+
+
+@pytest.mark.slow
+def test_gaps_are_filled_in_the_head_frame_not_in_the_moving_one():
+    """``cluster --fill-gaps`` on a capture with head motion: filled after the head motion is removed,
+    the rank-12 basis is spent on the face; filled before (the old order), part of it follows the
+    head. On the independent generator's actor with a headband (ROM, every 8th frame), the head
+    moving 8° / 15 mm, the 30 markers that move most lost in 30 % of their wider-than-median frames."""
+    import sys
+
+    from conftest import REPO, shared_path
+
+    from mocaptk.clustering.pipeline import ClusterOptions, head_frame
+
+    tarball = shared_path("face_mesh", "ict_facekit", "ict_facekit_FaceXModel_subset.tar.xz")
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from testbed import load_ict, make_actor, rom_session
+    from testbed.session import apply_pose, head_motion
+
+    face = load_ict(tarball)
+    actor = make_actor(face, identity_seed=11, count=60, half=False, marker_seed=3, rigid=True)
+    capture = rom_session(face, actor, seed=1101).capture
+    head = capture.positions[::8]
+    moving = apply_pose(head, *head_motion(len(head), max_deg=8.0, max_mm=15.0, seed=4, rate=capture.rate / 8))
+    rigid = tuple(label for label in capture.labels if label.startswith("hb"))
+    face_markers = np.flatnonzero([not label.startswith("hb") for label in capture.labels])
+    motion = np.linalg.norm(head - np.nanmedian(head, axis=0), axis=2)[:, face_markers]
+    busy = face_markers[np.argsort(np.nan_to_num(np.nanmax(motion, axis=0)))[-30:]]
+    wide = np.linalg.norm(head[:, busy] - np.nanmedian(head[:, busy], axis=0), axis=2)
+    gaps = np.zeros(head.shape[:2], bool)
+    gaps[:, busy] = (wide > np.nanmedian(wide, axis=0)) & (np.random.default_rng(0).random(wide.shape) < 0.3)
+    cut = moving.copy()
+    cut[gaps] = np.nan
+
+    def framed(positions: np.ndarray, *, fill: bool) -> np.ndarray:
+        session = Trajectories(positions, capture.labels, capture.rate / 8)
+        return head_frame(session, options=ClusterOptions(rigid=rigid, fill_gaps=fill))[0].positions
+
+    truth = framed(moving, fill=False)  # the capture before the cut, in the same head frame
+    now = framed(cut, fill=True)
+    before = framed(fill_low_rank(cut), fill=False)
+
+    def error(filled: np.ndarray) -> float:
+        return float(np.sqrt(np.nanmean(np.linalg.norm(filled - truth, axis=2)[gaps] ** 2)))
+
+    assert np.isfinite(now[gaps]).all()
+    # measured 1.15 mm against 1.35 mm filled before the head motion was removed
+    assert error(now) < 0.9 * error(before), (error(now), error(before))

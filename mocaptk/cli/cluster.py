@@ -190,8 +190,9 @@ def cluster(
     mirror: bool = typer.Option(None, "--mirror/--no-mirror", help="Mirror the half-face layout across "
                                 "the sagittal plane (default: when labels show one half + midline)."),
     fill_gaps: bool = typer.Option(False, "--fill-gaps", help="Fill every gap from the session's main "
-                                   "motion patterns (low-rank) before clustering: for captures with many "
-                                   "gaps, e.g. reconstructed from images, whose gaps follow the expression."),
+                                   "motion patterns (low-rank), once the head motion is removed, before "
+                                   "clustering: for captures with many gaps, e.g. reconstructed from "
+                                   "images, whose gaps follow the expression."),
     no_stabilize: bool = typer.Option(False, "--no-stabilize", help="Skip removing rigid head motion "
                                       "(for already head-relative data, e.g. head-mounted cameras)."),
     rigid: Rigid = None,
@@ -264,9 +265,6 @@ def cluster(
         if unknown:  # named here: from a batch sidecar the option is not on the user's command line
             raise OptionError(f"--rigid: {len(unknown)} labels are not markers of {session.name}: "
                               + ", ".join(unknown[:5]))
-        if fill_gaps:
-            from mocaptk.acquisition.gapfill import fill_low_rank
-            traj = traj.replace(positions=fill_low_rank(traj.positions), residuals=None)
     # how the file was read, for evaluate, solve and rig to read it alike
     source = {**source, "reading": session_reading(traj, rate=rate, units=units)}
     if fill_gaps:  # solve, evaluate and rig read the raw session: say the layout saw it filled
@@ -290,7 +288,7 @@ def cluster(
         mirror=mirror, rigid=rigid_labels(rigid), rig=rig, shapes=shapes,
         shapes_source=None if character is None else rig_face.source,
         regions=read_regions(regions, traj.labels) if regions else None,
-        takes=read_takes(takes, traj.n_frames) if takes else None)
+        takes=read_takes(takes, traj.n_frames) if takes else None, fill_gaps=fill_gaps)
     with console.status("clustering") as status:
         if len(sessions) > 1:
             from mocaptk.clustering.multi_actor import cluster_actors
