@@ -6,6 +6,7 @@
     python benchmarks/bench_solve.py accuracy     # every model kind x 3 layout sizes x 4 data sets
     python benchmarks/bench_solve.py robustness   # RMSE as layout markers are lost
     python benchmarks/bench_solve.py maps OUT_DIR # per-vertex RMSE maps, default model vs ridge (PNG)
+    python benchmarks/bench_solve.py skin-refit   # the pose refit predicting its few markers vs all (same run)
 
 Data: the bundled sample (half face, 139 markers, separate 20 s performance), an ICT-FaceKit full
 face made by ``mocaptk synth --full`` (260 markers; mesh truth from the face model), blenderFace
@@ -369,6 +370,58 @@ def maps(folder: Path) -> None:
               folder / "error_map_ict.png", "ICT full face, 40 layout markers, per mesh vertex")
 
 
+def skin_refit(repeat: int = 5) -> dict:
+    """``solve``'s skin-following pose refit (``retarget.solve._following_skin``) with the model
+    predicting only the pose markers it keeps (``predict_markers`` of the ridge kinds) against
+    predicting every dense marker and keeping those (``FaceModel.predict_markers``: the code
+    before), alternating in one process, CPU seconds of ``head_poses`` (best of ``repeat``) and the
+    largest pose difference. Data: the independent generator's headband actor (tb-full-a-hb): its
+    ROM trains the default model on ``cluster``'s 40-marker layout, its 60 s performance (3,600
+    frames, 184 markers) moves with the head (8° / 15 mm) and holds the layout's markers only."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from testbed.session import apply_pose, head_motion, load_truth
+    from testbed.sets import ensure_set, ict_tarball
+
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.clustering.layout import layout_rigid_set, read_layout
+    from mocaptk.clustering.reconstruction_models import FaceModel
+    from mocaptk.retarget.solve import head_poses, train_solver
+    from mocaptk.threads import one_thread
+    from mocaptk.trajectories import Trajectories
+
+    with tempfile.TemporaryDirectory() as tmp, one_thread():
+        folder = ensure_set(ict_tarball(), Path(tmp), "tb-full-a-hb")
+        subprocess.run([sys.executable, "-m", "mocaptk", "cluster", str(folder / "rom.c3d"), "--markers", "40",
+                        "--formats", "none", "--quiet", "--out", str(Path(tmp) / "lay")], check=True)
+        layout = read_layout(Path(tmp) / "lay" / "layout.json")
+        session = read_trajectories(folder / "rom.c3d")
+        solver = train_solver(layout, session, {"path": "rom.c3d"}, rigid_labels=layout_rigid_set(layout))
+        truth, header = load_truth(folder / "performance_truth.npz")
+        world = apply_pose(truth, *head_motion(len(truth), max_deg=8.0, max_mm=15.0, seed=7))
+        worn = [header["labels"].index(m) for m in (*solver.layout_labels, *solver.rigid_labels)]
+        capture = Trajectories(world[:, worn], tuple(header["labels"][i] for i in worn), 60.0)
+        timings: dict[str, list[float]] = {"all markers (before)": [], "pose markers only (now)": []}
+        poses = {}
+        for _ in range(repeat):
+            for name in timings:
+                if name.startswith("all"):  # the instance's attribute shadows its class's method
+                    solver.model.predict_markers = FaceModel.predict_markers.__get__(solver.model)
+                else:
+                    vars(solver.model).pop("predict_markers", None)
+                started = time.process_time()
+                poses[name] = head_poses(solver, capture)
+                timings[name].append(time.process_time() - started)
+        before, now = poses.values()
+        result = {"model": solver.model.kind, "frames": capture.n_frames, "dense markers": len(solver.labels),
+                  "pose markers predicted": sum(label not in solver.layout_labels for label in before.labels),
+                  **{f"{name}, CPU s": min(t) for name, t in timings.items()},
+                  "max rotation difference": float(np.nanmax(np.abs(before.rotations - now.rotations))),
+                  "max translation difference mm": float(np.nanmax(np.abs(before.translations - now.translations)))}
+        result["speed-up"] = result["all markers (before), CPU s"] / result["pose markers only (now), CPU s"]
+        print(json.dumps(result, indent=1))
+        return result
+
+
 def _draw(plt, tri, sets, layout_points, path: Path, title: str) -> None:
     vmax = max(float(np.nanpercentile(v, 99)) for _, v in sets)
     fig, axes = plt.subplots(1, len(sets), figsize=(5 * len(sets), 5.6), constrained_layout=True)
@@ -399,6 +452,6 @@ if __name__ == "__main__":
         Path(sys.argv[2]).write_text(json.dumps(result, indent=1, sort_keys=True))
     else:
         result = {"speed": speed, "memory": memory, "memory-face": memory_face, "accuracy": accuracy,
-                  "robustness": robustness}[what]()
+                  "robustness": robustness, "skin-refit": skin_refit}[what]()
         if len(sys.argv) > 2:
             Path(sys.argv[2]).write_text(json.dumps(result, indent=1, sort_keys=True))

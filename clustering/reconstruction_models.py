@@ -290,18 +290,24 @@ def _affine(x: np.ndarray, coef: np.ndarray, intercept: np.ndarray, n_markers: i
 
 
 def _by_pattern(layout_positions: np.ndarray, layout: np.ndarray, n_markers: int,
-                solve: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+                solve: Callable[[np.ndarray, np.ndarray], np.ndarray], *,
+                markers: np.ndarray | None = None) -> np.ndarray:
     """Apply ``solve(pattern (L,) bool, present layout markers (f, K, 3)) -> (f, M, 3)`` per
-    presence pattern; frames without any layout marker are NaN; present layout markers copied."""
+    presence pattern; frames without any layout marker are NaN; present layout markers copied.
+    ``markers`` (N,) intp: ``solve`` gives only these dense markers, (f, N, 3), and so does the result."""
     x = np.asarray(layout_positions, dtype=np.float64)
-    out = np.full((x.shape[0], n_markers, 3), np.nan)
+    out = np.full((x.shape[0], n_markers if markers is None else len(markers), 3), np.nan)
     present = np.isfinite(x).all(axis=2)
     patterns, inverse = row_patterns(present)
     for p, pattern in enumerate(patterns):
         if pattern.any():
             frames = np.flatnonzero(inverse == p)
             out[frames] = solve(pattern, x[frames][:, pattern])
-    out[:, layout] = np.where(present[..., None], x, out[:, layout])
+    if markers is None:
+        out[:, layout] = np.where(present[..., None], x, out[:, layout])
+        return out
+    for i, j in zip(*np.nonzero(np.asarray(markers)[:, None] == layout[None])):  # measured ones copied
+        out[:, i] = np.where(present[:, j, None], x[:, j], out[:, i])
     return out
 
 
@@ -356,6 +362,11 @@ class FaceModel:
     def predict_positions(self, layout_positions: np.ndarray) -> np.ndarray:
         """(F, M, 3) mm from the layout markers (F, L, 3), NaN = lost; present ones copied."""
         return _by_pattern(layout_positions, self.layout, self.n_markers, self._solve)
+
+    def predict_markers(self, layout_positions: np.ndarray, markers: Sequence[int] | np.ndarray) -> np.ndarray:
+        """``predict_positions(layout_positions)[:, markers]`` (F, N, 3) mm; models that can
+        predict a few dense markers for less than all of them override it (the same numbers)."""
+        return self.predict_positions(layout_positions)[:, np.asarray(markers, dtype=np.intp)]
 
     def predict(self, layout_positions: np.ndarray) -> Prediction:
         """Dense markers, expected error and missing flags from layout markers (F, L, 3) mm."""
@@ -454,6 +465,17 @@ class RidgeModel(FaceModel):
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         return _affine(x, *self.submodel(pattern), self.n_markers)
 
+    def predict_markers(self, layout_positions: np.ndarray, markers: Sequence[int] | np.ndarray) -> np.ndarray:
+        """Only the columns of ``markers`` of each pattern's ridge: (F, N, 3) mm."""
+        markers = np.asarray(markers, dtype=np.intp)
+        cols = (3 * markers[:, None] + np.arange(3)).ravel()
+
+        def solve(pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
+            coef, offset = self.submodel(pattern)
+            return (x.reshape(len(x), -1) @ coef[:, cols] + offset[cols]).reshape(len(x), markers.size, 3)
+
+        return _by_pattern(layout_positions, self.layout, self.n_markers, solve, markers=markers)
+
     def _arrays(self) -> dict[str, np.ndarray]:
         return {"mean": self.mean, "cov": self.cov, "frames": np.array(self.frames),
                 "ridge": np.array(self.ridge)}
@@ -505,6 +527,8 @@ class LocalRidgeModel(RidgeModel):
             return near, coef, offset, _beyond_reach(self.neutral, self.layout, pattern)
         return self._cache.get_or(pattern.tobytes(), make)
 
+    predict_markers = FaceModel.predict_markers  # its own solve, not the global ridge's columns
+
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         near, coef, offset, lost = self.local_models(pattern)
         inputs = x[:, near].reshape(len(x), self.n_markers, -1)  # (f, M, 3k)
@@ -543,6 +567,8 @@ class TaperedRidgeModel(RidgeModel):
         self.taper_mm = float(taper_mm)
         self.cv_lengths_mm, self.cv_rmse_mm = cv_lengths_mm, cv_rmse_mm
         self.tapered = self.cov * self.taper(self.neutral, self.taper_mm)
+
+    predict_markers = FaceModel.predict_markers  # its own solve, not the global ridge's columns
 
     def _solve(self, pattern: np.ndarray, x: np.ndarray) -> np.ndarray:
         coef, offset = self._cache.get_or(b"tapered" + pattern.tobytes(),

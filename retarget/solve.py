@@ -345,7 +345,7 @@ def _following_skin(solver: FaceSolver, poses: HeadPoses, reference: np.ndarray,
         moved = np.full((len(x), len(columns), 3), np.nan)
         for start in range(0, len(x), CHUNK_FRAMES):
             rows = slice(start, start + CHUNK_FRAMES)
-            moved[rows] = solver.model.predict_positions(to_head_frame(x[rows], poses, rows))[:, columns]
+            moved[rows] = solver.model.predict_markers(to_head_frame(x[rows], poses, rows), columns)
         seen = np.isfinite(moved).any(axis=0)  # a marker never solved keeps its fixed shape
         centre = np.full(seen.shape, np.nan)
         centre[seen] = np.nanmedian(moved[:, seen], axis=0)

@@ -116,6 +116,21 @@ def test_lost_markers_are_solved_from_the_present_ones(sample, models, kind):
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)
+def test_a_few_markers_predicted_alone_are_those_of_the_whole_face(sample, models, kind):
+    """``predict_markers`` (solve's pose refit keeps a few dense markers): the ridge kinds compute
+    only those columns; the numbers are the whole prediction's, lost and measured markers too."""
+    _, test, layout = sample
+    model = models[kind]
+    x = test[:60, layout].copy()
+    x[5:10, :4] = np.nan
+    x[20] = np.nan
+    markers = np.array([int(np.setdiff1d(np.arange(test.shape[1]), layout)[7]), int(layout[0]), int(layout[5]), 3])
+    whole = model.predict_positions(x)[:, markers]
+    np.testing.assert_allclose(model.predict_markers(x, markers), whole, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.isnan(model.predict_markers(x, markers)), np.isnan(whole))
+
+
+@pytest.mark.parametrize("kind", MODEL_KINDS)
 def test_random_dropout_degrades_smoothly(sample, models, kind):
     _, test, layout = sample
     model = models[kind]
