@@ -22,6 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from mocaptk.threads import machine_workers
 from mocaptk.trajectories import Trajectories
 
 from .cameras import CameraRig
@@ -126,9 +127,10 @@ def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
 
     import numba
 
-    # numba's setting (NUMBA_NUM_THREADS, set_num_threads); the kernel releases the GIL
-    helpers = [_pool().submit(run)
-               for _ in range(min(numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS)) - 1)]
+    # one thread per usable CPU, at most numba's setting (NUMBA_NUM_THREADS, set_num_threads);
+    # the kernel releases the GIL
+    threads = min(machine_workers(), numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS))
+    helpers = [_pool().submit(run) for _ in range(threads - 1)]
     run()
     for helper in helpers:
         helper.result()
@@ -143,7 +145,7 @@ def _pool() -> ThreadPoolExecutor:
 
 @lru_cache(maxsize=1)
 def _pool_of(pid: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mocaptk-triangulate")
+    return ThreadPoolExecutor(machine_workers(), thread_name_prefix="mocaptk-triangulate")
 
 
 def _camera_table(rig: CameraRig) -> np.ndarray:

@@ -16,11 +16,12 @@ from contextlib import contextmanager
 from typing import Any
 
 from mocaptk.errors import MocaptkError
+from mocaptk.threads import machine_workers
 
 
 def can_fork() -> bool:
     """Linux with two or more CPUs for this process."""
-    return sys.platform.startswith("linux") and len(os.sched_getaffinity(0)) > 1
+    return sys.platform.startswith("linux") and machine_workers() > 1
 
 
 class Outcome:

@@ -1,4 +1,5 @@
-"""One thread policy for mocaptk's linear algebra (threadpoolctl): BLAS runs on one thread.
+"""One thread policy for mocaptk's linear algebra (threadpoolctl): BLAS runs on one thread; and
+the one count of CPUs that a command's own threads and batch's workers are sized by.
 
 mocaptk's matrix work is many small solves and products (a ridge fit per held-out fold and gap
 pattern, layout searches, per-frame solves), where BLAS threads only contend with each other and
@@ -36,6 +37,13 @@ def one_thread() -> threadpool_limits:
 
 #: Decorator form of :func:`one_thread`.
 single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
+
+
+def machine_workers() -> int:
+    """Threads or worker processes that can run at once: one per CPU this process may use (its
+    affinity, which ``taskset``, a cgroup cpuset or a SLURM allocation narrow; else the
+    machine's count). Every command's parallel work is sized by it."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @contextlib.contextmanager
