@@ -20,6 +20,8 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 
 from threadpoolctl import threadpool_limits
 
@@ -44,6 +46,19 @@ def machine_workers() -> int:
     affinity, which ``taskset``, a cgroup cpuset or a SLURM allocation narrow; else the
     machine's count). Every command's parallel work is sized by it."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def worker_threads() -> ThreadPoolExecutor:
+    """:func:`machine_workers` threads for compiled kernels that release the GIL, started once
+    per process (starting them per call cost more CPU than a small call); a forked child starts
+    its own. Callers run one share of the work themselves and submit the others here (never a
+    task that waits on this pool)."""
+    return _threads_of(os.getpid())
+
+
+@lru_cache(maxsize=1)
+def _threads_of(pid: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(machine_workers(), thread_name_prefix="mocaptk-worker")
 
 
 @contextlib.contextmanager
