@@ -10,8 +10,9 @@ alone with more BLAS threads summed in another order (``solve``'s model.npz diff
 
 So every command runs under :func:`command_threads` (entered by the CLI's ``main``, which batch
 workers call too), and library code doing small-matrix work wraps it in :func:`one_thread` (or
-decorates it with :data:`single_threaded`) for callers outside the CLI. numba's threads (the
-triangulation kernel) are not BLAS and keep their own count.
+decorates it with :data:`single_threaded`) for callers outside the CLI. The compiled kernels'
+threads (triangulate, reconstruct: :func:`worker_threads`) are not BLAS: one per usable CPU
+(:func:`machine_workers`), as detect's pool and batch's local workers.
 """
 
 from __future__ import annotations
@@ -20,10 +21,13 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 from threadpoolctl import threadpool_limits
+
+if TYPE_CHECKING:  # concurrent.futures is imported on first use (every command imports this module)
+    from concurrent.futures import ThreadPoolExecutor
 
 #: Environment variables BLAS libraries read when they load (OpenBLAS, MKL, BLIS).
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -58,6 +62,8 @@ def worker_threads() -> ThreadPoolExecutor:
 
 @lru_cache(maxsize=1)
 def _threads_of(pid: int) -> ThreadPoolExecutor:
+    from concurrent.futures import ThreadPoolExecutor
+
     return ThreadPoolExecutor(machine_workers(), thread_name_prefix="mocaptk-worker")
 
 
