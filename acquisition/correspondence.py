@@ -32,6 +32,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
 
+from mocaptk.threads import machine_workers, worker_threads
+
 from .cameras import CameraRig
 from .triangulate import triangulate_points
 
@@ -145,9 +147,15 @@ def _lost_pairs(frame, keys, error, point, lost, chosen):
     two = (reduced >= 0).sum(axis=1) == 2
     rows, reduced = lost[two], reduced[two]
     existing = np.nonzero((keys >= 0).sum(axis=1) == 2)[0]
-    sets = np.vstack([np.column_stack([frame[existing], keys[existing]]), np.column_stack([frame[rows], reduced])])
-    first = np.unique(sets, axis=0, return_index=True)[1]  # an existing pair comes first
-    index = np.sort(first[first >= len(existing)]) - len(existing)
+    codes = _set_codes(np.concatenate([frame[existing], frame[rows]]), np.vstack([keys[existing], reduced]),
+                       n_frames=int(frame.max()) + 1 if len(frame) else 1, base=width)
+    old, new = codes[:len(existing)], codes[len(existing):]
+    values, first = np.unique(new, return_index=True)  # each new pair once, where it first comes
+    exists = np.zeros(len(values), bool)  # and none that exists already (few new, many old)
+    if len(values):
+        at = np.minimum(np.searchsorted(values, old), len(values) - 1)
+        exists[at[values[at] == old]] = True
+    index = np.sort(first[~exists])
     rows, reduced = rows[index], reduced[index]
     return (np.concatenate([frame, frame[rows]]), np.concatenate([keys, reduced]),
             np.concatenate([error, error[rows]]), np.concatenate([point, point[rows]]))
@@ -177,32 +185,33 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
     for i in range(n_cams):
         for j in range(i + 1, n_cams):
             essentials[i, j] = _essential(projections, i, j)
-    capacity = 8 * norm.shape[1] * norm.shape[2] + 1
     pixels = norm * focal[:, None, None, None]
     order = np.argsort(pixels[..., 1], axis=2, kind="stable")  # NaN last
-    by_y = np.ascontiguousarray(np.take_along_axis(pixels, order[..., None], axis=2))
-    while True:
-        frame, keys = np.empty(capacity, np.int64), np.empty((capacity, n_cams), np.int64)
-        error, point = np.empty(capacity), np.empty((capacity, 3))
-        count = proposals_kernel(np.ascontiguousarray(norm), by_y, order, essentials, projections, focal,
-                                 float(tolerance_px), frame, keys, error, point)
-        if count <= capacity:
-            break
-        capacity = count
-    frame, keys, error, point = frame[:count], keys[:count], error[:count], point[:count]
+    by_y = np.take_along_axis(pixels, order[..., None], axis=2)
+
+    def proposals(first: int, last: int) -> tuple[np.ndarray, ...]:  # of frames first..last-1
+        inputs = [np.ascontiguousarray(a[:, first:last]) for a in (norm, by_y, order)]
+        capacity = 8 * (last - first) * norm.shape[2] + 1
+        while True:
+            frame, keys = np.empty(capacity, np.int64), np.empty((capacity, n_cams), np.int64)
+            error, point = np.empty(capacity), np.empty((capacity, 3))
+            count = proposals_kernel(*inputs, essentials, projections, focal, float(tolerance_px),
+                                     frame, keys, error, point)
+            if count <= capacity:
+                return frame[:count] + first, keys[:count], error[:count], point[:count]
+            capacity = count
+
+    # frames are independent: one range per thread (the kernel releases the GIL), joined in order
+    edges = np.linspace(0, norm.shape[1], max(1, min(machine_workers(), norm.shape[1])) + 1).astype(int)
+    helpers = [worker_threads().submit(proposals, first, last) for first, last in zip(edges[1:-1], edges[2:])]
+    parts = [proposals(edges[0], edges[1]), *(helper.result() for helper in helpers)]
+    frame, keys, error, point = (np.concatenate(arrays) for arrays in zip(*parts))
     # the same view set proposed by several pairs is one hypothesis (its smallest error kept,
     # the first proposed among equal ones); a two-view set has only one pair to propose it
     finite = np.isfinite(error)
     n_views = (keys >= 0).sum(axis=1)
     many = np.nonzero(finite & (n_views >= 3))[0]
-    base = norm.shape[2] + 1
-    if norm.shape[1] * float(base) ** n_cams < 2.0 ** 62:  # frame and view set as one integer
-        code = frame[many]
-        for c in range(n_cams):
-            code = code * base + keys[many, c] + 1
-    else:  # many cameras: the rank of (frame, view set) among the distinct ones
-        code = np.unique(np.column_stack([frame[many], keys[many]]), axis=0,
-                         return_inverse=True)[1].ravel()
+    code = _set_codes(frame[many], keys[many], n_frames=norm.shape[1], base=norm.shape[2] + 1)
     by_error = np.argsort(error[many], kind="stable")
     order = by_error[np.argsort(code[by_error], kind="stable")]  # by set, then error, then index
     first = np.ones(len(order), bool)  # each set's first
@@ -210,6 +219,18 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
     best = order[first]
     keep = np.sort(np.concatenate([np.nonzero(finite & (n_views == 2))[0], many[best]]))
     return frame[keep], keys[keep], error[keep], point[keep]
+
+
+def _set_codes(frame: np.ndarray, keys: np.ndarray, *, n_frames: int, base: int) -> np.ndarray:
+    """One integer per row of ``frame (N,)`` and view set ``keys (N, C)`` (blobs -1 .. base - 2),
+    equal for equal rows: frame and view set as one number, or with many cameras the row's rank
+    among the distinct ones (as sorting whole rows, which costs far more)."""
+    if n_frames * float(base) ** keys.shape[1] < 2.0 ** 62:
+        code = frame.astype(np.int64)
+        for c in range(keys.shape[1]):
+            code = code * base + keys[:, c] + 1
+        return code
+    return np.unique(np.column_stack([frame, keys]), axis=0, return_inverse=True)[1].ravel()
 
 
 def _packing(frame: np.ndarray, keys: np.ndarray, weight: np.ndarray) -> np.ndarray:

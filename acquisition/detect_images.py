@@ -10,7 +10,6 @@ not depend on the thread count. Only each camera's first image is kept (for the 
 
 from __future__ import annotations
 
-import os
 import threading
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mocaptk.errors import InputFileError
+from mocaptk.threads import machine_workers
 
 from .blob_detection import Blobs, detect_blobs
 from .image_sequences import ImageSource, decode_jpeg, read_grey
@@ -33,10 +33,11 @@ _buffers = threading.local()
 def detect_sources(sources: list[ImageSource], *, min_area: int, max_area: int,
                    threads: int | None = None) -> tuple[list[list[Blobs]], list[np.ndarray | None]]:
     """Per camera the :class:`Blobs` of every frame (merged blobs split in two) and its first
-    image (None without frames), on ``threads`` threads (default: every CPU). Raises the
+    image (None without frames), on ``threads`` threads (default: one per usable CPU,
+    :func:`mocaptk.threads.machine_workers`). Raises the
     InputFileError of the first bad image in camera and frame order."""
     options = {"min_area": min_area, "max_area": max_area, "split": True}
-    threads = threads or os.cpu_count() or 1
+    threads = threads or machine_workers()
     pool = ThreadPoolExecutor(threads, thread_name_prefix="mocaptk-detect")
     rows: list[list[Blobs]] = [[] for _ in sources]
     firsts: list[np.ndarray | None] = [None] * len(sources)

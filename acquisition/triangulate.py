@@ -14,14 +14,12 @@ the refit join in (not aniposelib's exhaustive subset loop).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from functools import lru_cache
 
 import numpy as np
 
+from mocaptk.threads import machine_workers, worker_threads
 from mocaptk.trajectories import Trajectories
 
 from .cameras import CameraRig
@@ -126,24 +124,14 @@ def _triangulate(rig: CameraRig, observations: np.ndarray, *, min_views: int,
 
     import numba
 
-    # numba's setting (NUMBA_NUM_THREADS, set_num_threads); the kernel releases the GIL
-    helpers = [_pool().submit(run)
-               for _ in range(min(numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS)) - 1)]
+    # one thread per usable CPU, at most numba's setting (NUMBA_NUM_THREADS, set_num_threads);
+    # the kernel releases the GIL
+    threads = min(machine_workers(), numba.get_num_threads(), -(-n_chunks // _TASK_CHUNKS))
+    helpers = [worker_threads().submit(run) for _ in range(threads - 1)]
     run()
     for helper in helpers:
         helper.result()
     return points, inliers, rms
-
-
-def _pool() -> ThreadPoolExecutor:
-    """The threads that run the kernel, started once per process (starting them per call cost
-    more CPU than a small call); a forked child starts its own."""
-    return _pool_of(os.getpid())
-
-
-@lru_cache(maxsize=1)
-def _pool_of(pid: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mocaptk-triangulate")
 
 
 def _camera_table(rig: CameraRig) -> np.ndarray:

@@ -96,8 +96,9 @@ def command(folder: Path, out: Path, tree: Path | None = None) -> tuple[float, f
     env = dict(os.environ, **({"PYTHONPATH": str(tree)} if tree else {}))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     wall = time.perf_counter()
+    # cwd: not the repository (``python -m`` puts it first on sys.path, before PYTHONPATH)
     subprocess.run([sys.executable, "-m", "mocaptk", "detect", *map(str, inputs), "--out", str(out),
-                    "--force", "--quiet"], check=True, capture_output=True, env=env)
+                    "--force", "--quiet"], check=True, capture_output=True, env=env, cwd=out.parent)
     wall = time.perf_counter() - wall
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

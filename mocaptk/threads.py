@@ -1,4 +1,5 @@
-"""One thread policy for mocaptk's linear algebra (threadpoolctl): BLAS runs on one thread.
+"""One thread policy for mocaptk's linear algebra (threadpoolctl): BLAS runs on one thread; and
+the one count of CPUs that a command's own threads and batch's workers are sized by.
 
 mocaptk's matrix work is many small solves and products (a ridge fit per held-out fold and gap
 pattern, layout searches, per-frame solves), where BLAS threads only contend with each other and
@@ -9,8 +10,9 @@ alone with more BLAS threads summed in another order (``solve``'s model.npz diff
 
 So every command runs under :func:`command_threads` (entered by the CLI's ``main``, which batch
 workers call too), and library code doing small-matrix work wraps it in :func:`one_thread` (or
-decorates it with :data:`single_threaded`) for callers outside the CLI. numba's threads (the
-triangulation kernel) are not BLAS and keep their own count.
+decorates it with :data:`single_threaded`) for callers outside the CLI. The compiled kernels'
+threads (triangulate, reconstruct: :func:`worker_threads`) are not BLAS: one per usable CPU
+(:func:`machine_workers`), as detect's pool and batch's local workers.
 """
 
 from __future__ import annotations
@@ -19,8 +21,13 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
+from functools import lru_cache
+from typing import TYPE_CHECKING
 
 from threadpoolctl import threadpool_limits
+
+if TYPE_CHECKING:  # concurrent.futures is imported on first use (every command imports this module)
+    from concurrent.futures import ThreadPoolExecutor
 
 #: Environment variables BLAS libraries read when they load (OpenBLAS, MKL, BLIS).
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -36,6 +43,28 @@ def one_thread() -> threadpool_limits:
 
 #: Decorator form of :func:`one_thread`.
 single_threaded = threadpool_limits.wrap(limits=1, user_api="blas")
+
+
+def machine_workers() -> int:
+    """Threads or worker processes that can run at once: one per CPU this process may use (its
+    affinity, which ``taskset``, a cgroup cpuset or a SLURM allocation narrow; else the
+    machine's count). Every command's parallel work is sized by it."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def worker_threads() -> ThreadPoolExecutor:
+    """:func:`machine_workers` threads for compiled kernels that release the GIL, started once
+    per process (starting them per call cost more CPU than a small call); a forked child starts
+    its own. Callers run one share of the work themselves and submit the others here (never a
+    task that waits on this pool)."""
+    return _threads_of(os.getpid())
+
+
+@lru_cache(maxsize=1)
+def _threads_of(pid: int) -> ThreadPoolExecutor:
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(machine_workers(), thread_name_prefix="mocaptk-worker")
 
 
 @contextlib.contextmanager

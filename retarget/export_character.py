@@ -19,6 +19,7 @@ import numpy as np
 
 from mocaptk import __version__
 from mocaptk.atomic import atomic_path, write_bytes
+from mocaptk.geometry import bounds
 from mocaptk.surface_mesh import vertex_normals
 
 from .character import Character
@@ -153,10 +154,10 @@ def write_character_usd(path: Path, character: Character, weights: np.ndarray, r
 
 def _extent(character: Character, weights: np.ndarray, *, chunk: int = 256) -> np.ndarray:
     """(2, 3) float32 bounds of the mesh over the neutral and every frame (chunked: bounded memory)."""
-    low, high = character.vertices.min(axis=0), character.vertices.max(axis=0)
+    low, high = bounds(character.vertices)
     for start in range(0, len(weights), chunk):
-        moved = character.deform(weights[start:start + chunk])
-        low, high = np.minimum(low, moved.min(axis=(0, 1))), np.maximum(high, moved.max(axis=(0, 1)))
+        moved_low, moved_high = bounds(character.deform(weights[start:start + chunk]))
+        low, high = np.minimum(low, moved_low), np.maximum(high, moved_high)
     return np.stack([low, high]).astype(np.float32)
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from mocaptk.atomic import atomic_path, staged_folder
+from mocaptk.geometry import bounds
 from mocaptk.trajectories import Take
 
 __all__ = ["new_stage", "write_mesh_usd"]
@@ -151,11 +152,11 @@ def _write_clips(folder: Path, stem: str, frames: Iterator[np.ndarray], *, rest:
     released before the next starts) and their manifest; returns the extent ``(low, high)``."""
     from pxr import Sdf, Usd
 
-    low, high = rest.min(axis=0), rest.max(axis=0)
+    low, high = bounds(rest)
     for k, start in enumerate(starts):
         layer = Sdf.Layer.CreateNew(str(folder / f"{stem}.{k:04d}.usdc"))
-        bounds = _write_samples(layer, frames, rest=rest, first_frame=start, count=clip_frames)
-        low, high = np.minimum(low, bounds[0]), np.maximum(high, bounds[1])
+        clip_low, clip_high = _write_samples(layer, frames, rest=rest, first_frame=start, count=clip_frames)
+        low, high = np.minimum(low, clip_low), np.maximum(high, clip_high)
         if k == 0:  # every clip holds the same attribute: its manifest is the first clip's
             manifest = Usd.ClipsAPI.GenerateClipManifestFromLayers([layer], MESH_PATH)
             manifest.Export(str(folder / "manifest.usda"))
@@ -173,10 +174,12 @@ def _write_samples(layer, frames: Iterator[np.ndarray], *, rest: np.ndarray, fir
     prim = Sdf.CreatePrimInLayer(layer, MESH_PATH)
     attribute = prim.attributes.get("points") or Sdf.AttributeSpec(
         prim, "points", Sdf.ValueTypeNames.Point3fArray)
-    low, high = rest.min(axis=0), rest.max(axis=0)
+    low, high = bounds(rest)
     for i, frame in zip(range(count), frames):  # range first: zip takes no frame past count
-        frame = np.where(np.isfinite(frame).all(axis=1, keepdims=True), frame, rest)
-        low, high = np.minimum(low, frame.min(axis=0)), np.maximum(high, frame.max(axis=0))
+        if not np.isfinite(frame).all():  # (one pass; most frames have no NaN row)
+            frame = np.where(np.isfinite(frame).all(axis=1, keepdims=True), frame, rest)
+        frame_low, frame_high = bounds(frame)
+        low, high = np.minimum(low, frame_low), np.maximum(high, frame_high)
         layer.SetTimeSample(attribute.path, first_frame + i,
                             Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(frame)))
     return low, high

@@ -109,7 +109,7 @@ def test_shared_map_keeps_the_order_and_computes_the_first_item_here(monkeypatch
     done = background.shared_map(lambda x: (x * x, os.getpid()), list(range(7)), what="a square")
     assert [value for value, _ in done] == [x * x for x in range(7)]
     assert done[0][1] == os.getpid()
-    assert len({pid for _, pid in done}) == (min(background.usable_cpus(), 7) if fork else 1)
+    assert len({pid for _, pid in done}) == (min(background.machine_workers(), 7) if fork else 1)
     assert background.shared_map(lambda x: x, [], what="nothing") == []
 
 

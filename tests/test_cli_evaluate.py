@@ -76,7 +76,7 @@ def test_the_layouts_shared_among_processes_give_the_bytes_of_one_process(run_cl
     session, takes, layout = mirrored
     runs = {}
     for fork in (True, False):
-        monkeypatch.setattr(background, "can_fork", lambda fork=fork: fork and background.usable_cpus() > 1)
+        monkeypatch.setattr(background, "can_fork", lambda fork=fork: fork and background.machine_workers() > 1)
         runs[fork] = tmp_path / str(fork)
         result = run_cli("evaluate", session, "--layout", layout, "--takes", takes, "--seeds", "3", "--folds", "3",
                          "--out", runs[fork], "--quiet")

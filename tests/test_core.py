@@ -114,6 +114,23 @@ def test_vector_lengths_are_numpy_norms_on_either_axis():
     np.testing.assert_array_equal(squared, vectors ** 2)
 
 
+def test_bounds_are_numpys_per_axis_min_and_max():
+    """The mesh writers' extents: what ``min/max(axis=0)`` of the ``(N, 3)`` rows gives, dtype
+    kept, NaN propagated, for a frame or a chunk of frames."""
+    from mocaptk.geometry import bounds
+
+    rng = np.random.default_rng(4)
+    chunk = (rng.normal(size=(5, 1000, 3)) * 40).astype(np.float32)
+    for points in (chunk[2], chunk, chunk[:, ::2]):
+        low, high = bounds(points)
+        rows = points.reshape(-1, 3)
+        assert low.dtype == high.dtype == np.float32
+        assert low.tobytes() == rows.min(axis=0).tobytes() and high.tobytes() == rows.max(axis=0).tobytes()
+    chunk[3, 7, 1] = np.nan
+    low, high = bounds(chunk)
+    assert np.isnan(low[1]) and np.isnan(high[1]) and np.isfinite(low[[0, 2]]).all()
+
+
 def test_json_records_one_key_a_line_also_when_a_string_looks_like_a_record_break():
     """Records of scalars (one C-encoder call for all) keep one key a line and a record per
     block, also when a string holds braces, commas and line breaks, or a record is empty."""

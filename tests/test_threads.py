@@ -71,3 +71,17 @@ def test_solve_gives_the_same_bytes_whatever_threads_the_caller_runs(run_cli, tm
             outputs.append({p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.suffix in (".npz", ".c3d")})
     assert outputs[0] == outputs[1]
     assert np.load(tmp_path / "solve1" / "model.npz").files  # a real model was compared
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
+def test_threads_are_sized_by_the_cpus_this_process_may_use():
+    """Under ``taskset`` (or a cpuset) to one CPU, the kernels' threads (triangulate,
+    reconstruct), detect's default and batch's local workers all count one CPU, not the machine's."""
+    code = ("import os\n"
+            "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n"
+            "from mocaptk.threads import machine_workers\n"
+            "from mocaptk.batch.engine import machine_workers as batch_workers\n"
+            "from mocaptk.threads import worker_threads\n"
+            "print(machine_workers(), worker_threads()._max_workers, batch_workers is machine_workers)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "1", "True"]

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from mocaptk.errors import OptionError
+from mocaptk.threads import machine_workers
 
 from . import journal
 
@@ -56,13 +57,6 @@ def tasks(sessions: list[Path], *, command: str, out: Path, options: list[str], 
              "force": force, "timeout": timeout, "previous": previous.get((s.stem, command)), "run": run_id,
              "journal": str(journal.journal_path(out, run_id, s.stem, command))}
             for s in sorted(sessions, key=lambda s: (-size(s), str(s)))]
-
-
-def machine_workers() -> int:
-    """Worker processes for a LocalCluster on this machine: one per usable core."""
-    from mocaptk.background import usable_cpus
-
-    return usable_cpus()
 
 
 @contextlib.contextmanager
