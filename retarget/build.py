@@ -48,7 +48,6 @@ from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .mesh_openings import CORNERS, OpenedMesh, open_mesh, parts_follow
-from .mesh_parts import head_jaw_rows
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -646,18 +645,13 @@ def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud
                   spacing: float) -> np.ndarray:
     """A user mesh's skin beyond the markers and its parts other than the skin
     (:func:`~mocaptk.retarget.mesh_openings.parts_follow`): the head's row is the layout joint
-    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
-    joints, equally (:func:`~mocaptk.retarget.mesh_parts.head_jaw_rows`)."""
+    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw joints."""
     bind = cloud.neutral[rep_idx]
     moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
-    head, jaw = head_jaw_rows(int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
-                              [c.region for c in layout.clusters], bind,
-                              count=options.max_influences)
-    jaw_top_y = float(bind[jaw > 0, 1].max())
-    extra = np.zeros(weights.shape[1] - len(bind))  # the lids' joints, after the layout's
-    head, jaw = np.concatenate([head, extra]), np.concatenate([jaw, extra])
-    return parts_follow(weights, opened, cloud.neutral, head=head, jaw=jaw, spacing=spacing,
-                        template=template, jaw_top_y=jaw_top_y)
+    return parts_follow(weights, opened, cloud.neutral,
+                        head=int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
+                        regions=[c.region for c in layout.clusters], positions=bind,
+                        jaw_count=options.max_influences, spacing=spacing, template=template)
 
 
 def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:

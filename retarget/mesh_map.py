@@ -39,9 +39,6 @@ __all__ = ["Blink", "MeshMap", "Mirror"]
 MESH_NEIGHBOURS = 8
 #: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
 ANCHOR_REACH_MM = 5.0
-#: The jaw's row of a user mesh's parts (teeth, gums): its lowest jaw markers, equally (as the
-#: rig's 4 influences).
-PART_JAW_MARKERS = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,24 +274,20 @@ class MeshMap:
         marker that moves least, ``regions`` (S,) theirs, ``columns`` (M, 3) mm as :meth:`anchored`."""
         from mocaptk.surface_mesh import marker_spacing
 
+        from .build import RigOptions
         from .mesh_openings import parts_follow
-        from .mesh_parts import head_jaw_rows
 
         m = self.matrix.shape[1]
         row = np.flatnonzero(seen == head)
         if not row.size:
             return self
-        head_row, jaw_row = head_jaw_rows(int(row[0]), regions, points, count=PART_JAW_MARKERS)
         matrix = np.asarray(self.matrix, dtype=np.float64)
         # each lid's own blink shape (V, 3) goes along as 3 more columns: a lash takes its lid's
         lids = [b.shape + matrix[:, b.sensors] @ b.full for b in self.blinks]
-        extra = np.zeros(3 * len(lids))
-        wide = np.zeros((2, m))
-        wide[:, seen] = head_row, jaw_row
-        rows = parts_follow(np.concatenate([matrix] + lids, axis=1), opened, points,
-                            head=np.concatenate([wide[0], extra]), jaw=np.concatenate([wide[1], extra]),
-                            spacing=marker_spacing(points), template=template,
-                            jaw_top_y=float(points[jaw_row > 0, 1].max()))
+        rows = parts_follow(np.concatenate([matrix] + lids, axis=1), opened, points, head=int(row[0]),
+                            regions=regions, positions=points, columns=seen,
+                            jaw_count=RigOptions().max_influences,  # the rig's default jaw row
+                            spacing=marker_spacing(points), template=template)
         matrix = rows[:, :m]
         blinks = tuple(replace(b, shape=rows[:, m + 3 * i:m + 3 * i + 3] - matrix[:, b.sensors] @ b.full)
                        for i, b in enumerate(self.blinks))

@@ -25,6 +25,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from mocaptk.errors import OptionError
+from mocaptk.geometry import smoothstep
 from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
@@ -83,8 +84,7 @@ def region_masks(graph: sp.csr_matrix, regions: np.ndarray, n_joints: int, *,
         if falloff_mm > 0:
             dist = geodesic_distance(graph, inside, limit=falloff_mm)
             near = np.flatnonzero(dist != np.inf)  # beyond the limit the mask is 0, as zeros() has it
-            t = np.clip(1.0 - dist[near] / falloff_mm, 0.0, 1.0)
-            masks[near, j] = t * t * (3.0 - 2.0 * t)
+            masks[near, j] = smoothstep(1.0 - dist[near] / falloff_mm)
         masks[inside, j] = 1.0
     return masks
 
@@ -165,8 +165,7 @@ def pin_fade(vertices: np.ndarray, pinned: np.ndarray, *, fade_mm: float) -> np.
         fade = np.ones(len(v))
         fade[pinned] = 0.0
         return fade
-    t = np.clip(cKDTree(v[pinned]).query(v)[0] / fade_mm, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return smoothstep(cKDTree(v[pinned]).query(v)[0] / fade_mm)
 
 
 def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
@@ -188,12 +187,10 @@ def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray
     pinned = np.asarray(pinned, dtype=np.int64)
     keep = pin_fade(v, pinned, fade_mm=pin_fade_mm)
     for corner in np.asarray(corners, dtype=np.int64):
-        t = np.clip((outer_mm - np.linalg.norm(v - v[corner], axis=1)) / (outer_mm - inner_mm),
-                    0.0, 1.0)
+        t = (outer_mm - np.linalg.norm(v - v[corner], axis=1)) / (outer_mm - inner_mm)
         own = np.argsort(-w[corner], kind="stable")[:count]
         left_out = pinned[np.setdiff1d(np.arange(w.shape[1]), own)]
-        beta = t * t * (3.0 - 2.0 * t) * np.minimum(keep, pin_fade(v, left_out,
-                                                                   fade_mm=others_fade_mm))
+        beta = smoothstep(t) * np.minimum(keep, pin_fade(v, left_out, fade_mm=others_fade_mm))
         led = np.zeros_like(w)
         led[:, own] = w[:, own]
         total = led.sum(axis=1)
