@@ -16,13 +16,12 @@ get the same fixes (issue 30), so the two deform the face the same way:
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from .default_face import CORNER_PIN_FADE_MM, MOUTH_CORNER_MM, DefaultFace, lip_anchors
 from .influence import anchor_vertices
-from .weights import blend_corners, fill_unsupported, region_masks
+from .weights import blend_corners, fill_unsupported
 
-__all__ = ["MIN_SUPPORT", "face_anchors", "face_rows", "marker_support"]
+__all__ = ["MIN_SUPPORT", "face_anchors", "face_rows"]
 
 #: Rows with less masked thin-shell weight than this are filled harmonically from the others
 #: (:func:`~mocaptk.retarget.weights.fill_unsupported`; sample, behind the ears: 2.06x -> 1.99x
@@ -41,20 +40,15 @@ def face_anchors(face: DefaultFace, points: np.ndarray,
     return vertex, dist
 
 
-def marker_support(weights: np.ndarray, graph: sp.csr_matrix, regions: np.ndarray, *,
-                   falloff_mm: float, members: list[np.ndarray] | None = None) -> np.ndarray:
-    """Each row's (V,) masked thin-shell weight: ``weights`` (V, J) clipped at 0 times the
-    drivers' region masks (:func:`~mocaptk.retarget.weights.region_masks`), summed."""
-    masks = region_masks(graph, regions, weights.shape[1], falloff_mm=falloff_mm, members=members)
-    return (np.clip(weights, 0.0, None) * masks).sum(axis=1)
-
-
 def face_rows(weights: np.ndarray, face: DefaultFace, *, pinned: np.ndarray,
-              support: np.ndarray) -> np.ndarray:
+              support: np.ndarray | None) -> np.ndarray:
     """``weights`` (V, K) of ``face``'s vertices (the rig's joints, solve's dense markers) with
-    the rows whose ``support`` (V,) is below :data:`MIN_SUPPORT` filled harmonically and the
+    the rows whose ``support`` (V,) is below :data:`MIN_SUPPORT` filled harmonically (None: not
+    filled; :func:`~mocaptk.retarget.weights.masked_support`) and the
     rows around the mouth's corners blended towards theirs within :data:`MOUTH_CORNER_MM`,
     faded in over :data:`CORNER_PIN_FADE_MM` from the drivers' ``pinned`` vertices."""
-    weights = fill_unsupported(weights, support, face.vertices, face.faces, min_support=MIN_SUPPORT)
+    if support is not None:
+        weights = fill_unsupported(weights, support, face.vertices, face.faces,
+                                   min_support=MIN_SUPPORT)
     return blend_corners(weights, face.vertices, np.array([face.upper_lip[0], face.upper_lip[-1]]),
                          reach_mm=MOUTH_CORNER_MM, pinned=pinned, pin_fade_mm=CORNER_PIN_FADE_MM)

@@ -30,7 +30,7 @@ from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "mirror_maps", "pin_fade",
+__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "masked_support", "mirror_maps", "pin_fade",
            "region_masks", "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
 
 
@@ -103,6 +103,12 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
 
 
+def masked_support(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Each row's (V,) masked thin-shell weight: ``weights`` (V, J) clipped at 0 times the region
+    ``masks`` (V, J) (:func:`region_masks`), summed; small where no driver's region reaches."""
+    return (np.clip(weights, 0.0, None) * masks).sum(axis=1)
+
+
 def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndarray,
                      faces: np.ndarray, *, min_support: float) -> np.ndarray:
     """``weights`` (V, J) with the rows whose ``support`` (V,) is below ``min_support`` replaced
@@ -110,7 +116,7 @@ def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndar
     ``faces`` (T, 3)); negatives clipped, rows renormalized. Vertices in no triangle keep theirs.
 
     ``support``: each row's masked thin-shell weight before renormalizing
-    (:func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
+    (:func:`masked_support`, :func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
     numbers, so neighbours' rows swung between joints: an edge behind the ear stretched 2.06x
     at the widest jaw (issue 30). Filled, the weights there continue the face's smoothly."""
     import igl
