@@ -137,11 +137,13 @@ def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndar
 
 
 def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
-                  reach_mm: float, pinned: np.ndarray, pin_fade_mm: float = 0.0) -> np.ndarray:
+                  reach_mm: float, pinned: np.ndarray, pin_fade_mm: float = 0.0,
+                  pin_hold: float = 1.0) -> np.ndarray:
     """``weights`` (V, J) blended towards each of the ``corners`` (C,) vertex's own row, fully at
     the corner and not at all ``reach_mm`` away ((1 - r / reach)² of the distance r); the
-    ``pinned`` (P,) vertices' rows are kept, and with ``pin_fade_mm`` the blend fades in
-    smoothly over that distance (mm) from them (:func:`pin_fade`).
+    ``pinned`` (P,) vertices' rows are kept (``pin_hold`` 1; with 0.3 they take 70 % of the
+    blend), and with ``pin_fade_mm`` the blend fades in smoothly over that distance (mm) from
+    them (:func:`pin_fade`).
 
     At an opening's corner (the mouth's, an eye's) the upper and lower rims' weights differ
     from one vertex to the next, so the skin there tears like a crack's tip and its small
@@ -149,7 +151,7 @@ def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray
     away from its corners (issue 30)."""
     w = np.array(weights, dtype=float)
     v = np.asarray(vertices, dtype=float)
-    keep = pin_fade(v, pinned, fade_mm=pin_fade_mm)
+    keep = 1.0 - pin_hold * (1.0 - pin_fade(v, pinned, fade_mm=pin_fade_mm))
     for corner in np.asarray(corners, dtype=np.int64):
         alpha = np.clip(1.0 - np.linalg.norm(v - v[corner], axis=1) / reach_mm, 0.0, 1.0) ** 2
         w += (alpha * keep)[:, None] * (w[corner] - w)
