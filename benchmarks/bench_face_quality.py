@@ -8,6 +8,16 @@ jaw (:func:`visible_opening`) and each eye's aperture at the fullest blink (the 
 lid rims, of rest). Usage (repository root, with ../shared/data or $MOCAPTK_SHARED_DATA):
 
     python benchmarks/bench_face_quality.py
+    python benchmarks/bench_face_quality.py --default
+    python benchmarks/bench_face_quality.py --actor LAYOUT.json SESSION.c3d [CAPTURE.c3d]
+
+``--default``: the default face only, the rig and ``solve``'s mesh side by side (folds, stretch
+overall and within 20 mm of a mouth corner, the mouth's seam at rest of its widest opening,
+the lids' aperture at the true full blink, and the error per region: the rig's held-out
+marker-driven RMSE, the solve mesh's at its dense markers' vertices against the noise-free
+truth). ``--actor``: the default rig of another actor's layout and session (as ``mocaptk rig``
+reads them), skinned over ``CAPTURE`` (default: the session itself), folds and stretch
+(docs/default-face.md has the command lines of the actors measured).
 """
 
 from __future__ import annotations
@@ -107,7 +117,108 @@ def openings(build, mesh, posed: np.ndarray, perf) -> str:
             + ", ".join(eyes) + " of rest")
 
 
+def stretch_near_mouth(posed: np.ndarray, rest: np.ndarray, faces: np.ndarray) -> str:
+    """``quality`` overall and within 20 mm of a mouth corner (the default face's), as text."""
+    from mocaptk.retarget.default_face import template_openings
+
+    (upper, _), _, _ = template_openings()
+    near = np.linalg.norm(rest[faces].mean(axis=1)[:, None] - rest[[upper[0], upper[-1]]],
+                          axis=2).min(axis=1) < 20.0
+    back, worst, p999 = quality(posed, rest, faces)
+    return (f"most backward triangles in a frame {back}, max edge stretch {worst:.3f}x (99.9th "
+            f"percentile {p999:.3f}x), within 20 mm of a mouth corner "
+            f"{quality(posed, rest, faces[near])[1]:.3f}x")
+
+
+def default_face() -> None:
+    """The default face's rig and solve's mesh on the sample performance (``--default``)."""
+    from render_faces import SAMPLE, skinned
+
+    from mocaptk.acquisition.formats import read_trajectories
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
+    from mocaptk.retarget.build import Capture, bake_capture, build_rig, held_out_check, jaw_open_frame
+    from mocaptk.retarget.default_face import loop_area, template_openings
+    from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
+    from mocaptk.retarget.solve_outputs import face_mesh
+
+    truth = load_ground_truth(SAMPLE / "dense_halfface_truth.npz")
+    session = truth.trajectories()
+    layout = cluster_session(session, options=ClusterOptions(
+        factor=1.1, stabilize=False, takes=truth.takes)).layout
+    perf = read_trajectories(SAMPLE / "dense_halfface_performance.c3d", strip_prefixes=True)
+    held = load_ground_truth(SAMPLE / "dense_halfface_performance_truth.npz")
+    names = list(held.blendshape_names)
+    (upper, lower), eyes, _ = template_openings()
+    mouth = np.concatenate([upper, lower[::-1][1:-1]])
+
+    def openings(posed: np.ndarray, rest: np.ndarray, widest: int) -> str:
+        apertures = []
+        for (top, bottom), blink in zip(eyes, ("eyeBlink_R", "eyeBlink_L")):
+            loop = np.concatenate([top, bottom[::-1][1:-1]])
+            full = int(np.argmax(held.weights[:, names.index(blink)]))
+            apertures.append(100 * loop_area(posed[full, loop]) / loop_area(rest[loop]))
+        return (f"mouth at rest {100 * loop_area(rest[mouth]) / loop_area(posed[widest, mouth]):.2f} "
+                f"% of the widest (frame {widest}); eyes at the true full blink "
+                + ", ".join(f"{a:.1f} %" for a in apertures) + " of rest")
+
+    def regions(errors: dict[str, float]) -> str:
+        others = np.mean([v for k, v in errors.items() if k != "mouth"])
+        return (", ".join(f"{k} {v:.3f}" for k, v in sorted(errors.items()))
+                + f" mm; mouth / the others' mean {errors['mouth'] / others:.2f}")
+
+    build = build_rig(layout, session, check=False)
+    rig = build.rig
+    posed = skinned(build, perf)
+    widest = jaw_open_frame(build, bake_capture(build, Capture("performance", perf)))
+    print(f"default rig: {stretch_near_mouth(posed, rig.vertices, rig.faces)}")
+    print(f"default rig: {openings(posed, rig.vertices, widest)}")
+    check = held_out_check(build, Capture("performance", perf))["regions"]
+    print(f"default rig: held-out RMSE {regions({k: v['rmse_mm'] for k, v in check.items()})}")
+
+    solver = train_solver(layout, session, {"path": "sample", "sha256": None})
+    mesh = face_mesh(solver, layout)
+    dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, perf, "p"))])
+    frames = mesh.apply(dense)
+    print(f"solve's mesh: {stretch_near_mouth(frames, mesh.vertices, mesh.faces)}")
+    print(f"solve's mesh: {openings(frames, mesh.vertices, int(np.nanargmax(loop_area(frames[:, mouth]))))}")
+    true = held.trajectories()
+    seen = np.flatnonzero(np.isfinite(solver.model.neutral).all(axis=1))
+    vertex = np.argmax(np.asarray(mesh.matrix)[:, seen], axis=0)  # each marker's own vertex
+    moved = frames[:, vertex] + (solver.model.neutral[seen] - mesh.vertices[vertex])
+    error = np.linalg.norm(moved - true.positions[:, true.index([solver.labels[i] for i in seen])], axis=2)
+    region_of = {m: c.region for c in layout.clusters for m in c.members}
+    by_region = np.array([region_of.get(solver.labels[i], "none") for i in seen])
+    print("solve's mesh: RMSE at its markers' vertices against the truth " + regions(
+        {r: float(np.sqrt(np.nanmean(error[:, by_region == r] ** 2))) for r in np.unique(by_region)}))
+
+
+def actor(layout_path: Path, session_path: Path, capture_path: Path | None) -> None:
+    """The default rig of another actor (``--actor``): folds and stretch over its capture."""
+    from mocaptk.cli.rig import animation_captures
+    from mocaptk.clustering.layout import layout_rigid_set, read_layout
+    from mocaptk.clustering.pipeline import load_session, stabilize
+    from mocaptk.retarget.build import build_rig
+    from render_faces import skinned
+
+    layout = read_layout(layout_path)
+    raw, _ = load_session(session_path)
+    session = stabilize(raw, rigid=layout_rigid_set(layout))[0] if layout.parameters.get("stabilized") else raw
+    captures = animation_captures(layout, raw, session, [capture_path] if capture_path else [])
+    build = build_rig(layout, session, check=False)
+    posed = skinned(build, captures[-1].relative)
+    print(f"{layout_path} ({len(layout.clusters)} joints, {build.rig.vertex_count} vertices) over "
+          f"{captures[-1].name} ({len(posed)} frames): "
+          f"{stretch_near_mouth(posed, build.rig.vertices, build.rig.faces)}")
+
+
 def main() -> None:
+    if "--default" in sys.argv:
+        return default_face()
+    if "--actor" in sys.argv:
+        paths = [Path(p) for p in sys.argv[sys.argv.index("--actor") + 1:]]
+        return actor(paths[0], paths[1], paths[2] if len(paths) > 2 else None)
+
     from render_faces import SAMPLE, skinned, user_meshes
 
     from mocaptk.acquisition.formats import read_trajectories

@@ -1,5 +1,5 @@
 """Shared geometry: similarity transforms (rotation, translation, uniform scale) between point sets;
-lengths of many 3-vectors; bounding boxes."""
+lengths of many 3-vectors; bounding boxes; the smoothstep blend."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from .errors import OptionError
 
-__all__ = ["Similarity", "bounds", "similarity_transform", "vector_lengths"]
+__all__ = ["Similarity", "bounds", "similarity_transform", "smoothstep", "vector_lengths"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,13 @@ def similarity_transform(source: np.ndarray, target: np.ndarray, *,
     var = float(np.sum(a ** 2) / len(src))
     scale = float(np.trace(np.diag(sing) @ fix) / var) if with_scale else 1.0
     return Similarity(scale, rotation, mu_d - scale * rotation @ mu_s)
+
+
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    """``3x² - 2x³`` of ``x`` clipped to [0, 1]: a 0 -> 1 blend with no kink where it starts or
+    ends (the weights' fades and masks)."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
 
 
 def vector_lengths(vectors: np.ndarray, *, axis: int = -1) -> np.ndarray:

@@ -41,18 +41,18 @@ from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .default_face import (CORNER_JOINTS_MM, CORNER_LEFT_OUT_FADE_MM, CORNER_PIN_FADE_MM,
-                           EYE_CORNER_MM, MOUTH_CORNER_MM, default_face, lip_anchors)
+                           EYE_CORNER_MM, MOUTH_CORNER_MM, default_face)
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import FittedTemplate, fit_template
+from .face_weights import face_anchors, face_rows
 from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .mesh_openings import CORNERS, OpenedMesh, open_mesh, parts_follow
-from .mesh_parts import head_jaw_rows
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
-from .weights import (blend_corners, cap_weights, corner_joints, fill_unsupported, mirror_maps,
+from .weights import (blend_corners, cap_weights, corner_joints, masked_support, mirror_maps,
                       region_masks, shape_by_regions, symmetric_weights, thin_shell_weights)
 
 __all__ = ["Capture", "DenseCloud", "RigBuild", "RigOptions", "bake_capture", "build_rig",
@@ -68,10 +68,6 @@ SNAP_DEGREES = 25.0
 FORMATS = ("json", "fbx", "glb")
 #: Default region falloff in dense marker spacings (docs/rig-weights.md has the measurements).
 FALLOFF_SPACINGS = 3.0
-#: The default face's rows with less masked thin-shell weight than this are filled harmonically
-#: from the others (:func:`~mocaptk.retarget.weights.fill_unsupported`; sample, behind the ears:
-#: 2.06x -> 1.99x at the widest jaw, the same at 0.02 and 0.1; 905 of 9,409 vertices).
-MIN_SUPPORT = 0.05
 
 
 #: The default mesh's border turns inwards by at most this (degrees) at a marker: deeper notches
@@ -485,10 +481,7 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     if face is not None:
         vertices, faces, texcoords = face.vertices, face.faces, face.uv
         mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
-        # anchored where the markers are: the fitted face before its lips close
-        dense_vertices, _ = anchor_vertices(face.fitted, faces, cloud.neutral)
-        dense_vertices = lip_anchors(face, dense_vertices, cloud.neutral,
-                                     _follows_jaw(layout, cloud, members))
+        dense_vertices, _ = face_anchors(face, cloud.neutral, _follows_jaw(layout, cloud, members))
         dense_vertices[rep_idx] = distinct_vertices(face.fitted, cloud.neutral[rep_idx],
                                                     dense_vertices[rep_idx])
         mesh_kind = "face"
@@ -549,17 +542,17 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     weights = thin_shell_weights(vertices, faces, joint_vertices, graph=graph, ks=options.ks,
                                  kb=options.kb)
     falloff = FALLOFF_SPACINGS * spacing if options.falloff_mm is None else float(options.falloff_mm)
+    support = None  # masked thin-shell weight: small beyond the markers (ears, neck)
     if not options.pure_thin_shell:
         member_vertices = [dense_vertices[m] for m in members]
         masks = region_masks(graph, regions, len(reps), falloff_mm=falloff, members=member_vertices)
-        support = (np.clip(weights, 0.0, None) * masks).sum(axis=1)
+        support = masked_support(weights, masks)
         weights = shape_by_regions(weights, masks)
-        if face is not None:  # beyond the markers (ears, neck): the face's weights continued
-            weights = fill_unsupported(weights, support, vertices, faces, min_support=MIN_SUPPORT)
-    if mouth_corners is not None:
+    if face is not None:  # as solve's mesh: the face's weights continued beyond the markers
+        weights = face_rows(weights, face, pinned=joint_vertices, support=support)
+    elif mouth_corners is not None:
         weights = blend_corners(weights, vertices, mouth_corners, reach_mm=MOUTH_CORNER_MM,
-                                pinned=joint_vertices,
-                                pin_fade_mm=0.0 if face is None else CORNER_PIN_FADE_MM)
+                                pinned=joint_vertices)
     if face is not None:  # around the mouth corners, one set of joints: no step where they change
         weights = corner_joints(weights, vertices, mouth_corners, inner_mm=CORNER_JOINTS_MM[0],
                                 outer_mm=CORNER_JOINTS_MM[1], count=options.max_influences,
@@ -646,18 +639,13 @@ def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud
                   spacing: float) -> np.ndarray:
     """A user mesh's skin beyond the markers and its parts other than the skin
     (:func:`~mocaptk.retarget.mesh_openings.parts_follow`): the head's row is the layout joint
-    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw
-    joints, equally (:func:`~mocaptk.retarget.mesh_parts.head_jaw_rows`)."""
+    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw joints."""
     bind = cloud.neutral[rep_idx]
     moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
-    head, jaw = head_jaw_rows(int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
-                              [c.region for c in layout.clusters], bind,
-                              count=options.max_influences)
-    jaw_top_y = float(bind[jaw > 0, 1].max())
-    extra = np.zeros(weights.shape[1] - len(bind))  # the lids' joints, after the layout's
-    head, jaw = np.concatenate([head, extra]), np.concatenate([jaw, extra])
-    return parts_follow(weights, opened, cloud.neutral, head=head, jaw=jaw, spacing=spacing,
-                        template=template, jaw_top_y=jaw_top_y)
+    return parts_follow(weights, opened, cloud.neutral,
+                        head=int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
+                        regions=[c.region for c in layout.clusters], positions=bind,
+                        jaw_count=options.max_influences, spacing=spacing, template=template)
 
 
 def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:

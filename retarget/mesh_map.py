@@ -39,9 +39,6 @@ __all__ = ["Blink", "MeshMap", "Mirror"]
 MESH_NEIGHBOURS = 8
 #: A dense marker farther than this from a user's aligned mesh is not pinned to it (mm).
 ANCHOR_REACH_MM = 5.0
-#: The jaw's row of a user mesh's parts (teeth, gums): its lowest jaw markers, equally (as the
-#: rig's 4 influences).
-PART_JAW_MARKERS = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,18 +93,23 @@ class MeshMap:
 
     @classmethod
     def face(cls, neutral: np.ndarray, *, plane: tuple[np.ndarray, np.ndarray] | None = None,
-             mirrored: bool = False) -> MeshMap | None:
+             mirrored: bool = False, jaw_following: np.ndarray | None = None) -> MeshMap | None:
         """The default face (:mod:`~mocaptk.retarget.default_face`) fitted to the dense neutral
         ``neutral`` (M, 3) mm (NaN = unseen; head-relative session frame), following the dense
-        markers pinned to it (:meth:`anchored`), or None where the template does not fit.
+        markers pinned to it (:meth:`anchored`) with the rig's fixes
+        (:mod:`~mocaptk.retarget.face_weights`: ``jaw_following`` (M,) bool puts each lip marker
+        on its own lip), or None where the template does not fit.
 
         ``plane`` ``(point, unit normal)``: the sagittal plane (the subject's left); with
         ``mirrored`` (a half-face session) the face is completed by the markers' mirror images.
         """
         from mocaptk.surface_mesh import marker_spacing
 
-        from .build import rig_frame_rotation
-        from .default_face import CORNER_PIN_FADE_MM, LID_REACH_MM, SOLVE_LID_REACH_MM, default_face
+        from .build import FALLOFF_SPACINGS, rig_frame_rotation
+        from .default_face import LID_REACH_MM, SOLVE_LID_REACH_MM, default_face
+        from .face_weights import face_anchors, face_rows
+        from .influence import edge_graph, main_influence_regions
+        from .weights import masked_support, region_masks
 
         neutral = np.asarray(neutral, dtype=np.float64)
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
@@ -123,44 +125,50 @@ class MeshMap:
                                       lateral=None if plane is None else plane[1])
         points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
         rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
-        face = default_face(points, spacing=marker_spacing(points), plane=rig_plane,
+        spacing = marker_spacing(points)
+        face = default_face(points, spacing=spacing, plane=rig_plane,
                             lid_reach_mm=LID_REACH_MM, sense_reach_mm=SOLVE_LID_REACH_MM)
         if face is None:
             return None
-        nearest, dist = anchor_vertices(face.fitted, face.faces, points)
+        follows = None if jaw_following is None else np.asarray(jaw_following, bool)[used % len(neutral)]
+        nearest, dist = face_anchors(face, points, follows)
         anchors = np.full(len(columns), -1, dtype=np.intp)
         close = dist <= ANCHOR_REACH_MM
         anchors[used[close]] = nearest[close]
         vertices = face.vertices @ rotation  # back to the session frame
         mesh = cls.anchored(vertices, face.faces, anchors, columns)
-        mesh = mesh._with_openings(face.vertices, np.array([face.upper_lip[0], face.upper_lip[-1]]),
-                                   face.lids, anchors, columns, rotation,
-                                   mouth_pin_fade_mm=CORNER_PIN_FADE_MM)
+        pinned = np.flatnonzero(anchors >= 0)
+        graph = edge_graph(face.vertices, face.faces)
+        masks = region_masks(graph, main_influence_regions(graph, [[v] for v in anchors[pinned]]),
+                             pinned.size, falloff_mm=FALLOFF_SPACINGS * spacing)
+        matrix = face_rows(np.asarray(mesh.matrix, dtype=np.float64), face, pinned=anchors[pinned],
+                           support=masked_support(np.asarray(mesh.matrix)[:, pinned], masks))
+        mesh = replace(mesh, matrix=matrix)._with_openings(face.vertices, None, face.lids, anchors,
+                                                           columns, rotation)
         return replace(mesh, uv=face.uv, mirror=mirror)
 
     def _with_openings(self, rig_vertices: np.ndarray, mouth: np.ndarray | None, lids: tuple,
                        anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray, *,
-                       eye_corner_mm: float | None = None, mouth_pin_fade_mm: float = 0.0) -> MeshMap:
+                       eye_corner_mm: float | None = None) -> MeshMap:
         """This map with its openings' corners blended and its lids' blinks (the default face, a
         user's opened mesh): ``rig_vertices`` (V, 3) mm its vertices in the rig frame
         (``rotation`` session -> rig), ``mouth`` (2,) the mouth's corner vertices (None: no
         mouth cut), ``lids`` the eyes' :class:`~mocaptk.retarget.default_face.Lid` (their corners
         blended within ``eye_corner_mm``, default the default face's), ``anchors`` (M,) and
-        ``columns`` (M, 3) mm as :meth:`anchored`; ``mouth_pin_fade_mm`` fades the mouth blend in
-        from the joints' own vertices (:func:`~mocaptk.retarget.weights.pin_fade`; 0: none)."""
+        ``columns`` (M, 3) mm as :meth:`anchored` (the default face's mouth:
+        :func:`~mocaptk.retarget.face_weights.face_rows`)."""
         from .default_face import EYE_CORNER_MM, MOUTH_CORNER_MM
         from .lid_joints import SENSOR_MIN_MM
         from .weights import blend_corners
 
         # the openings part like lenses, not cracks whose tips fold (as the rig's weights)
         matrix = self.matrix
-        for corners, reach, fade in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM,
-                                      mouth_pin_fade_mm),
-                                     ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
-                                      EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm, 0.0)):
+        for corners, reach in (([] if mouth is None else list(mouth), MOUTH_CORNER_MM),
+                               ([c for lid in lids for c in (lid.upper[0], lid.upper[-1])],
+                                EYE_CORNER_MM if eye_corner_mm is None else eye_corner_mm)):
             if corners:
                 matrix = blend_corners(matrix, rig_vertices, corners, reach_mm=reach,
-                                       pinned=anchors[anchors >= 0], pin_fade_mm=fade)
+                                       pinned=anchors[anchors >= 0])
         matrix = np.asarray(matrix).astype(np.float32)
         mesh = replace(self, matrix=matrix,
                        offset=self.vertices - matrix.astype(np.float64) @ np.nan_to_num(columns))
@@ -277,24 +285,20 @@ class MeshMap:
         marker that moves least, ``regions`` (S,) theirs, ``columns`` (M, 3) mm as :meth:`anchored`."""
         from mocaptk.surface_mesh import marker_spacing
 
+        from .build import RigOptions
         from .mesh_openings import parts_follow
-        from .mesh_parts import head_jaw_rows
 
         m = self.matrix.shape[1]
         row = np.flatnonzero(seen == head)
         if not row.size:
             return self
-        head_row, jaw_row = head_jaw_rows(int(row[0]), regions, points, count=PART_JAW_MARKERS)
         matrix = np.asarray(self.matrix, dtype=np.float64)
         # each lid's own blink shape (V, 3) goes along as 3 more columns: a lash takes its lid's
         lids = [b.shape + matrix[:, b.sensors] @ b.full for b in self.blinks]
-        extra = np.zeros(3 * len(lids))
-        wide = np.zeros((2, m))
-        wide[:, seen] = head_row, jaw_row
-        rows = parts_follow(np.concatenate([matrix] + lids, axis=1), opened, points,
-                            head=np.concatenate([wide[0], extra]), jaw=np.concatenate([wide[1], extra]),
-                            spacing=marker_spacing(points), template=template,
-                            jaw_top_y=float(points[jaw_row > 0, 1].max()))
+        rows = parts_follow(np.concatenate([matrix] + lids, axis=1), opened, points, head=int(row[0]),
+                            regions=regions, positions=points, columns=seen,
+                            jaw_count=RigOptions().max_influences,  # the rig's default jaw row
+                            spacing=marker_spacing(points), template=template)
         matrix = rows[:, :m]
         blinks = tuple(replace(b, shape=rows[:, m + 3 * i:m + 3 * i + 3] - matrix[:, b.sensors] @ b.full)
                        for i, b in enumerate(self.blinks))

@@ -24,7 +24,7 @@ and ``solve`` alike.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,7 +37,7 @@ from .default_face import (EYE_CORNER_MM, LID_REACH_MM, Lid, along_rim, closing_
                            split_loop, template_openings)
 from .eye_openings import eye_loops
 from .face_template import FittedTemplate
-from .mesh_parts import beyond_markers, nose_height, part_weights, skin_faces
+from .mesh_parts import beyond_markers, head_jaw_rows, nose_height, part_weights, skin_faces
 
 __all__ = ["CORNERS", "LipCut", "OpenedMesh", "cut_lip_line", "kept_out", "mesh_lids", "lip_midcurve",
            "lip_path", "lips_joined", "open_mesh", "parts_follow", "split_along", "eye_corner_reach"]
@@ -432,18 +432,28 @@ def eye_corner_reach(vertices: np.ndarray, lids: tuple[Lid, ...], template: Fitt
     return EYE_CORNER_MM * float(np.clip(own / theirs, 0.5, 1.0))
 
 
-def parts_follow(weights: np.ndarray, opened: OpenedMesh, markers: np.ndarray, *, head: np.ndarray,
-                 jaw: np.ndarray, spacing: float, template: FittedTemplate | None,
-                 jaw_top_y: float) -> np.ndarray:
-    """``weights`` (V, J) of ``opened``'s vertices (rig frame) with its skin beyond the dense
-    ``markers`` (M, 3) mm blended towards the ``head`` row
+def parts_follow(weights: np.ndarray, opened: OpenedMesh, markers: np.ndarray, *, head: int,
+                 regions: Sequence[str], positions: np.ndarray, columns: np.ndarray | None = None,
+                 jaw_count: int, spacing: float, template: FittedTemplate | None) -> np.ndarray:
+    """``weights`` (V, K) of ``opened``'s vertices (rig frame) with its skin beyond the dense
+    ``markers`` (M, 3) mm blended towards the head's row
     (:func:`~mocaptk.retarget.mesh_parts.beyond_markers`) and the rows of its parts other than
-    the skin set (:func:`~mocaptk.retarget.mesh_parts.part_weights`; ``head``/``jaw`` (J,)), as
-    ``rig --mesh`` and ``solve --mesh`` both weight them. The mouth's line is the ``template``'s
-    lip mid-curve, without one ``jaw_top_y`` mm (the jaw's highest joint)."""
+    the skin set (:func:`~mocaptk.retarget.mesh_parts.part_weights`), as ``rig --mesh`` and
+    ``solve --mesh`` both weight them.
+
+    The rows (:func:`~mocaptk.retarget.mesh_parts.head_jaw_rows`): the head's all on column
+    ``head`` of ``positions`` (J, 3) mm (rig frame; the one that moves least), the jaw's on its
+    ``jaw_count`` lowest jaw columns (by ``regions`` (J,)), equally; they are the weights'
+    ``columns`` (J,) (default the first J), the other columns (the lids') get nothing. The
+    mouth's line is the ``template``'s lip mid-curve, without one the jaw's highest column."""
+    positions = np.asarray(positions, dtype=float)
+    columns = np.arange(len(positions)) if columns is None else np.asarray(columns, dtype=np.int64)
+    head_row, jaw_row = np.zeros((2, np.shape(weights)[1]))
+    head_row[columns], jaw_row[columns] = head_jaw_rows(head, regions, positions, count=jaw_count)
     nose_y = nose_height(opened.vertices, opened.faces, opened.skin)
-    mouth_y = float(lip_midcurve(template)[:, 1].mean()) if template is not None else float(jaw_top_y)
-    weights = beyond_markers(weights, opened.vertices, markers, head=head, spacing=spacing,
+    mouth_y = (float(lip_midcurve(template)[:, 1].mean()) if template is not None
+               else float(positions[jaw_row[columns] > 0, 1].max()))
+    weights = beyond_markers(weights, opened.vertices, markers, head=head_row, spacing=spacing,
                              mouth_y=mouth_y)
-    return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head, jaw=jaw,
-                        mouth_y=mouth_y, nose_y=nose_y)
+    return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head_row,
+                        jaw=jaw_row, mouth_y=mouth_y, nose_y=nose_y)

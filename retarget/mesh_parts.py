@@ -25,6 +25,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mocaptk.geometry import smoothstep
+
 __all__ = ["BEYOND_SPACINGS", "beyond_markers", "head_jaw_rows", "nose_height", "part_weights", "parts",
            "skin_faces"]
 
@@ -140,11 +142,5 @@ def beyond_markers(weights: np.ndarray, vertices: np.ndarray, markers: np.ndarra
 
     near = BEYOND_SPACINGS * spacing
     d = cKDTree(markers).query(vertices)[0]
-    t = _smooth((d - near) / near) * _smooth((vertices[:, 1] - mouth_y + near) / near)
+    t = smoothstep((d - near) / near) * smoothstep((vertices[:, 1] - mouth_y + near) / near)
     return (1.0 - t)[:, None] * weights + t[:, None] * head
-
-
-def _smooth(x: np.ndarray) -> np.ndarray:
-    """Smoothstep of ``x`` clipped to [0, 1]: no kink where a blend starts or ends."""
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)

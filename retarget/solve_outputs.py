@@ -202,12 +202,45 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
 
 def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
     """The default face on ``solver``'s dense neutral (:meth:`MeshMap.face`), mirrored to the
-    whole face when ``layout`` has mirrored markers; None where it does not fit."""
+    whole face when ``layout`` has mirrored markers, its lip markers each on its own lip
+    (:func:`jaw_following`); None where it does not fit."""
     plane = None if layout is None else layout.extra.get("sagittal_plane")
     plane = None if not isinstance(plane, dict) else (np.asarray(plane["point"], float),
                                                       np.asarray(plane["normal"], float))
     mirrored = layout is not None and any(c.mirrored_from for c in layout.clusters)
-    return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored)
+    return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored,
+                        jaw_following=None if layout is None else jaw_following(
+                            solver, layout, lateral=None if plane is None else plane[1]))
+
+
+#: How far (mm) :func:`jaw_following` drops the jaw's layout markers (the model's response to it).
+JAW_PROBE_MM = 5.0
+
+
+def jaw_following(solver: FaceSolver, layout: Layout, *,
+                  lateral: np.ndarray | None = None) -> np.ndarray | None:
+    """Which dense markers (M,) bool drop with the jaw, as the rig's (at least
+    :data:`~.build.JAW_FOLLOWING` of the jaw's drop), from the solver instead of the session:
+    the layout pose the session's layout Gaussian expects when the jaw's layout markers
+    (:func:`~.rig_hierarchy.jaw_members`) drop :data:`JAW_PROBE_MM` on average (rig frame,
+    ``lateral`` the subject's left if known), through the model. None for a model file without
+    the Gaussian."""
+    from .build import JAW_FOLLOWING, rig_frame_rotation
+    from .rig_hierarchy import jaw_members
+
+    model, gaussian = solver.model, solver.gaussian
+    if gaussian is None:
+        return None
+    seen = np.isfinite(model.neutral).all(axis=1)
+    rotation = rig_frame_rotation(model.neutral[seen], np.zeros(int(seen.sum())), lateral=lateral)
+    rest = model.neutral[model.layout]
+    region = {c.representative: c.region for c in layout.clusters}
+    jaw = jaw_members([region.get(label, "") for label in solver.layout_labels], rest @ rotation.T)
+    signal = (np.outer(jaw, -rotation[1]) / max(int(jaw.sum()), 1)).ravel()  # the jaw's mean drop
+    along = gaussian.cov @ signal  # the layout's regression on that drop
+    dropped = rest + (JAW_PROBE_MM / float(signal @ along)) * along.reshape(rest.shape)
+    moved = np.diff(model.predict_positions(np.stack([rest, dropped])), axis=0)[0]
+    return -(moved @ rotation.T)[:, 1] >= JAW_FOLLOWING * JAW_PROBE_MM
 
 
 def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layout | None = None,

@@ -25,11 +25,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from mocaptk.errors import OptionError
+from mocaptk.geometry import smoothstep
 from mocaptk.thin_shell import interpolation_weights, thin_shell_operator
 
 from .influence import geodesic_distance
 
-__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "mirror_maps", "pin_fade",
+__all__ = ["blend_corners", "cap_weights", "corner_joints", "fill_unsupported", "masked_support", "mirror_maps", "pin_fade",
            "region_masks", "shape_by_regions", "symmetric_weights", "thin_shell_weights"]
 
 
@@ -83,8 +84,7 @@ def region_masks(graph: sp.csr_matrix, regions: np.ndarray, n_joints: int, *,
         if falloff_mm > 0:
             dist = geodesic_distance(graph, inside, limit=falloff_mm)
             near = np.flatnonzero(dist != np.inf)  # beyond the limit the mask is 0, as zeros() has it
-            t = np.clip(1.0 - dist[near] / falloff_mm, 0.0, 1.0)
-            masks[near, j] = t * t * (3.0 - 2.0 * t)
+            masks[near, j] = smoothstep(1.0 - dist[near] / falloff_mm)
         masks[inside, j] = 1.0
     return masks
 
@@ -103,6 +103,12 @@ def shape_by_regions(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.divide(shaped, total, out=np.zeros_like(shaped), where=total > 0)
 
 
+def masked_support(weights: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Each row's (V,) masked thin-shell weight: ``weights`` (V, J) clipped at 0 times the region
+    ``masks`` (V, J) (:func:`region_masks`), summed; small where no driver's region reaches."""
+    return (np.clip(weights, 0.0, None) * masks).sum(axis=1)
+
+
 def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndarray,
                      faces: np.ndarray, *, min_support: float) -> np.ndarray:
     """``weights`` (V, J) with the rows whose ``support`` (V,) is below ``min_support`` replaced
@@ -110,7 +116,7 @@ def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndar
     ``faces`` (T, 3)); negatives clipped, rows renormalized. Vertices in no triangle keep theirs.
 
     ``support``: each row's masked thin-shell weight before renormalizing
-    (:func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
+    (:func:`masked_support`, :func:`shape_by_regions`). Far from every marker (behind the ears) that is a ratio of tiny
     numbers, so neighbours' rows swung between joints: an edge behind the ear stretched 2.06x
     at the widest jaw (issue 30). Filled, the weights there continue the face's smoothly."""
     import igl
@@ -131,11 +137,13 @@ def fill_unsupported(weights: np.ndarray, support: np.ndarray, vertices: np.ndar
 
 
 def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
-                  reach_mm: float, pinned: np.ndarray, pin_fade_mm: float = 0.0) -> np.ndarray:
+                  reach_mm: float, pinned: np.ndarray, pin_fade_mm: float = 0.0,
+                  pin_hold: float = 1.0) -> np.ndarray:
     """``weights`` (V, J) blended towards each of the ``corners`` (C,) vertex's own row, fully at
     the corner and not at all ``reach_mm`` away ((1 - r / reach)² of the distance r); the
-    ``pinned`` (P,) vertices' rows are kept, and with ``pin_fade_mm`` the blend fades in
-    smoothly over that distance (mm) from them (:func:`pin_fade`).
+    ``pinned`` (P,) vertices' rows are kept (``pin_hold`` 1; with 0.3 they take 70 % of the
+    blend), and with ``pin_fade_mm`` the blend fades in smoothly over that distance (mm) from
+    them (:func:`pin_fade`).
 
     At an opening's corner (the mouth's, an eye's) the upper and lower rims' weights differ
     from one vertex to the next, so the skin there tears like a crack's tip and its small
@@ -143,7 +151,7 @@ def blend_corners(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray
     away from its corners (issue 30)."""
     w = np.array(weights, dtype=float)
     v = np.asarray(vertices, dtype=float)
-    keep = pin_fade(v, pinned, fade_mm=pin_fade_mm)
+    keep = 1.0 - pin_hold * (1.0 - pin_fade(v, pinned, fade_mm=pin_fade_mm))
     for corner in np.asarray(corners, dtype=np.int64):
         alpha = np.clip(1.0 - np.linalg.norm(v - v[corner], axis=1) / reach_mm, 0.0, 1.0) ** 2
         w += (alpha * keep)[:, None] * (w[corner] - w)
@@ -165,8 +173,7 @@ def pin_fade(vertices: np.ndarray, pinned: np.ndarray, *, fade_mm: float) -> np.
         fade = np.ones(len(v))
         fade[pinned] = 0.0
         return fade
-    t = np.clip(cKDTree(v[pinned]).query(v)[0] / fade_mm, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return smoothstep(cKDTree(v[pinned]).query(v)[0] / fade_mm)
 
 
 def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray, *,
@@ -188,12 +195,10 @@ def corner_joints(weights: np.ndarray, vertices: np.ndarray, corners: np.ndarray
     pinned = np.asarray(pinned, dtype=np.int64)
     keep = pin_fade(v, pinned, fade_mm=pin_fade_mm)
     for corner in np.asarray(corners, dtype=np.int64):
-        t = np.clip((outer_mm - np.linalg.norm(v - v[corner], axis=1)) / (outer_mm - inner_mm),
-                    0.0, 1.0)
+        t = (outer_mm - np.linalg.norm(v - v[corner], axis=1)) / (outer_mm - inner_mm)
         own = np.argsort(-w[corner], kind="stable")[:count]
         left_out = pinned[np.setdiff1d(np.arange(w.shape[1]), own)]
-        beta = t * t * (3.0 - 2.0 * t) * np.minimum(keep, pin_fade(v, left_out,
-                                                                   fade_mm=others_fade_mm))
+        beta = smoothstep(t) * np.minimum(keep, pin_fade(v, left_out, fade_mm=others_fade_mm))
         led = np.zeros_like(w)
         led[:, own] = w[:, own]
         total = led.sum(axis=1)

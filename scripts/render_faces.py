@@ -7,9 +7,10 @@ The poses are found on the default rig's own animation (largest mouth opening, l
 width, smallest eye aperture) and used for every face. Usage (from the repository root, with
 ../shared/data or $MOCAPTK_SHARED_DATA):
 
-    python scripts/render_faces.py [out folder, default docs/renders] [--mesh-only]
+    python scripts/render_faces.py [out folder, default docs/renders] [--mesh-only | --default-only]
 
-``--mesh-only``: the ``--mesh`` faces only (the poses still come from the default rig). A
+``--mesh-only``: the ``--mesh`` faces only (the poses still come from the default rig);
+``--default-only``: the default rig and solve's mesh only. A
 mesh's parts other than its skin (teeth, eyeballs) are drawn in a lighter colour; the open
 pieces around its eyes (:func:`~mocaptk.retarget.mesh_parts.parts` ``"lid"``: the ICT-FaceKit
 head's lash cards, eye-occlusion and eye-blend shells and wet rims, alpha-textured or
@@ -53,8 +54,8 @@ def main(argv: list[str]) -> None:
     from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
     from mocaptk.retarget.solve_outputs import face_mesh
 
-    mesh_only = "--mesh-only" in argv
-    argv = [a for a in argv if a != "--mesh-only"]
+    mesh_only, default_only = "--mesh-only" in argv, "--default-only" in argv
+    argv = [a for a in argv if a not in ("--mesh-only", "--default-only")]
     out = Path(argv[0]) if argv else REPO / "docs" / "renders"
     out.mkdir(parents=True, exist_ok=True)
     truth = load_ground_truth(SAMPLE / "dense_halfface_truth.npz")
@@ -76,7 +77,7 @@ def main(argv: list[str]) -> None:
         render(poses @ build.cloud.rotation.T, mesh.faces, out / "solve_mesh.png",
                "solve's mesh (mesh.usd / mesh.glb)")
     with tempfile.TemporaryDirectory() as tmp:
-        for name, path, title in user_meshes(Path(tmp)):
+        for name, path, title in ([] if default_only else user_meshes(Path(tmp))):
             user = build_rig(layout, session, mesh=load_mesh(path), check=False)
             render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title,
                    kinds=face_kinds(user.rig.vertices, user.rig.faces))

@@ -45,11 +45,21 @@ def test_rig_weights_partition_unity_capped_and_exact_at_markers(sample, markers
     assert np.all((rig.weight_value == 0) | (rig.weight_value >= 1e-3))
     # at its marker's vertex a joint has weight exactly 1, but where the lid moves it (EYE_08,
     # under the brow: 0.32 on its lid, the part of the template's blink its marker does not show)
+    # and within MOUTH_CORNER_MM of a mouth corner (70 % of the corner's blend: a lip marker
+    # there held exactly stretched the closed seam's skin 2.08x at the widest jaw)
+    from mocaptk.retarget.default_face import MOUTH_CORNER_MM, template_openings
+
+    (upper, _), _, _ = template_openings()
+    corner = np.linalg.norm(rig.vertices[build.joint_vertices][:, None]
+                            - rig.vertices[[upper[0], upper[-1]]], axis=2).min(axis=1) < MOUTH_CORNER_MM
     lids = rig.dense_weights()[:, -2:]
     for j, v in enumerate(build.joint_vertices):
-        if not lids[v].any():
+        if not lids[v].any() and not corner[j]:
             assert rig.weight_index[v, 0] == j + 1 and rig.weight_value[v, 0] == 1.0
+        elif corner[j]:  # its own joint still leads
+            assert rig.weight_index[v, 0] == j + 1 and 0.5 < rig.weight_value[v, 0] < 1.0
     assert (lids[build.joint_vertices] > 0).any(axis=1).sum() == 2
+    assert 0 < corner.sum() < 0.2 * len(corner), corner.sum()  # the sample: 12 of 69
     # joints sit at their markers' neutral positions, under one root; their vertices are on the
     # fitted face, moved by the lips' closing (the sample's lips are 11 mm apart at rest)
     np.testing.assert_allclose(rig.joint_positions[build.marker_joints],
@@ -578,9 +588,10 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     the full blink and 4.71x, from lid weights dropped by the capping, a blink counted twice and
     the eye corners' torn weights). Over the whole face no triangle faces backward either (the
     template's two slivers inside the mouth corners are flipped) and the largest stretch is
-    2.077x, below the mouth corners at the widest jaw (was 2.62x; <= 2x is not met yet,
-    docs/default-face.md). Farther than 20 mm from them it is 1.99x (was 2.06x behind the ears,
-    where the weights were ratios of tiny masked thin-shell weights; now filled harmonically)."""
+    1.985x (was 2.62x, then 2.077x below the mouth corners at the widest jaw, now 1.978x there:
+    the lip markers' own vertices take 70 % of the corner blend, CORNER_PIN_HOLD). Farther than
+    20 mm from them it is 1.99x (was 2.06x behind the ears, where the weights were ratios of
+    tiny masked thin-shell weights; now filled harmonically)."""
     from scipy.spatial import cKDTree
 
     from mocaptk.acquisition.formats import read_trajectories
@@ -609,7 +620,7 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     assert (np.einsum("ftk,tk->ft", normals(posed), normals(rig.vertices)) < 0).sum() == 0
     rest = np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1)
     stretch = np.linalg.norm(posed[:, edges[:, 0]] - posed[:, edges[:, 1]], axis=2) / rest
-    assert stretch.max() <= 2.1 and np.percentile(stretch.max(axis=0), 99.9) <= 2.0
+    assert stretch.max() <= 2.0 and np.percentile(stretch.max(axis=0), 99.9) <= 1.95
     (upper, _), _, _ = template_openings()
     middle = rig.vertices[edges].mean(axis=1)
     corners = rig.vertices[[upper[0], upper[-1]]]
