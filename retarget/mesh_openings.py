@@ -60,6 +60,12 @@ DETOUR = 2.0
 #: film over the eye, when its area is over this many times the aperture's (the MediaPipe
 #: face: 1.0; the ICT-FaceKit head: its sockets, much more).
 SOCKET_AREA = 2.0
+#: Eyes whose lids roll into a socket blend their corners this much farther (no weight crosses
+#: the socket, so the lid closes fully and its joint is the 5th influence of rows by the outer
+#: corner, dropped by the cap; chosen on the ICT-FaceKit head, sample, 4 influences: at 1x one
+#: triangle backward by the outer corner at the fullest blink, at 1.25x none and the aperture
+#: 17.5 % of rest, at 1.5x none and 22 %).
+SOCKET_CORNER_SCALE = 1.25
 
 
 @dataclass(frozen=True, eq=False)
@@ -420,7 +426,8 @@ def open_mesh(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
         mouth = None if mouth is None else np.searchsorted(kept, mouth)
         others = np.searchsorted(kept, others)  # the other parts keep every vertex
     return OpenedMesh(vertices, np.concatenate([own, others]), source[kept], len(own), lip_cut,
-                      lids, mouth, report, eye_corner_reach(vertices, lids, template), sockets)
+                      lids, mouth, report, eye_corner_reach(vertices, lids, template)
+                      * (SOCKET_CORNER_SCALE if len(sockets) else 1.0), sockets)
 
 
 def eye_corner_reach(vertices: np.ndarray, lids: tuple[Lid, ...], template: FittedTemplate | None
