@@ -3,7 +3,8 @@ the most triangles facing backward against the rest pose in one frame, and the l
 stretch (and its 99.9th percentile over the edges), for the default rig and rigs on the
 MediaPipe canonical face and the ICT-FaceKit head given with ``--mesh``: on the face surface
 (the skin, the mesh's largest part), and apart on its other parts (teeth, eyeballs, lashes).
-For the ``--mesh`` faces also the mouth opening seen from the front at rest and at the widest
+The ``--mesh`` faces also as ``solve --mesh`` moves them, skin and parts apart. For the
+``--mesh`` faces also the mouth opening seen from the front at rest and at the widest
 jaw (:func:`visible_opening`) and each eye's aperture at the fullest blink (the area inside its
 lid rims, of rest). Usage (repository root, with ../shared/data or $MOCAPTK_SHARED_DATA):
 
@@ -247,6 +248,28 @@ def main() -> None:
                           f"stretch {worst:.2f}x (99.9th percentile {p999:.2f}x)")
             if mesh is not None:
                 print(f"{name}: {openings(build, mesh, posed, perf)}")
+        solve_meshes(layout, session, perf, user_meshes(Path(tmp)))
+
+
+def solve_meshes(layout, session, perf, meshes) -> None:
+    """The same measures of ``solve --mesh`` (:func:`~mocaptk.retarget.solve_outputs.user_mesh`,
+    parts moving as the rig's) over the solved performance, for each (name, path, title)."""
+    from mocaptk.retarget.mesh_parts import skin_faces
+    from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
+    from mocaptk.retarget.solve_outputs import user_mesh
+
+    solver = train_solver(layout, session, {"path": "sample", "sha256": None})
+    dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, perf, "p"))])
+    for _, path, title in meshes:
+        mesh, _ = user_mesh(path, solver.model.neutral, layout=layout, labels=solver.labels,
+                            head=(solver.fallback_labels or (None,))[0])
+        posed = mesh.apply(dense)
+        skin = skin_faces(mesh.faces)
+        for part, chosen in (("", skin), (" (its other parts)", ~skin)):
+            if chosen.any():
+                back, worst, p999 = quality(posed, mesh.vertices, mesh.faces[chosen])
+                print(f"solve {title}{part}: most backward triangles in a frame {back}, max edge "
+                      f"stretch {worst:.2f}x (99.9th percentile {p999:.2f}x)")
 
 
 if __name__ == "__main__":

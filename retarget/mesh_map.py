@@ -248,7 +248,7 @@ class MeshMap:
 
         from .build import rig_frame_rotation
         from .face_template import fit_template
-        from .mesh_openings import open_mesh
+        from .mesh_openings import fill_sockets, open_mesh, weighted_faces
 
         seen = np.flatnonzero(np.isfinite(neutral).all(axis=1))
         row = {int(m): i for i, m in enumerate(seen)}
@@ -268,7 +268,9 @@ class MeshMap:
         anchors = np.full(len(neutral), -1, dtype=np.intp)
         close = dist <= reach_mm
         anchors[seen[close]] = nearest[close]
-        mesh = cls.anchored(placed, opened.faces, anchors, neutral)
+        mesh = cls.anchored(placed, weighted_faces(opened), anchors, neutral)  # not across sockets
+        mesh = replace(mesh, faces=opened.faces,
+                       matrix=fill_sockets(mesh.matrix, opened).astype(np.float32))
         mesh = mesh._with_openings(opened.vertices, opened.mouth_corners, opened.lids, anchors,
                                    neutral, rotation, eye_corner_mm=opened.eye_corner_mm)
         if head is not None and regions is not None:

@@ -25,7 +25,7 @@ and ``solve`` alike.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -39,8 +39,9 @@ from .eye_openings import eye_loops
 from .face_template import FittedTemplate
 from .mesh_parts import beyond_markers, head_jaw_rows, nose_height, part_weights, skin_faces
 
-__all__ = ["CORNERS", "LipCut", "OpenedMesh", "cut_lip_line", "kept_out", "mesh_lids", "lip_midcurve",
-           "lip_path", "lips_joined", "open_mesh", "parts_follow", "split_along", "eye_corner_reach"]
+__all__ = ["CORNERS", "LipCut", "OpenedMesh", "cut_lip_line", "eye_corner_reach", "fill_sockets", "kept_out",
+           "lip_midcurve", "lip_path", "lips_joined", "mesh_lids", "open_mesh", "parts_follow",
+           "split_along", "weighted_faces"]
 
 #: Corner landmarks: the ends of the mouth's and each eye's rims, subject's right (R, smaller X)
 #: to left, as the template's rims run.
@@ -59,6 +60,12 @@ DETOUR = 2.0
 #: film over the eye, when its area is over this many times the aperture's (the MediaPipe
 #: face: 1.0; the ICT-FaceKit head: its sockets, much more).
 SOCKET_AREA = 2.0
+#: Eyes whose lids roll into a socket blend their corners this much farther (no weight crosses
+#: the socket, so the lid closes fully and its joint is the 5th influence of rows by the outer
+#: corner, dropped by the cap; chosen on the ICT-FaceKit head, sample, 4 influences: at 1x one
+#: triangle backward by the outer corner at the fullest blink, at 1.25x none and the aperture
+#: 17.5 % of rest, at 1.5x none and 22 %).
+SOCKET_CORNER_SCALE = 1.25
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,24 +219,26 @@ def cut_lip_line(vertices: np.ndarray, faces: np.ndarray, template: FittedTempla
 
 def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None, *,
               corners: Mapping[str, np.ndarray] | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[Lid, ...]]:
-    """``(vertices, faces, kept, lids)``: the mesh with eye openings, ``kept`` (V',) the given
-    vertex of each of its vertices, and the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[Lid, ...], np.ndarray]:
+    """``(vertices, faces, kept, lids, sockets)``: the mesh with eye openings, ``kept`` (V',) the
+    given vertex of each of its vertices, the two eyes' :class:`~mocaptk.retarget.default_face.Lid`
     (right eye first; each with its full blink, the upper rim onto the lower, as on the default
-    face). A mesh with its own eye holes keeps them; on a mesh whose eyes are covered, each
+    face) and ``sockets`` (S,) the triangles of eye sockets the lids roll into (below). A mesh with its own eye holes keeps them; on a mesh whose eyes are covered, each
     eye's rims are the mesh's edge paths nearest the fitted template's upper and lower rims
     (:func:`lip_path`), the triangles they enclose are removed and so are the vertices no
     triangle uses any more (a glTF reader drops them). No lids (and the mesh unchanged) unless
     two eyes result. An eye whose lids are not joined (:func:`lips_joined` at the middle of its
     aperture: lids that roll into a socket) is not cut: its rims are those edge paths, its lid
-    margins. ``corners`` (``eye_*`` of :data:`CORNERS`, (3,) mm) bend the template's rims
+    margins, and the triangles they enclose are its ``sockets``. ``corners`` (``eye_*`` of
+    :data:`CORNERS`, (3,) mm) bend the template's rims
     onto them (:func:`bent`), and split an eye hole of the mesh's own at the loop vertices
     nearest them. Vertices ``faces`` does not use stay (another part's)."""
     kept = np.arange(len(vertices))
+    none = np.zeros(0, dtype=np.int64)
     loops = eye_loops(vertices, faces)
     opened = faces
     ends = (("eye_R_outer", "eye_R_inner"), ("eye_L_inner", "eye_L_outer"))
-    sockets = []  # the rims of eyes open into a socket (no hole: the ICT-FaceKit head's)
+    sockets = []  # eyes open into a socket (no hole: the ICT-FaceKit head's): rims, triangles
     if len(loops) != 2 and template is not None:
         _, eyes, _ = template_openings()
         for (upper, lower), (first, last) in zip(eyes, ends):
@@ -242,9 +251,10 @@ def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
     if len(sockets) == 2:
         return vertices, faces, kept, tuple(
             Lid(upper, lower, closing_field(vertices, faces, [(upper, lower, 0.0)],
-                                            reach_mm=LID_REACH_MM)) for upper, lower in sockets)
+                                            reach_mm=LID_REACH_MM)) for upper, lower, _ in sockets
+        ), np.concatenate([inside for _, _, inside in sockets])
     if len(loops) != 2:
-        return vertices, faces, kept, ()
+        return vertices, faces, kept, (), none
     gone = np.setdiff1d(np.unique(faces), np.unique(opened))
     if gone.size:  # the covered eyes' inner vertices
         kept = np.setdiff1d(kept, gone)
@@ -256,7 +266,7 @@ def mesh_lids(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
     rims = [_split_at(vertices, loop, corners, first, last) for loop, (first, last) in zip(loops, ends)]
     return vertices, opened, kept, tuple(
         Lid(upper, lower, closing_field(vertices, opened, [(upper, lower, 0.0)], reach_mm=LID_REACH_MM))
-        for upper, lower in rims)
+        for upper, lower in rims), none
 
 
 def _split_at(vertices: np.ndarray, loop: np.ndarray, corners: Mapping[str, np.ndarray] | None,
@@ -275,12 +285,12 @@ def _split_at(vertices: np.ndarray, loop: np.ndarray, corners: Mapping[str, np.n
 
 
 def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower: np.ndarray
-              ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+              ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
     """``(faces, socket)``: ``faces`` without the triangles enclosed by the mesh's edge paths
     nearest the ``upper`` and ``lower`` rim curves (K, 3) mm (corner to corner), down to the
     lid margin (:func:`_margin_band`); unchanged where the paths do not enclose a piece of the
     mesh, or where it is a socket (:data:`SOCKET_AREA`): then ``socket`` is the two paths, the
-    lid margins."""
+    lid margins, and the enclosed triangles (S,)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -312,7 +322,7 @@ def _eye_hole(vertices: np.ndarray, faces: np.ndarray, upper: np.ndarray, lower:
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
                                 axis=1).sum()
     if area > SOCKET_AREA * loop_area(vertices[np.concatenate([top, bottom[::-1][1:-1]])]):
-        return faces, (top, bottom)
+        return faces, (top, bottom, np.flatnonzero(inside))
     return faces[~inside | _margin_band(vertices, faces, inside, top, bottom)], None
 
 
@@ -369,7 +379,9 @@ class OpenedMesh:
     its vertex numbers the given mesh's), the eyes' ``lids``, the ``mouth_corners`` (2,) (the
     cut's ends, else the skin vertices nearest the template's; None: no template) and the eye
     cut's ``eye_report`` for the rig report (None: no lids); ``eye_corner_mm`` how far the
-    eyes' corners blend the weights (:func:`eye_corner_reach`)."""
+    eyes' corners blend the weights (:func:`eye_corner_reach`); ``sockets`` (S,) the skin's
+    triangles inside eyes whose lids roll into a socket (:func:`mesh_lids`; no weight crosses
+    them: :func:`weighted_faces`, :func:`fill_sockets`)."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -380,6 +392,7 @@ class OpenedMesh:
     mouth_corners: np.ndarray | None
     eye_report: dict[str, Any] | None
     eye_corner_mm: float = EYE_CORNER_MM
+    sockets: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def open_mesh(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate | None, *,
@@ -404,7 +417,7 @@ def open_mesh(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
         vertices, own, mouth = lip_cut.vertices, lip_cut.faces, lip_cut.corners
         source = np.concatenate([source, lip_cut.path[1:-1]])
     before, count = len(own), len(vertices)
-    vertices, own, kept, lids = mesh_lids(vertices, own, template, corners=points)
+    vertices, own, kept, lids, sockets = mesh_lids(vertices, own, template, corners=points)
     report = None
     if lids:
         report = {"method": "the mesh's edge paths nearest the ICT-FaceKit face's eye rims",
@@ -413,7 +426,8 @@ def open_mesh(vertices: np.ndarray, faces: np.ndarray, template: FittedTemplate 
         mouth = None if mouth is None else np.searchsorted(kept, mouth)
         others = np.searchsorted(kept, others)  # the other parts keep every vertex
     return OpenedMesh(vertices, np.concatenate([own, others]), source[kept], len(own), lip_cut,
-                      lids, mouth, report, eye_corner_reach(vertices, lids, template))
+                      lids, mouth, report, eye_corner_reach(vertices, lids, template)
+                      * (SOCKET_CORNER_SCALE if len(sockets) else 1.0), sockets)
 
 
 def eye_corner_reach(vertices: np.ndarray, lids: tuple[Lid, ...], template: FittedTemplate | None
@@ -456,4 +470,38 @@ def parts_follow(weights: np.ndarray, opened: OpenedMesh, markers: np.ndarray, *
     weights = beyond_markers(weights, opened.vertices, markers, head=head_row, spacing=spacing,
                              mouth_y=mouth_y)
     return part_weights(weights, opened.vertices, opened.faces, opened.skin, head=head_row,
-                        jaw=jaw_row, mouth_y=mouth_y, nose_y=nose_y)
+                        jaw=jaw_row, mouth_y=mouth_y, nose_y=nose_y,
+                        margins=[rim for lid in opened.lids for rim in (lid.upper, lid.lower)])
+
+
+def weighted_faces(opened: OpenedMesh) -> np.ndarray:
+    """``opened``'s triangles (T', 3) the weights are solved on: all but its eye sockets'. The
+    socket joins the upper lid to the lower one a few mm behind the margins, so weights solved
+    across it moved the lower lid with the markers under the brow (the ICT-FaceKit head: 0.63 of
+    EYE_08 on its lower rim, 3.5-4.4 mm down in a blink, the lid closing to 30 % of the
+    aperture); the eyes are openings, as the default face's are, and no weight crosses them."""
+    keep = np.ones(len(opened.faces), bool)
+    keep[opened.sockets] = False
+    return opened.faces[keep]
+
+
+def fill_sockets(weights: np.ndarray, opened: OpenedMesh) -> np.ndarray:
+    """``weights`` (V, J) (solved on :func:`weighted_faces`) with the rows of the vertices only
+    the eye sockets use filled biharmonically over the sockets from their rims' rows (upper lid
+    to lower: the socket moves between them, without a crease; sample, ICT-FaceKit head at the
+    fullest blink: harmonic 2 triangles backward, biharmonic 1)."""
+    import igl
+
+    weights = np.array(weights, dtype=float)
+    if not len(opened.sockets):
+        return weights
+    socket = opened.faces[opened.sockets]
+    inner = np.setdiff1d(np.unique(socket), weighted_faces(opened))
+    used = np.unique(socket)
+    local = np.full(len(opened.vertices), -1, dtype=np.int64)
+    local[used] = np.arange(len(used))
+    rim = np.setdiff1d(used, inner)
+    weights[inner] = igl.harmonic(np.ascontiguousarray(opened.vertices[used]),
+                                  np.ascontiguousarray(local[socket]), local[rim],
+                                  np.ascontiguousarray(weights[rim]), 2)[local[inner]]
+    return weights

@@ -9,8 +9,12 @@ stretch, 715 triangles facing backward). Instead every part moves with what it b
 - a closed part (no border: a tooth, an eyeball) moves rigidly with one weight row: the head's
   (the layout joint that moves least, e.g. the nose bridge) when its centre is above the
   mouth's line, the jaw's (the chin joints) below it;
-- an open part around an eye (above the nose tip: lashes, the eye's wet rim) follows the skin:
-  each vertex takes the weights of its nearest skin vertex (the lid's, for a lash);
+- an open part around an eye (above the nose tip: lashes, the eye's wet rim and shading
+  shells) that lies along one lid's margin (a lash card) follows that lid: each vertex takes
+  the weights of its nearest margin vertex; one spanning the eye's opening (the ICT-FaceKit
+  head's eye-occlusion shell over the eyeball) moves rigidly with the head, as the eyeball
+  does (following the nearest skin, its halves went with the upper and the lower lid and tore
+  apart in a blink: 8.4x, 41 triangles backward). Without lids, the nearest skin vertex's;
 - an open part below the nose (gums and tongue, one piece on the ICT-FaceKit head) blends from
   the head's row at its top to the jaw's at its bottom, linearly in height (across a 6 mm band
   at the mouth's line its edges stretched 10x);
@@ -27,9 +31,12 @@ import numpy as np
 
 from mocaptk.geometry import smoothstep
 
-__all__ = ["BEYOND_SPACINGS", "beyond_markers", "head_jaw_rows", "nose_height", "part_weights", "parts",
-           "skin_faces"]
+__all__ = ["BEYOND_SPACINGS", "ONE_LID_SHARE", "beyond_markers", "head_jaw_rows", "nose_height", "part_weights",
+           "parts", "skin_faces"]
 
+#: An open part around an eye follows one lid when at least this share of its vertices is
+#: nearest that lid's margin (a lash card); else it spans the opening and moves with the head.
+ONE_LID_SHARE = 0.9
 #: Skin this many marker spacings from the nearest dense marker starts to blend towards the
 #: head's row, and follows it wholly at twice that.
 BEYOND_SPACINGS = 3.0
@@ -53,22 +60,33 @@ def skin_faces(faces: np.ndarray) -> np.ndarray:
 
 
 def part_weights(weights: np.ndarray, vertices: np.ndarray, faces: np.ndarray, skin: int, *,
-                 head: np.ndarray, jaw: np.ndarray, mouth_y: float, nose_y: float) -> np.ndarray:
+                 head: np.ndarray, jaw: np.ndarray, mouth_y: float, nose_y: float,
+                 margins: Sequence[np.ndarray] = ()) -> np.ndarray:
     """``weights`` (V, J) with the rows of the parts other than the skin (``faces[skin:]``) set
     as the module says: ``head``/``jaw`` (J,) the rigid rows, ``mouth_y``/``nose_y`` mm the
-    heights of the mouth's line and the nose tip (rig frame, Y up)."""
+    heights of the mouth's line and the nose tip (rig frame, Y up), ``margins`` the lids' margin
+    vertices (one array per lid: each eye's upper and lower rim; none: the skin's nearest)."""
     from scipy.spatial import cKDTree
 
     faces = np.asarray(faces, dtype=np.int64)
     weights = np.array(weights, dtype=float)
     on = np.unique(faces[:skin])
     tree = cKDTree(vertices[on])
+    rim = np.concatenate([np.asarray(m, dtype=np.int64) for m in margins]) if len(margins) else on
+    lid_of = np.concatenate([np.full(len(m), i) for i, m in enumerate(margins)]) if len(margins) \
+        else np.zeros(len(on), dtype=np.int64)
+    rims = cKDTree(vertices[rim])
     for members, kind in parts(vertices, faces, skin, nose_y=nose_y):
         y = vertices[members, 1]
         if kind == "rigid":  # a tooth, an eyeball: one row
             low = np.full(len(members), float(y.mean() < mouth_y))
-        elif kind == "lid":  # lashes: with the lid
+        elif kind == "lid" and not len(margins):  # no lids found: with the nearest skin
             weights[members] = weights[on[tree.query(vertices[members])[1]]]
+            continue
+        elif kind == "lid":  # a lash card with its lid; a shell over the eye with the head
+            near = rims.query(vertices[members])[1]
+            share = np.bincount(lid_of[near]).max() / len(members)
+            weights[members] = weights[rim[near]] if share >= ONE_LID_SHARE else head
             continue
         else:  # gums and tongue: from the head's at its top to the jaw's at its bottom
             low = (y.max() - y) / max(float(np.ptp(y)), 1e-9)

@@ -114,7 +114,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         say(f"aligning {Path(mesh_path).name} to the dense neutral")
         mesh, mesh_info = user_mesh(mesh_path, solver.model.neutral, layout=layout,
                                     landmarks=landmarks, labels=solver.labels,
-                                    head=(solver.fallback_labels or (None,))[0])
+                                    head=parts_head(solver))
     elif surface == "face":
         say("fitting the face to the dense neutral")
         mesh = face_mesh(solver, layout)
@@ -243,6 +243,19 @@ def jaw_following(solver: FaceSolver, layout: Layout, *,
     return -(moved @ rotation.T)[:, 1] >= JAW_FOLLOWING * JAW_PROBE_MM
 
 
+def parts_head(solver: FaceSolver) -> str | None:
+    """The layout marker a ``--mesh``'s parts take as the head's (``rig --mesh`` takes the one
+    that moves least): the first fallback pose marker (:func:`~.head_pose.least_moving_markers`),
+    else, where the layout has no 3 of them apart, the one whose positions spread least over
+    the session (the layout markers' Gaussian); None without either (an old model file)."""
+    if solver.fallback_labels:
+        return solver.fallback_labels[0]
+    if solver.gaussian is None:
+        return None
+    spread = np.diagonal(solver.gaussian.cov).reshape(-1, 3).sum(axis=1)
+    return solver.layout_labels[int(np.argmin(spread))]
+
+
 def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layout | None = None,
               landmarks: Mapping[str, int] | None = None, labels: Sequence[str] = (),
               head: str | None = None) -> tuple[MeshMap, dict[str, Any]]:
@@ -251,7 +264,7 @@ def user_mesh(path: str | os.PathLike[str], neutral: np.ndarray, *, layout: Layo
     and following the dense markers (:meth:`MeshMap.fitted`), and its summary for
     ``solve.json``. ``landmarks`` as ``rig --landmarks``: {marker label: vertex} pairs start the
     alignment, the :data:`~mocaptk.retarget.mesh_openings.CORNERS` keys steer the openings.
-    ``head``: the layout marker that moves least (the solver's first fallback pose marker); with
+    ``head``: the layout marker that moves least (:func:`parts_head`); with
     it and ``layout``, the mesh's teeth, eyeballs, lashes and gums move as ``rig --mesh`` moves
     them (with the head, the jaw or the lids)."""
     from .mesh_io import load_mesh

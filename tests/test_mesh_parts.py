@@ -67,12 +67,18 @@ def test_ict_head_parts_move_with_the_head_the_jaw_or_the_lids(tmp_path):
 
 
 @pytest.mark.slow
-def test_solve_moves_a_meshs_parts_as_the_rig_does(tmp_path):
+@pytest.mark.parametrize("fallback", [True, False], ids=["fallback markers", "no fallback markers"])
+def test_solve_moves_a_meshs_parts_as_the_rig_does(tmp_path, fallback):
     """``solve --mesh`` (:func:`~mocaptk.retarget.solve_outputs.user_mesh`) on the MediaPipe face
     with an upper and a lower tooth and an eyeball added (closed pieces): over the held-out
     performance each stays rigid, the lower tooth drops with the jaw's markers at the widest
     opening, the upper one and the eyeball move with the head's marker (before, the pieces took
-    the thin-shell weights of a piece no marker is pinned to, and stayed where they were)."""
+    the thin-shell weights of a piece no marker is pinned to, and stayed where they were). A
+    solver without fallback pose markers (a layout with no 3 of them apart) takes the layout
+    marker that spreads least instead (:func:`~mocaptk.retarget.solve_outputs.parts_head`;
+    before, the parts were skipped and stayed where they were)."""
+    from dataclasses import replace
+
     import trimesh
 
     from mocaptk.acquisition.formats import read_trajectories
@@ -80,7 +86,7 @@ def test_solve_moves_a_meshs_parts_as_the_rig_does(tmp_path):
     from mocaptk.clustering.pipeline import ClusterOptions, cluster_session
     from mocaptk.retarget.mesh_io import load_mesh
     from mocaptk.retarget.solve import layout_frames, solve_chunks, train_solver
-    from mocaptk.retarget.solve_outputs import user_mesh
+    from mocaptk.retarget.solve_outputs import parts_head, user_mesh
 
     face = load_mesh(shared_path("face_mesh", "mediapipe", "canonical_face_model.obj"))
     ball = trimesh.creation.icosphere(subdivisions=1)
@@ -102,14 +108,23 @@ def test_solve_moves_a_meshs_parts_as_the_rig_does(tmp_path):
     layout = cluster_session(session, options=ClusterOptions(
         factor=1.1, stabilize=False, takes=truth.takes)).layout
     solver = train_solver(layout, session, {"path": "sample", "sha256": None})
+    if not fallback:
+        solver = replace(solver, fallback_labels=(), fallback_reference=None)
+    head_label = parts_head(solver)
+    if fallback:
+        assert head_label == solver.fallback_labels[0]
+    else:  # the least-spreading layout marker moves little in the session (a brow's: 2.8 mm)
+        column = session.positions[:, session.index([head_label])[0]]
+        moved = np.nanmax(np.linalg.norm(column - solver.model.neutral[solver.labels.index(head_label)], axis=1))
+        assert head_label in solver.layout_labels and moved < 5.0
     perf = read_trajectories(SAMPLES / "dense_halfface_performance.c3d", strip_prefixes=True)
     dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, perf, "p"))])
     mesh, info = user_mesh(tmp_path / "parts.obj", solver.model.neutral, layout=layout,
-                           labels=solver.labels, head=solver.fallback_labels[0])
+                           labels=solver.labels, head=head_label)
     # the skin's removed vertices (the eyes' insides) come before the pieces' (lip copies after)
     offset = -len(info["eye_openings"]["vertices_removed"])
     posed = mesh.apply(dense)
-    head = solver.labels.index(solver.fallback_labels[0])
+    head = solver.labels.index(head_label)
     chin = [i for i, label in enumerate(solver.labels) if label.startswith("CHIN")]
     drop = solver.model.neutral[chin, 1] - dense[:, chin, 1]  # session frame: Y up, head-relative
     jaw = int(np.argmax(drop.mean(axis=1)))
