@@ -27,8 +27,11 @@ OUTLIER_FACTOR = 3.0
 MIN_OUTLIER_PX = 0.5
 #: Fewer views than this cannot constrain focal length, principal point and distortion.
 MIN_VIEWS = 3
-#: A wand frame whose length is off by this many mm weighs like one corner off by ``f_scale`` px.
-WAND_LENGTH_SD_MM = 0.05
+#: The wand's pixels are weighted by the ratio of the corners' to the blobs' noise, both measured
+#: on the fit's own residuals and refitted until the ratio moves less than this fraction ...
+NOISE_RATIO_TOLERANCE = 0.02
+#: ... or this many fits were made.
+MAX_NOISE_FITS = 4
 #: Distortion model: (k1, k2, p1, p2) with k3 = 0, as Qualisys' calibrations; enough for
 #: non-fisheye lenses and stable with few views.
 INTRINSIC_FLAGS = cv2.CALIB_FIX_K3
@@ -186,6 +189,10 @@ class BundleResult:
     camera_rms: list[float]  # px, all observations of each camera
     initial_rms: float
     final_rms: float
+    #: With a wand: the noise measured on the last fit's residuals (px) and the wand pixels' weight.
+    corner_sd_px: float | None = None
+    wand_sd_px: float | None = None
+    wand_weight: float | None = None
 
 
 def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Sequence[Intrinsics],
@@ -197,8 +204,14 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
     errors together; ``start`` gives the initial ``(R, t)`` of every camera. The ``loss``
     (scipy's) is robust by default with ``f_scale`` px = the median per-view RMS of the
     intrinsics fits: corners of steeply tilted views, several times less precise than the rest,
-    pulled the rig by up to 0.2 deg on the rendered Cara views. A ``wand`` adds its ends (3-D
-    points per frame, seen by several cameras at once) and its length to the fit."""
+    pulled the rig by up to 0.2 deg on the rendered Cara views.
+
+    A ``wand`` adds its frames as rigid bodies of exactly ``wand.length`` mm (a midpoint and a
+    direction each), seen by several cameras at once. Maximum likelihood weighs each pixel by its
+    own noise: the blobs' and the corners' standard deviations are measured on the fit's
+    residuals (variance components, corrected for each frame's own parameters) and the fit is
+    repeated with the wand's pixels weighted by their ratio until it settles; no weight is set
+    by hand."""
     if f_scale is None:
         f_scale = float(np.median([r for i in intrinsics for r in i.view_rms.values()] or [1.0]))
     n_cams, points = len(views), board.object_points()
@@ -228,24 +241,23 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
     intr0 = np.array([[i.matrix[0, 0], i.matrix[1, 1], i.matrix[0, 2], i.matrix[1, 2],
                        *i.distortion[[0, 1, 2, 3, 4]]] for i in intrinsics])
     n_intr = 8 if refine_intrinsics else 0
-    ends0, wand_cam, wand_pt, wand_px = _wand_observations(wand, intrinsics, start)
+    rods0, wand_cam, wand_pt, wand_px = _wand_observations(wand, intrinsics, start)
     n_wand = len(wand_cam)
     x0 = np.concatenate([intr0[:, :n_intr].ravel(),
                          np.concatenate([np.concatenate([cv2.Rodrigues(r)[0].ravel(), t])
                                          for r, t in start[1:]]) if n_cams > 1 else [],
-                         np.concatenate([frames[f] for f in frame_ids]), ends0.ravel()])
+                         np.concatenate([frames[f] for f in frame_ids]), rods0.params.ravel()])
     cam_off, frame_off = n_cams * n_intr, n_cams * n_intr + 6 * (n_cams - 1)
     wand_off = frame_off + 6 * n_frames
-    length_weight = f_scale / WAND_LENGTH_SD_MM
 
     def unpack(x: np.ndarray):
         intr = intr0.copy()
         intr[:, :n_intr] = x[:cam_off].reshape(n_cams, n_intr)
         cams = np.vstack([np.zeros((1, 6)), x[cam_off:frame_off].reshape(-1, 6)])
-        return intr, cams, x[frame_off:wand_off].reshape(n_frames, 6), x[wand_off:].reshape(-1, 3)
+        return intr, cams, x[frame_off:wand_off].reshape(n_frames, 6), x[wand_off:].reshape(-1, 5)
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        intr, cams, boards, ends = unpack(x)
+    def residuals(x: np.ndarray, wand_weight: float) -> np.ndarray:
+        intr, cams, boards, rods = unpack(x)
         r_cams, r_boards = rotation_matrices(cams[:, :3]), rotation_matrices(boards[:, :3])
         board = _project(intr[cam_idx], (r_cams[cam_idx], cams[cam_idx, 3:]),
                          (r_boards[frm_idx], boards[frm_idx, 3:]), objs) - pixels
@@ -253,11 +265,10 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
             return board.ravel()
         still = (np.broadcast_to(np.eye(3), (n_wand, 3, 3)), np.zeros((n_wand, 3)))
         seen = _project(intr[wand_cam], (r_cams[wand_cam], cams[wand_cam, 3:]), still,
-                        ends[wand_pt]) - wand_px
-        lengths = np.linalg.norm(ends[0::2] - ends[1::2], axis=1) - wand.length
-        return np.concatenate([board.ravel(), seen.ravel(), length_weight * lengths])
+                        rods0.ends(rods)[wand_pt]) - wand_px
+        return np.concatenate([board.ravel(), wand_weight * seen.ravel()])
 
-    sparsity = lil_matrix((2 * n_obs + 2 * n_wand + len(ends0) // 2, len(x0)), dtype=np.int8)
+    sparsity = lil_matrix((2 * n_obs + 2 * n_wand, len(x0)), dtype=np.int8)
     rows = np.arange(n_obs)
     for axis in (0, 1):
         for k in range(n_intr):
@@ -268,11 +279,22 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
             sparsity[2 * rows + axis, frame_off + frm_idx * 6 + k] = 1
     _wand_sparsity(sparsity, 2 * n_obs, wand_cam, wand_pt, n_intr=n_intr, cam_off=cam_off,
                    wand_off=wand_off)
-    initial = residuals(x0)
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac", method="trf", tr_solver="lsmr",
-                        loss=loss, f_scale=f_scale,
-                        tr_options={"atol": 1e-12, "btol": 1e-12},
-                        xtol=1e-10, ftol=1e-9, gtol=1e-10, max_nfev=100)
+
+    def solve(x: np.ndarray, wand_weight: float):
+        return least_squares(residuals, x, jac_sparsity=sparsity, x_scale="jac", method="trf",
+                             tr_solver="lsmr", loss=loss, f_scale=f_scale, args=(wand_weight,),
+                             tr_options={"atol": 1e-12, "btol": 1e-12},
+                             xtol=1e-10, ftol=1e-9, gtol=1e-10, max_nfev=100)
+    initial = residuals(x0, 1.0)
+    wand_weight, fit = 1.0, solve(x0, 1.0)
+    corner_sd = wand_sd = None
+    for n_fits in range(1, MAX_NOISE_FITS + 1 if n_wand else 0):
+        corner_sd = _noise_sd(fit.fun[:2 * n_obs], 6 * n_frames)
+        wand_sd = _noise_sd(fit.fun[2 * n_obs:] / wand_weight, 5 * len(rods0.params))
+        ratio = corner_sd / wand_sd
+        if abs(ratio / wand_weight - 1) < NOISE_RATIO_TOLERANCE or n_fits == MAX_NOISE_FITS:
+            break
+        wand_weight, fit = ratio, solve(fit.x, ratio)
     intr, cams, _, _ = unpack(fit.x)
     error = fit.fun[:2 * n_obs].reshape(-1, 2)
     camera_rms = [float(np.sqrt(np.mean(np.sum(error[cam_idx == c] ** 2, axis=1))))
@@ -282,29 +304,69 @@ def bundle_adjust(board: Board, views: Sequence[Sequence[View]], intrinsics: Seq
         intrinsics=[(np.array([[i[0], 0, i[2]], [0, i[1], i[3]], [0, 0, 1.0]]), i[4:].copy())
                     for i in intr],
         camera_rms=camera_rms, initial_rms=float(np.sqrt(np.mean(initial[:2 * n_obs] ** 2) * 2)),
-        final_rms=float(np.sqrt(np.mean(fit.fun[:2 * n_obs] ** 2) * 2)))
+        final_rms=float(np.sqrt(np.mean(fit.fun[:2 * n_obs] ** 2) * 2)),
+        corner_sd_px=corner_sd, wand_sd_px=wand_sd, wand_weight=wand_weight if n_wand else None)
+
+
+def _noise_sd(residuals: np.ndarray, n_params: int) -> float:
+    """Standard deviation (px) of the noise behind one group's pixel ``residuals`` (x and y
+    interleaved): robust (1.4826 x the median absolute residual), scaled up by the group's
+    redundancy since ``n_params`` parameters of its own (board or wand poses) absorbed a share."""
+    spread = 1.4826 * float(np.median(np.abs(residuals)))
+    return spread * float(np.sqrt(len(residuals) / max(len(residuals) - n_params, 1)))
+
+
+@dataclass
+class _Rods:
+    """The wand frames as rigid rods of ``length`` mm: per frame ``params (N, 5)`` = midpoint
+    (3) and a direction offset (2) in the plane across the starting direction ``axis (N, 3)``
+    (``side``, ``up``: its orthonormal complement), so the length is exact and no angle wraps."""
+
+    params: np.ndarray
+    axis: np.ndarray
+    side: np.ndarray
+    up: np.ndarray
+    length: float
+
+    @classmethod
+    def through(cls, ends: np.ndarray, length: float) -> "_Rods":
+        """Rods through triangulated ends ``(N, 2, 3)`` mm (their midpoints and directions)."""
+        axis = ends[:, 1] - ends[:, 0]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        helper = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        side = np.cross(axis, helper)
+        side /= np.linalg.norm(side, axis=1, keepdims=True)
+        params = np.column_stack([ends.mean(axis=1), np.zeros((len(ends), 2))])
+        return cls(params, axis, side, np.cross(axis, side), float(length))
+
+    def ends(self, params: np.ndarray) -> np.ndarray:
+        """``(2N, 3)`` mm: end A then end B of every frame."""
+        direction = self.axis + params[:, 3:4] * self.side + params[:, 4:5] * self.up
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        half = 0.5 * self.length * direction
+        return np.stack([params[:, :3] - half, params[:, :3] + half], axis=1).reshape(-1, 3)
 
 
 def _wand_observations(wand: Wand | None, intrinsics: Sequence[Intrinsics],
                        start: Sequence[tuple[np.ndarray, np.ndarray]]):
-    """The wand's starting ends ``(2N, 3)`` mm (triangulated through the starting rig; frames
-    that do not triangulate dropped) and its observations: camera and end index ``(W,)`` and
-    pixels ``(W, 2)``. Empty without a wand."""
+    """The wand's starting rods (through the ends triangulated with the starting rig; frames
+    that do not triangulate dropped) and its observations: camera and end index ``(W,)`` (end
+    ``2 n`` is frame n's A, ``2 n + 1`` its B) and pixels ``(W, 2)``. Empty without a wand."""
     if wand is None:
-        return np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2))
+        return _Rods.through(np.zeros((0, 2, 3)), 0.0), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2))
     rig = rig_from_poses([str(c) for c in range(len(start))], [(i.matrix, i.distortion) for i in intrinsics],
                          start, [i.image_size for i in intrinsics])
     ends = wand_ends(wand, rig)
     good = np.isfinite(ends).all(axis=(1, 2))
-    ends, pixels = ends[good].reshape(-1, 3), wand.pixels[:, good].reshape(len(rig), -1, 2)
+    pixels = wand.pixels[:, good].reshape(len(rig), -1, 2)
     cam, point = np.nonzero(np.isfinite(pixels[..., 0]))
-    return ends, cam, point, pixels[cam, point]
+    return _Rods.through(ends[good], wand.length), cam, point, pixels[cam, point]
 
 
 def _wand_sparsity(sparsity, first_row: int, cam: np.ndarray, point: np.ndarray, *, n_intr: int,
                    cam_off: int, wand_off: int) -> None:
     """Mark the Jacobian entries of the wand's rows (after ``first_row``): each pixel row depends
-    on its camera's intrinsics and pose and its end; each length row on the frame's two ends."""
+    on its camera's intrinsics and pose and its frame's rod (midpoint and direction)."""
     rows = first_row + 2 * np.arange(len(cam))
     for axis in (0, 1):
         for k in range(n_intr):
@@ -312,13 +374,8 @@ def _wand_sparsity(sparsity, first_row: int, cam: np.ndarray, point: np.ndarray,
         moving = cam > 0
         for k in range(6):
             sparsity[rows[moving] + axis, cam_off + (cam[moving] - 1) * 6 + k] = 1
-        for k in range(3):
-            sparsity[rows + axis, wand_off + 3 * point + k] = 1
-    if len(cam):
-        n_ends = (sparsity.shape[1] - wand_off) // 3
-        length_rows = first_row + 2 * len(cam) + np.arange(n_ends // 2)
-        for k in range(6):
-            sparsity[length_rows, wand_off + 6 * np.arange(n_ends // 2) + k] = 1
+        for k in range(5):
+            sparsity[rows + axis, wand_off + 5 * (point // 2) + k] = 1
 
 
 def rig_from_poses(names: Sequence[str], intrinsics: Sequence[tuple[np.ndarray, np.ndarray]],

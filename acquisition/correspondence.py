@@ -69,8 +69,8 @@ class Reconstruction:
         return np.bincount(self.fragments[self.fragments >= 0], minlength=self.n_fragments)
 
 
-def _normalized(rig: CameraRig, blobs: np.ndarray) -> np.ndarray:
-    """Undistorted normalized coordinates of ``blobs (C, F, B, 2)`` px (NaN kept)."""
+def normalized_blobs(rig: CameraRig, blobs: np.ndarray) -> np.ndarray:
+    """Undistorted normalized coordinates of ``blobs (C, ..., 2)`` px (NaN kept)."""
     out = np.full(blobs.shape, np.nan)
     for c, camera in enumerate(rig):
         finite = np.isfinite(blobs[c, ..., 0])
@@ -96,7 +96,7 @@ def reconstruct(rig: CameraRig, blobs: np.ndarray, *, tolerance_px: float = TOLE
     ``rig`` (the halves of split merged blobs among them: a poor split is an outlier view)."""
     blobs = np.asarray(blobs, dtype=np.float64)
     n_cams, n_frames = blobs.shape[:2]
-    norm = _normalized(rig, blobs)
+    norm = normalized_blobs(rig, blobs)
     projections = np.array([np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig])
     focal = np.array([cam.focal_px for cam in rig])
     frame, keys, error, point = _hypotheses(norm, projections, focal, tolerance_px)
@@ -166,7 +166,7 @@ def _weight(n_views: np.ndarray, error: np.ndarray) -> np.ndarray:
     return n_views - 0.5 * error
 
 
-def _essential(projections: np.ndarray, i: int, j: int) -> np.ndarray:
+def essential_matrix(projections: np.ndarray, i: int, j: int) -> np.ndarray:
     """Essential matrix ``(3, 3)`` of camera ``j`` relative to camera ``i``."""
     rotation = projections[j, :, :3] @ projections[i, :, :3].T
     t = projections[j, :, 3] - rotation @ projections[i, :, 3]
@@ -184,7 +184,7 @@ def _hypotheses(norm: np.ndarray, projections: np.ndarray, focal: np.ndarray,
     essentials = np.zeros((n_cams, n_cams, 3, 3))
     for i in range(n_cams):
         for j in range(i + 1, n_cams):
-            essentials[i, j] = _essential(projections, i, j)
+            essentials[i, j] = essential_matrix(projections, i, j)
     pixels = norm * focal[:, None, None, None]
     order = np.argsort(pixels[..., 1], axis=2, kind="stable")  # NaN last
     by_y = np.take_along_axis(pixels, order[..., None], axis=2)

@@ -67,9 +67,13 @@ def board_poses(rig: CameraRig, board: Board, n_views: int, *, seed: int = 0,
 
 
 def board_texture(board: Board, px_per_mm: float) -> np.ndarray:
-    """The ChArUco board as a grey image, ``px_per_mm`` texels per mm."""
-    width, height = board.size_mm()
-    size = (int(round(width * px_per_mm)), int(round(height * px_per_mm)))
+    """The ChArUco board as a grey image, about ``px_per_mm`` texels per mm: a whole number of
+    texels per square, so its width / ``board.size_mm()[0]`` is the exact texel scale."""
+    # OpenCV draws squares of min(width / cols, height / rows) texels at truncated offsets: with
+    # a fractional square the drawn board was up to 1.7e-4 smaller than the size it was sampled
+    # at, a scale error in the truth (room seed 2)
+    square = max(1, int(round(board.square * px_per_mm)))
+    size = ((board.corners[0] + 1) * square, (board.corners[1] + 1) * square)
     image = board.charuco().generateImage(size, marginSize=0, borderBits=1)
     return (BLACK + image.astype(np.float32) * ((WHITE - BLACK) / 255.0)).astype(np.float32)
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from .cameras import CameraRig
+from .correspondence import essential_matrix, normalized_blobs
 from .triangulate import triangulate_points
 
 #: A frame whose triangulated wand length is off by more than this fraction is dropped: an end
@@ -45,17 +45,25 @@ def wand_from_blobs(points2d: np.ndarray, rig: CameraRig, length: float) -> Wand
 
     Raises ValueError (saying what was seen) when no frame is kept."""
     n_cams, n_frames = points2d.shape[:2]
-    counts = np.isfinite(points2d[..., 0]).sum(axis=2)
+    finite = np.isfinite(points2d[..., 0])
+    two = finite.sum(axis=2) == 2  # (C, F)
+    first = np.argsort(~finite, axis=2, kind="stable")[..., :2]  # an image's blobs in their order
+    pairs = np.take_along_axis(points2d, first[..., None], axis=2)  # (C, F, 2, 2)
+    pairs[~two] = np.nan
+    usable = two.sum(axis=0) >= MIN_CAMERAS
+    reference = np.argmax(two, axis=0)  # per frame, the first camera that sees both ends
+    norm = normalized_blobs(rig, pairs)
+    norm = np.concatenate([norm, np.ones(norm.shape[:-1] + (1,))], axis=-1)  # homogeneous
+    projections = np.array([np.hstack([cam.rotation, cam.tvec[:, None]]) for cam in rig])
     pixels = np.full((n_cams, n_frames, 2, 2), np.nan)
-    for f in range(n_frames):
-        two = np.nonzero(counts[:, f] == 2)[0]
-        if len(two) < MIN_CAMERAS:
-            continue
-        blobs = {c: points2d[c, f][np.isfinite(points2d[c, f, :, 0])] for c in two}
-        ref = two[0]
-        pixels[ref, f] = blobs[ref]
-        for c in two[1:]:
-            pixels[c, f] = blobs[c] if _kept_order(rig, ref, c, blobs[ref], blobs[c]) else blobs[c][::-1]
+    for a in range(n_cams):
+        mine = usable & (reference == a)
+        pixels[a, mine] = pairs[a, mine]
+        for b in range(a + 1, n_cams):
+            frames = np.nonzero(mine & two[b])[0]
+            if len(frames):
+                pixels[b, frames] = _ordered_like(norm[a, frames], norm[b, frames], pairs[b, frames],
+                                                  essential_matrix(projections, a, b))
     ends, _ = triangulate_points(rig, pixels.reshape(n_cams, -1, 2))
     measured = np.linalg.norm(ends[0::2] - ends[1::2], axis=1)
     with np.errstate(invalid="ignore"):
@@ -70,24 +78,14 @@ def wand_from_blobs(points2d: np.ndarray, rig: CameraRig, length: float) -> Wand
     return Wand(pixels=pixels[:, good], length=float(length))
 
 
-def _kept_order(rig: CameraRig, a: int, b: int, ends_a: np.ndarray, ends_b: np.ndarray) -> bool:
-    """Whether camera ``b``'s two blobs in their order (not swapped) match camera ``a``'s: the
-    smaller summed epipolar error in normalised coordinates."""
-    cam_a, cam_b = rig[a], rig[b]
-    xa = _normalized(cam_a, ends_a)
-    xb = _normalized(cam_b, ends_b)
-    rotation = cam_b.rotation @ cam_a.rotation.T
-    t = cam_b.tvec - rotation @ cam_a.tvec
-    essential = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rotation
-    error = np.abs(np.einsum("bi,ij,aj->ba", xb, essential, xa))  # (end in b, end in a)
-    return bool(error[0, 0] + error[1, 1] <= error[0, 1] + error[1, 0])
-
-
-def _normalized(camera, pixels: np.ndarray) -> np.ndarray:
-    """Homogeneous normalised image coordinates ``(K, 3)`` of distorted ``pixels (K, 2)``."""
-    xy = cv2.undistortPoints(pixels.reshape(-1, 1, 2).astype(np.float64), camera.matrix,
-                             camera.distortion).reshape(-1, 2)
-    return np.column_stack([xy, np.ones(len(xy))])
+def _ordered_like(norm_a: np.ndarray, norm_b: np.ndarray, pixels_b: np.ndarray,
+                  essential: np.ndarray) -> np.ndarray:
+    """Camera ``b``'s two blobs ``pixels_b (N, 2, 2)`` per frame, swapped where the other order
+    matches camera ``a``'s better: the smaller summed epipolar error of the homogeneous
+    normalised ends ``norm_a, norm_b (N, 2, 3)`` under ``essential`` (b relative to a)."""
+    error = np.abs(np.einsum("nbi,ij,naj->nba", norm_b, essential, norm_a))  # (frame, end in b, end in a)
+    kept = error[:, 0, 0] + error[:, 1, 1] <= error[:, 0, 1] + error[:, 1, 0]
+    return np.where(kept[:, None, None], pixels_b, pixels_b[:, ::-1])
 
 
 def wand_ends(wand: Wand, rig: CameraRig) -> np.ndarray:

@@ -125,7 +125,8 @@ def rig_extrinsics(name: str, rig, board: Board, n_views: int, *, spread_mm: flo
             with Clock() as wand_clock:
                 wand = wand_observations(rig, baseline, wand_frames, seed=100 + seed)
                 with_wand = bundle_adjust(board, views, fits, start, wand=wand)
-            rows.append((f"bundle adjustment + wand ({wand.n_frames} of {wand_frames} frames kept)",
+            rows.append((f"bundle adjustment + wand ({wand.n_frames} of {wand_frames} frames kept; noise measured: "
+                         f"corners {with_wand.corner_sd_px:.3f}, blobs {with_wand.wand_sd_px:.4f} px)",
                          rig_from_poses(rig.names, with_wand.intrinsics, with_wand.rig_poses,
                                         [c.image_size for c in rig]), with_wand.final_rms, wand_clock))
         for method, estimate, rms, clk in rows:

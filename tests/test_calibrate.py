@@ -148,3 +148,21 @@ def test_intrinsics_from_a_video(tmp_path, run_cli):
     fitted = load_rig(out)[0]
     assert abs(fitted.focal_px / camera.focal_px - 1) < 0.005
     assert np.abs(fitted.matrix[:2, 2] - camera.matrix[:2, 2]).max() < 3.0
+
+
+@pytest.mark.parametrize("preset, px_per_mm", [("room", 8.6709), ("room", 9.1646), ("cara", 57.1429)])
+def test_rendered_board_squares_sit_where_the_renderer_samples_them(preset, px_per_mm):
+    """The texture's square edges lie at whole multiples of its texels per square, the scale the
+    renderer samples it at (width / board width): OpenCV draws whole-texel squares, and a
+    fractional square drew the room board 1.65e-4 small at 8.6709 texels per mm."""
+    from mocaptk.acquisition.synth_board_views import PRESET_BOARDS, board_texture
+
+    board = PRESET_BOARDS[preset]  # texels per mm of the room bench's seeds 2 and 4 and of Cara's
+    texture = board_texture(board, px_per_mm)
+    square = texture.shape[1] / board.size_mm()[0] * board.square  # texels per square as sampled
+    row, column = texture[int(0.1 * square)] > 120, texture[:, int(0.1 * square)] > 120
+    across = np.flatnonzero(np.diff(row)) + 1  # the first row and column: squares, no markers
+    down = np.flatnonzero(np.diff(column)) + 1
+    assert len(across) == board.corners[0] and len(down) == board.corners[1]
+    assert np.array_equal(across, np.arange(1, len(across) + 1) * square)
+    assert np.array_equal(down, np.arange(1, len(down) + 1) * square)

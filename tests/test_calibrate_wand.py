@@ -12,6 +12,7 @@ import pytest
 
 from mocaptk.acquisition.calibration import (View, bundle_adjust, calibrate_intrinsics,
                                              chained_stereo, pose_errors, rig_from_poses)
+from mocaptk.acquisition.boards import Board
 from mocaptk.acquisition.cameras import load_rig, room_rig
 from mocaptk.acquisition.detections_file import pack, save_detections
 from mocaptk.acquisition.image_sequences import ImageSource
@@ -87,6 +88,41 @@ def test_wand_pins_the_camera_distances_that_board_views_leave_loose():
                                    rig, align=True)
     assert after.max() < 0.5 * before.max(), (before, after)
     assert after.max() < 0.5 and after_deg.max() < 0.05, (after, after_deg)
+    # the wand is weighed by the noise measured on the fit's own residuals (0.1 and 0.05 px made)
+    assert 0.085 < with_wand.corner_sd_px < 0.115 and 0.0425 < with_wand.wand_sd_px < 0.0575, (
+        with_wand.corner_sd_px, with_wand.wand_sd_px)
+    assert boards_only.wand_weight is None
+
+
+def _scale_error(estimate, truth) -> float:
+    """How much longer ``estimate``'s camera-to-camera distances are than ``truth``'s, summed."""
+    i, j = np.triu_indices(len(truth), k=1)
+
+    def distances(rig):
+        centres = np.stack([cam.center for cam in rig])
+        return np.linalg.norm(centres[i] - centres[j], axis=1).sum()
+    return distances(estimate) / distances(truth) - 1
+
+
+def test_the_wand_length_sets_the_scale_a_misprinted_board_gets_wrong():
+    """A board printed 0.05 % too large gives the boards alone a rig 0.18 % too small here; the
+    wand, a rigid 400 mm with its pixels weighed by their measured noise, brings it within
+    7.5e-5 (free ends with a 0.05 mm length term left 1.0e-4)."""
+    rig, board, rng = room_rig(n_cameras=4), PRESET_BOARDS["room"], np.random.default_rng(2)
+    printed = Board("charuco", board.corners, board.square * (1 + 5e-4), marker=board.marker)
+    views = _board_views(rig, printed, board_poses(rig, board, 16, seed=2, max_tilt_deg=30.0, spread_mm=600),
+                         rng, 0.1)
+    fits = [calibrate_intrinsics(board, v, cam.image_size) for v, cam in zip(views, rig)]
+    start = chained_stereo(board, views, fits)
+    sizes = [c.image_size for c in rig]
+    wand = wand_from_blobs(_wand_blobs(rig, wand_positions(rig, 100, seed=2), rng, 0.05),
+                           rig_from_poses(rig.names, [(f.matrix, f.distortion) for f in fits], start, sizes),
+                           400.0)
+    alone, with_wand = (bundle_adjust(board, views, fits, start, wand=w) for w in (None, wand))
+    alone_scale, wand_scale = (_scale_error(rig_from_poses(rig.names, r.intrinsics, r.rig_poses, sizes), rig)
+                               for r in (alone, with_wand))
+    assert alone_scale < -1e-3, alone_scale
+    assert abs(wand_scale) < 7.5e-5, wand_scale
 
 
 def test_a_wand_never_seen_is_refused_with_what_was_seen():

@@ -149,6 +149,8 @@ def calibrate(
             wand_record = {"wand": {"length_mm": wand_length, "frames": int(wand_blobs.shape[1]),
                                     "frames_kept": wand.n_frames}}
         result = bundle_adjust(board, views, fits, start, wand=wand)
+        if result.wand_weight is not None:  # the noise that weighed the wand against the board
+            wand_note += f"; noise: corners {result.corner_sd_px:.3f} px, wand blobs {result.wand_sd_px:.3f} px"
         poses, intrinsics = result.rig_poses, result.intrinsics
         for name, rms in zip(names, result.camera_rms):
             report[name]["bundle_rms_px"] = rms
