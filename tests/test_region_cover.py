@@ -69,17 +69,10 @@ def test_a_region_following_its_neighbours_keeps_no_marker():
 
 
 @pytest.mark.slow
-def test_cluster_gives_each_lid_a_marker_on_a_full_face(run_cli, tmp_path, monkeypatch):
+def test_cluster_gives_each_lid_a_marker_on_a_full_face(run_cli, tmp_path, identity_actor):
     """The identity actor of bench_retarget at --markers 20: the default layout had no eye marker
     (retarget's eyeBlink r 0.00); now one per side, each an upper-lid marker."""
-    monkeypatch.setenv("MOCAPTK_ICT_FACEKIT", str(shared_path("face_mesh", "ict_facekit",
-                                                              "ict_facekit_FaceXModel_subset.tar.xz")))
-    actor = tmp_path / "actor.c3d"
-    done = run_cli("synth", actor, "--full", "--identity", "1.5,-1.0,0.8", "--spacing", "10", "--rig", "none",
-                   "--seed", "11", "--noise", "0.2", "--expressions", "5", "--rest", "1.5", "--hold", "2.0",
-                   "--quiet", "--force")
-    assert done.exit_code == 0, done.stderr
-    done = run_cli("cluster", actor, "--markers", "20", "--formats", "none", "--quiet", "--out", tmp_path / "lay")
+    done = run_cli("cluster", identity_actor, "--markers", "20", "--formats", "none", "--quiet", "--out", tmp_path / "lay")
     assert done.exit_code == 0, done.stderr
     layout = json.loads((tmp_path / "lay" / "layout.json").read_text())
     eyes = sorted(c["representative"] for c in layout["clusters"] if c["region"] == "eye")
