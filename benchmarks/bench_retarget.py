@@ -1,6 +1,7 @@
 """``mocaptk retarget``: weight recovery against ground truth, lost markers, speed and memory.
 
     python benchmarks/bench_retarget.py accuracy [default,20,40]   # actors x characters x layout sizes, baselines
+    BENCH_RETARGET_CHARACTERS=generic ...                          # the generic rig only (no stylized character)
     BENCH_RETARGET_SETS=1 BENCH_RETARGET_CLUSTER="--method set-cover --character arkit" \
         python benchmarks/bench_retarget.py accuracy 20,40            # the character's own layouts
     python benchmarks/bench_retarget.py gain         # where the ROM calibration's gain is (range step / learned shapes)
@@ -155,6 +156,7 @@ class Actor:
         self.retargeter = fit_retargeter(self.rig, self.session)
         self.fit_seconds = (time.perf_counter() - start[0], time.process_time() - start[1])
         self.reached = {q: fit_retargeter(self.rig, self.session, reach=q) for q in REACHES}
+        self.geometric = fit_retargeter(self.rig, self.session, by_motion=False)  # before the motion step
 
     def methods(self, layout_path: Path, capture) -> dict[str, np.ndarray]:
         from scipy.optimize import nnls
@@ -196,6 +198,10 @@ class Actor:
 
         dense = np.concatenate([c.positions for c in solve_chunks(solver, layout_frames(solver, capture, "capture"))])
         return {"ours (ROM-calibrated, stretch; bounded, L1, smooth)": ours.weights,
+                "ours, geometric correspondence only (before)": retarget_capture(
+                    self.geometric, solver, capture, "capture", hold_unseen=False).weights,
+                "ours, unseen shapes not held at 0": retarget_capture(
+                    self.retargeter, solver, capture, "capture", hold_unseen=False).weights,
                 **{f"ours, ROM extremes aligned (--rom-reach {q})": retarget_capture(r, solver, capture, "capture").weights
                    for q, r in self.reached.items()},
                 "same solve without ROM calibration": same_solve.weights,
@@ -229,7 +235,8 @@ def accuracy() -> None:
             reached = rom.max(axis=0)[(rom > 0.1).any(axis=0)]
             print(f"\n## {name}: the ROM reaches {np.median(reached):.2f} of the rig's range (median over "
                   f"its shapes; {reached.min():.2f}-{reached.max():.2f})")
-            for rig in (generic, other):
+            characters = (generic, other) if os.environ.get("BENCH_RETARGET_CHARACTERS") != "generic" else (generic,)
+            for rig in characters:
                 actor = Actor(session, rig)
                 print(f"\n### onto {rig.source}: fit + calibration {actor.fit_seconds[0]:.1f} s wall, "
                       f"{actor.fit_seconds[1]:.1f} s CPU")
@@ -282,7 +289,8 @@ def gain() -> None:
             own = fit_retargeter(generic, session).correspondence.shape_basis(generic)  # the actor's motion
             norm = np.linalg.norm(own.reshape(len(own), -1), axis=1)
             moving = norm > 0.5 * np.median(norm[norm > 0])
-            for rig in (generic, other):
+            characters = (generic, other) if os.environ.get("BENCH_RETARGET_CHARACTERS") != "generic" else (generic,)
+            for rig in characters:
                 fitted = fit_retargeter(rig, session)
                 cal, prior, n = fitted.calibration, fitted.correspondence.shape_basis(rig), len(rig.names)
                 variants = {"no calibration": Calibration(prior, cal.neutral, cal.ties, np.ones(n), np.ones(n)),

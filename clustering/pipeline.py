@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from mocaptk.acquisition.orientation import infer_orientation, labels_warning, marker_motion
+from mocaptk.acquisition.orientation import labels_warning
 from mocaptk.errors import InputFileError, MocaptkError, OptionError, source_error
 from mocaptk.trajectories import Take, Trajectories
 
@@ -27,7 +27,7 @@ from .cluster_result import ClusterResult, RegionMatrix
 from .layout import Cluster, Layout, RegionResult
 from .neutral import max_displacement, neutral_pose, seen_markers
 from .regions import default_regions, unassigned
-from .symmetry import estimate_sagittal_plane, is_half_capture, marker_sides, mirror_clusters, plane_frame
+from .symmetry import face_sides, is_half_capture, mirror_clusters, plane_frame
 from .takes import all_frames, region_segments, sample_frames
 from .threshold import RegionClusters, cluster_region, keep_representatives, region_statistics
 
@@ -231,8 +231,10 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
     if neutral is None or stabilization.get("applied") or options.fill_gaps:
         neutral = neutral_pose(traj.positions)
     displacement = max_displacement(traj.positions, neutral)
+    mirror = is_half_capture(labels) if options.mirror is None else options.mirror
     # up, forward and the actor's left from the face itself; the labels' sides only if they agree
-    orientation = infer_orientation(labels, neutral, marker_motion(traj.positions, neutral))
+    face = face_sides(labels, traj.positions, neutral, half=mirror, displacement=displacement)
+    orientation, plane, sides = face.orientation, face.plane, dict(zip(labels, face.sides))
     warning = labels_warning(orientation)
     if warning:
         notes.append(warning)
@@ -255,10 +257,6 @@ def cluster_session(traj: Trajectories, *, options: ClusterOptions = ClusterOpti
             notes.append(f"region {name!r} has no markers with data; skipped")
     segments = region_segments(takes, region_names, traj.n_frames)
 
-    mirror = is_half_capture(labels) if options.mirror is None else options.mirror
-    plane = estimate_sagittal_plane(labels, neutral, displacement, half=mirror, left=orientation.frame[0])
-    sides = dict(zip(labels, marker_sides(labels, neutral, plane,
-                                          trust_labels=orientation.labels != "contradict")))
     frame = plane_frame(plane, orientation.frame)
 
     index = {label: i for i, label in enumerate(labels)}

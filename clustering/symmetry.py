@@ -7,10 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocaptk.acquisition.orientation import infer_orientation, label_pairs, mirror_label, side_tag
+from mocaptk.acquisition.orientation import (Orientation, infer_orientation, label_pairs, marker_motion,
+                                             mirror_label, side_tag)
 from mocaptk.errors import OptionError
 
 from .layout import Cluster
+from .neutral import max_displacement
 from .regions import face_frame
 
 #: Markers closer than this to the sagittal plane count as midline when labels carry no side tag.
@@ -161,6 +163,31 @@ def marker_sides(labels: Sequence[str], positions: np.ndarray, plane: SagittalPl
     if not trust_labels:
         return geometric
     return [side_tag(label) or geo for label, geo in zip(labels, geometric)]
+
+
+@dataclass(frozen=True)
+class FaceSides:
+    """A face's orientation (from its shape and motion), its sagittal plane and every marker's
+    side (``"L"``, ``"R"`` or ``"C"``)."""
+
+    orientation: Orientation
+    plane: SagittalPlane
+    sides: tuple[str, ...]
+
+
+def face_sides(labels: Sequence[str], positions: np.ndarray, neutral: np.ndarray, *,
+               half: bool | None = None, displacement: np.ndarray | None = None) -> FaceSides:
+    """The sides of a session's markers as ``cluster`` takes them: ``positions`` (F, M, 3) mm with
+    NaN gaps, ``neutral`` (M, 3) mm; ``half``: a half face (default: :func:`is_half_capture`);
+    ``displacement``: (M,) each marker's largest displacement, mm, when the caller has it."""
+    orientation = infer_orientation(labels, neutral, marker_motion(positions, neutral))
+    if displacement is None:
+        displacement = max_displacement(positions, neutral)
+    plane = estimate_sagittal_plane(labels, neutral, displacement,
+                                    half=is_half_capture(labels) if half is None else half,
+                                    left=orientation.frame[0])
+    sides = marker_sides(labels, neutral, plane, trust_labels=orientation.labels != "contradict")
+    return FaceSides(orientation, plane, tuple(sides))
 
 
 def plane_frame(plane: SagittalPlane, frame: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ from mocaptk.errors import MocaptkError, OptionError
 from .align import SurfaceProximity, align_mesh_to_markers
 from .character import Character
 
-__all__ = ["Correspondence", "correspond"]
+__all__ = ["Correspondence", "barycentric_of", "correspond"]
 
 #: Rounds of non-rigid bending and re-projection.
 NONRIGID_ROUNDS = 3
@@ -121,10 +121,10 @@ def _bend(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
         bent = bent + field(bent)
     closest, dist, triangle = SurfaceProximity(bent, faces).query(points)
     corners = bent[faces[triangle]]
-    return triangle, _barycentric(closest, corners), float(np.sqrt(np.mean(dist ** 2)))
+    return triangle, barycentric_of(closest, corners), float(np.sqrt(np.mean(dist ** 2)))
 
 
-def _barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+def barycentric_of(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (N, 3) of ``points`` (N, 3) in triangles ``corners`` (N, 3, 3)."""
     import igl
 

@@ -32,6 +32,7 @@ from .character import ARKIT_NAMES, Character
 from .correspondence import Correspondence, correspond
 from .gaze import eye_labels, gaze_angles
 from .livelink_csv import livelink_csv, yaw_pitch_roll
+from .motion_correspondence import refine_by_motion
 from .rom_calibration import DEFAULT_PRIOR, Calibration, calibrate, side_ties
 from .solve import CHUNK_FRAMES, POSE_FROM_LAYOUT, FaceSolver, head_poses, layout_frames, to_head_frame
 from .weight_solve import DEFAULT_L1, DEFAULT_SMOOTH, solve_weights
@@ -82,11 +83,15 @@ class RetargetResult:
 
 
 def fit_retargeter(character: Character, session: Trajectories, *, prior: float = DEFAULT_PRIOR,
-                   l1: float = DEFAULT_L1, reach: float | None = None) -> Retargeter:
+                   l1: float = DEFAULT_L1, reach: float | None = None, by_motion: bool = True) -> Retargeter:
     """Place ``character`` on the head-relative dense ``session`` and calibrate the actor on it
-    (``reach``: the ROM's reach for the range alignment, :func:`.rom_calibration.calibrate`)."""
+    (``reach``: the ROM's reach for the range alignment, :func:`.rom_calibration.calibrate`;
+    ``by_motion``: the markers' places refined by their ROM motion, :mod:`.motion_correspondence`;
+    False: the geometric places alone, as before)."""
     neutral = neutral_pose(session.positions)
     corr = correspond(character, neutral)
+    if by_motion:
+        corr = refine_by_motion(corr, character, session.positions, neutral, l1=l1)
     basis = corr.shape_basis(character)
     calibration = calibrate(session.positions, neutral, basis, side_ties(character.names, basis),
                             strength=prior, l1=l1, reach=reach)
@@ -95,8 +100,12 @@ def fit_retargeter(character: Character, session: Trajectories, *, prior: float 
 
 def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajectories, path: str, *,
                      l1: float = DEFAULT_L1, smooth: float = DEFAULT_SMOOTH, stabilize: bool = True,
-                     chunk: int = CHUNK_FRAMES) -> RetargetResult:
+                     chunk: int = CHUNK_FRAMES, hold_unseen: bool = True) -> RetargetResult:
     """Weights of every frame of ``capture`` (its file ``path``, for messages).
+
+    A shape that moves no layout marker by :data:`UNSEEN_MM` at weight 1 (:func:`unseen_shapes`:
+    gaze without eye markers, lids without lid markers) is held at 0 (``hold_unseen``): its weight
+    would only fit noise and what other shapes leave over.
 
     Poses from the layout's least-moving markers (no stabilization markers) take part of the
     expression for head motion (on the sample's still performance, 20 layout markers: up to 2.6°
@@ -107,6 +116,9 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
     joint = poses is not None and poses.source == POSE_FROM_LAYOUT and not poses.still
     rows = np.array([retargeter.labels.index(label) for label in solver.layout_labels])
     basis, inverse = retargeter.calibration.tied_basis(rows)
+    seen_motion = _largest_motion(basis)
+    if hold_unseen:  # unobservable: held at 0 (a zero column keeps its start weight, 0)
+        basis[seen_motion < UNSEEN_MM] = 0.0
     neutral = retargeter.calibration.neutral[rows]
     n_frames = capture.n_frames
     weights = np.zeros((n_frames, len(basis)))
@@ -135,7 +147,7 @@ def retarget_capture(retargeter: Retargeter, solver: FaceSolver, capture: Trajec
     eyes, eye_markers = _gaze(retargeter, capture, poses)
     dense, _ = retargeter.calibration.tied_basis()
     return RetargetResult(weights[:, inverse], head, residual, lost, solver.layout_labels, eyes, eye_markers,
-                          _largest_motion(basis)[inverse], _largest_motion(dense)[inverse])
+                          seen_motion[inverse], _largest_motion(dense)[inverse])
 
 
 def _largest_motion(basis: np.ndarray) -> np.ndarray:
@@ -144,9 +156,10 @@ def _largest_motion(basis: np.ndarray) -> np.ndarray:
 
 
 def unseen_shapes(names: Sequence[str], result: RetargetResult) -> list[str]:
-    """The shapes that move the session's markers but no layout marker by :data:`UNSEEN_MM`,
-    most-moving first: their weights cannot come from the capture."""
-    unseen = [k for k in range(len(names)) if result.layout_motion_mm[k] < UNSEEN_MM <= result.dense_motion_mm[k]]
+    """The shapes that move no layout marker by :data:`UNSEEN_MM` (a shape that moves no marker
+    at all, a zero shape such as the generic rig's ``tongueOut``, left out), most-moving over the
+    session's markers first: their weights cannot come from the capture (held at 0)."""
+    unseen = [k for k in range(len(names)) if result.layout_motion_mm[k] < UNSEEN_MM and result.dense_motion_mm[k] > 0]
     return [names[k] for k in sorted(unseen, key=lambda k: -result.dense_motion_mm[k])]
 
 
@@ -158,8 +171,10 @@ def _unseen_note(names: Sequence[str], result: RetargetResult) -> list[str]:
     index = {name: k for k, name in enumerate(names)}
     listed = ", ".join(f"{n} {result.layout_motion_mm[index[n]]:.2f} mm (session {result.dense_motion_mm[index[n]]:.1f})"
                        for n in unseen[:3]) + (f" and {len(unseen) - 3} more" if len(unseen) > 3 else "")
+    hint = (" (a layout with markers there can: cluster --method set-cover --character)"
+            if any(result.dense_motion_mm[index[n]] >= UNSEEN_MM for n in unseen) else "")
     return [f"{len(unseen)} shapes move no layout marker by {UNSEEN_MM} mm: {listed}; the capture cannot show "
-            "them (a layout with markers there can: cluster --method set-cover --character)"]
+            f"them, so they are held at 0{hint}"]
 
 
 #: Rounds of :func:`_joint_poses` (pose, then expression, then pose ...).
@@ -363,9 +378,10 @@ def _summary(retargeter: Retargeter, result: RetargetResult, capture: Trajectori
              capture_source: Mapping[str, Any], session: Mapping[str, Any], *,
              options: Mapping[str, Any], outputs: list[str], notes: Sequence[str]) -> dict[str, Any]:
     character, cal, corr = retargeter.character, retargeter.calibration, retargeter.correspondence
+    unseen = set(unseen_shapes(character.names, result))
     shapes = [{"name": name, "arkit": arkit, "rom_extreme": float(cal.rom_extreme[i]),
                "stretch": float(cal.stretch[i]),
-               "layout_motion_mm": round(float(result.layout_motion_mm[i]), 4),
+               "layout_motion_mm": round(float(result.layout_motion_mm[i]), 4), "observed": name not in unseen,
                "follows": None if cal.ties[i] == i else character.names[int(cal.ties[i])],
                "max_weight": float(result.weights[:, i].max()) if len(result.weights) else 0.0}
               for i, (name, arkit) in enumerate(zip(character.names, character.arkit))]

@@ -46,7 +46,7 @@ import numpy as np
 
 from .weight_solve import DEFAULT_L1, solve_weights
 
-__all__ = ["Calibration", "calibrate", "side_ties"]
+__all__ = ["Calibration", "calibrate", "rom_frames", "rom_weights", "side_ties"]
 
 #: ROM frames used (evenly spread).
 MAX_FRAMES = 2000
@@ -115,16 +115,15 @@ def calibrate(rom: np.ndarray, neutral: np.ndarray, prior: np.ndarray, ties: np.
     at the markers in the actor's frame; ``ties`` from :func:`side_ties`; ``reach`` in (0, 1]
     the fraction of each shape's range the ROM performs (None: keep the character's amplitude).
     """
-    step = max(1, int(np.ceil(len(rom) / MAX_FRAMES)))
-    delta = np.asarray(rom[::step], dtype=np.float64) - neutral
+    delta = rom_frames(rom, neutral)
     basis = np.array(prior, dtype=np.float64)
     calibration = Calibration(basis, neutral, np.asarray(ties), np.ones(len(prior)), np.ones(len(prior)))
     for _ in range(rounds):
-        weights = _rom_weights(calibration, delta, l1)
+        weights = rom_weights(calibration, delta, l1)
         basis = _refit(weights, delta, prior, strength)
         calibration = Calibration(basis, neutral, calibration.ties, calibration.rom_extreme,
                                   calibration.stretch)
-    weights = _rom_weights(calibration, delta, l1)
+    weights = rom_weights(calibration, delta, l1)
     extreme = np.percentile(weights, RANGE_PERCENTILE, axis=0) if len(weights) else np.zeros(len(prior))
     stretch = np.maximum(extreme, 1.0)
     if reach is not None:  # the actor's extreme is the rig's reach
@@ -132,7 +131,14 @@ def calibrate(rom: np.ndarray, neutral: np.ndarray, prior: np.ndarray, ties: np.
     return Calibration(basis * stretch[:, None, None], neutral, calibration.ties, extreme, stretch)
 
 
-def _rom_weights(calibration: Calibration, delta: np.ndarray, l1: float) -> np.ndarray:
+def rom_frames(rom: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """The ROM frames a calibration learns from, (F', M, 3) mm from ``neutral``: at most
+    :data:`MAX_FRAMES` of ``rom`` (F, M, 3), evenly spread."""
+    step = max(1, int(np.ceil(len(rom) / MAX_FRAMES)))
+    return np.asarray(rom[::step], dtype=np.float64) - neutral
+
+
+def rom_weights(calibration: Calibration, delta: np.ndarray, l1: float) -> np.ndarray:
     """Each ROM frame's weights (F, S) with the current shapes (unbounded above: the extremes
     must show before the range step)."""
     basis, inverse = calibration.tied_basis()

@@ -64,3 +64,17 @@ def run_cli(capsys):
         return CliResult(code, out.out, out.err)
 
     return run
+
+
+@pytest.fixture
+def identity_actor(run_cli, tmp_path, monkeypatch) -> Path:
+    """``tmp_path/actor.c3d`` (+ ``actor_truth.npz``): bench_retarget's full-face actor, an ICT
+    identity that is not the generic rig's face (``synth --full --identity 1.5,-1.0,0.8``)."""
+    monkeypatch.setenv("MOCAPTK_ICT_FACEKIT", str(shared_path("face_mesh", "ict_facekit",
+                                                              "ict_facekit_FaceXModel_subset.tar.xz")))
+    actor = tmp_path / "actor.c3d"
+    done = run_cli("synth", actor, "--full", "--identity", "1.5,-1.0,0.8", "--spacing", "10", "--rig", "none",
+                   "--seed", "11", "--noise", "0.2", "--expressions", "5", "--rest", "1.5", "--hold", "2.0",
+                   "--quiet", "--force")
+    assert done.exit_code == 0, done.stderr
+    return actor

@@ -43,10 +43,11 @@ def test_lid_marker_comes_back_where_the_eye_has_none():
     assert not np.isin(stripped, eye).any()
     moving = own_motion(problem, stripped, eye)
     assert moving.max() > 3 * OWN_MOTION_MM  # a lid's blink, unseen by the brow and cheek markers
-    covered, notes = cover_regions(problem, stripped, {"eye": eye, "mouth": regions["mouth"]})
+    covered, swaps = cover_regions(problem, stripped, {"eye": eye, "mouth": regions["mouth"]})
     assert covered.size == stripped.size and np.isin(covered, eye).sum() == 1
     assert int(np.intersect1d(covered, eye)[0]) == int(eye[np.argmax(moving)])
-    assert len(notes) == 1 and notes[0].startswith("region cover: eye had no layout marker")
+    assert len(swaps) == 1 and swaps[0].region == "eye" and swaps[0].added == int(eye[np.argmax(moving)])
+    assert swaps[0].note(problem.labels).startswith("region cover: eye had no layout marker")
     again, more = cover_regions(problem, covered, {"eye": eye})  # covered now: nothing to do
     assert np.array_equal(again, covered) and more == []
 
@@ -68,20 +69,40 @@ def test_a_region_following_its_neighbours_keeps_no_marker():
 
 
 @pytest.mark.slow
-def test_cluster_gives_each_lid_a_marker_on_a_full_face(run_cli, tmp_path, monkeypatch):
+def test_cluster_gives_each_lid_a_marker_on_a_full_face(run_cli, tmp_path, identity_actor):
     """The identity actor of bench_retarget at --markers 20: the default layout had no eye marker
     (retarget's eyeBlink r 0.00); now one per side, each an upper-lid marker."""
-    monkeypatch.setenv("MOCAPTK_ICT_FACEKIT", str(shared_path("face_mesh", "ict_facekit",
-                                                              "ict_facekit_FaceXModel_subset.tar.xz")))
-    actor = tmp_path / "actor.c3d"
-    done = run_cli("synth", actor, "--full", "--identity", "1.5,-1.0,0.8", "--spacing", "10", "--rig", "none",
-                   "--seed", "11", "--noise", "0.2", "--expressions", "5", "--rest", "1.5", "--hold", "2.0",
-                   "--quiet", "--force")
-    assert done.exit_code == 0, done.stderr
-    done = run_cli("cluster", actor, "--markers", "20", "--formats", "none", "--quiet", "--out", tmp_path / "lay")
+    done = run_cli("cluster", identity_actor, "--markers", "20", "--formats", "none", "--quiet", "--out", tmp_path / "lay")
     assert done.exit_code == 0, done.stderr
     layout = json.loads((tmp_path / "lay" / "layout.json").read_text())
     eyes = sorted(c["representative"] for c in layout["clusters"] if c["region"] == "eye")
     assert len(layout["layout"]) == 20
     assert [e[-1] for e in eyes] == ["L", "R"]
     assert sum(note.startswith("region cover: eye (") for note in layout["notes"]) == 2
+
+
+def test_compare_and_several_actors_score_cluster_s_layout(run_cli, tmp_path):
+    """The cover is the hybrid's own last step: on the sample at 12 markers it swaps a lid marker
+    in (the winner has no eye marker), and ``compare``'s hybrid layout, the several-actor
+    comparison's own layout and ``layout.json`` (its ``parameters.region_cover``) are all that
+    same layout — the cover ran only in cluster's relayout before, so compare scored another."""
+    from mocaptk.clustering.multi_actor import compare_actors
+    from mocaptk.clustering.pipeline import load_session_and_test
+
+    session, performance = SAMPLES / "dense_halfface.c3d", SAMPLES / "dense_halfface_performance.c3d"
+    done = run_cli("cluster", session, "--markers", "12", "--formats", "none", "--quiet", "--out", tmp_path / "lay")
+    assert done.exit_code == 0, done.stderr
+    layout = json.loads((tmp_path / "lay" / "layout.json").read_text())
+    measured = sorted(c["representative"] for c in layout["clusters"] if c.get("mirrored_from") is None)
+    [swap] = layout["parameters"]["region_cover"]
+    assert swap["region"] == "eye (L)" and swap["added"].startswith("EYE_") and swap["added"] in measured
+    assert swap["replaced"] not in measured
+    done = run_cli("compare", session, "--test", performance, "--counts", "12", "--methods", "hybrid",
+                   "--quiet", "--out", tmp_path / "cmp")
+    assert done.exit_code == 0, done.stderr
+    [row] = json.loads((tmp_path / "cmp" / "compare.json").read_text())["rows"]
+    assert sorted(row["layout"]) == measured
+    traj, perf, _ = load_session_and_test(session, performance, stabilized=True)
+    [own] = [r for r in compare_actors([traj, traj], ["a", "b"], tests=[perf, perf], counts=[12])
+             if r.actor == "a"]
+    assert sorted(traj.labels[i] for i in own.own_layout) == measured

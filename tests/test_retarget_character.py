@@ -464,3 +464,38 @@ def test_rom_reach_scales_each_performed_shape_so_its_rom_extreme_is_q():
     np.testing.assert_allclose(reached.basis, unscaled * reached.stretch[:, None, None])
     funnel = rig.names.index("mouthFunnel")
     assert 0.4 < default.rom_extreme[funnel] < 0.65  # the ROM's funnel: about half the rig's
+
+
+@pytest.mark.slow
+def test_shapes_no_layout_marker_sees_are_held_at_0_and_counted(workspace, tmp_path):
+    """The sample's default layout without its eye markers: the lid shapes move no layout marker
+    by 0.5 mm. They come out exactly 0 (held: solved freely, the L1 term also keeps them at 0 on
+    this capture, but nothing guaranteed it), retarget.json marks them unobserved and the
+    summary line counts them (neither did before)."""
+    import dataclasses
+
+    from mocaptk.cli.retarget import summary_text
+    from mocaptk.clustering.layout import read_layout
+    from mocaptk.retarget.retarget_outputs import fit_retargeter, retarget_capture, unseen_shapes, write_retarget_outputs
+    from mocaptk.retarget.solve import train_solver
+
+    root, _ = workspace
+    layout = read_layout(root / "layout" / "layout.json")
+    eyes = {c.representative for c in layout.clusters if c.region == "eye"}
+    layout = dataclasses.replace(layout, clusters=tuple(c for c in layout.clusters if c.representative not in eyes))
+    session = read_c3d(root / "dense_halfface.c3d")
+    solver = train_solver(layout, session, {"path": None, "sha256": None})
+    assert not eyes & set(solver.layout_labels)
+    capture = read_c3d(SAMPLES / "dense_halfface_performance.c3d")
+    retargeter = fit_retargeter(load_character("arkit"), session)
+    held = retarget_capture(retargeter, solver, capture, "capture")
+    names = retargeter.character.names
+    blind = [names.index(n) for n in unseen_shapes(names, held)]
+    assert names.index("eyeBlinkLeft") in blind and not any(names[k].startswith(("mouth", "jaw")) for k in blind)
+    assert len(blind) >= 4 and (held.weights[:, blind] == 0).all()
+    summary = write_retarget_outputs(retargeter, held, capture, {}, {}, tmp_path, options={}, formats=())
+    observed = {s["name"]: s["observed"] for s in summary["shapes"]}
+    assert {n for n, seen in observed.items() if not seen} == {names[k] for k in blind}
+    assert observed["jawOpen"] and observed["tongueOut"]  # a zero shape is no blind channel
+    first = summary_text(summary).splitlines()[0]
+    assert f", {len(blind)} unobserved by the layout, held at 0)" in first

@@ -31,12 +31,12 @@ import numpy as np
 from mocaptk.errors import OptionError
 
 from .kmeans import kmeans_points
-from .local_fit import LocalError
+from .local_fit import LocalError, local_error
 from .paper import paper_layout
 from .problem import LayoutProblem
-from .reconstruction import (GRAM_MAX_POINTS, CrossValidatedError, DesignGram, gains_given,
-                             gram_jitter, greedy_layout, pivoted_qr_layout, swap_descent,
-                             training_frames, training_gram)
+from .region_cover import cover_regions, region_groups
+from .reconstruction import (GRAM_MAX_POINTS, DesignGram, gains_given, gram_jitter, greedy_layout,
+                             pivoted_qr_layout, swap_descent, training_gram)
 
 
 def cluster_representatives(problem: LayoutProblem, clusters: np.ndarray, start: np.ndarray, *,
@@ -85,22 +85,6 @@ def spans_design(gram: np.ndarray | DesignGram, points: int) -> bool:
     design (rank <= F-1): gains given them are then ~1e-8 of a column, ranked by rounding
     (measured at 10,000 markers x 400 frames); False for a whole (3N, 3N) Gram."""
     return isinstance(gram, DesignGram) and 3 * points >= gram.design.shape[0] - 1
-
-
-def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2),
-                charged: bool = True) -> LocalError:
-    """The local error of the problem's gap-free training frames, fitted and scored in-sample
-    (with ``charged``, layout markers charged the problem's ``measured_error_mm``, when it has one)."""
-    if "local-fit" not in problem.cache:
-        disp, _ = training_frames(problem)
-        every = np.arange(disp.shape[0])
-        problem.cache["local-fit"] = CrossValidatedError.from_displacements(disp, [(every, every)])
-    charged = charged and problem.measured_error_mm is not None
-    key = ("local-error", tuple(scales), charged)
-    if key not in problem.cache:  # shared, so a point's error is computed once per neighbours
-        measured = problem.measured_error_mm ** 2 if charged else None
-        problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales), measured)
-    return problem.cache[key]
 
 
 def local_swaps(problem: LayoutProblem, layout: np.ndarray, score: LocalError, *,
@@ -166,8 +150,8 @@ def hybrid_contenders(problem: LayoutProblem, count: int, *, seed: int = 0,
 
 
 def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
-                  contenders: tuple[str, ...] = CONTENDERS, refine: tuple[str, ...] = REFINED
-                  ) -> tuple[np.ndarray, dict[str, Any]]:
+                  contenders: tuple[str, ...] = CONTENDERS, refine: tuple[str, ...] = REFINED,
+                  cover: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
     """The hybrid layout of ``count`` points and the local error (mm) of every contender.
 
     The ``refine`` contenders also compete after :func:`local_swaps` (``<name>+local``; swaps
@@ -176,6 +160,9 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
     (``measured_error_mm``) the swaps and the choice charge them, and the camera-blind swaps
     (``<name>+blind-local``) compete as well, so the choice is never worse under the charged
     error than the camera-blind hybrid's (on the same candidates).
+
+    With ``cover``, the winner then gets a marker in every region-side that moves on its own
+    (:mod:`.region_cover`); the swaps are in ``details["region_cover"]`` (and its notes).
     """
     layouts = hybrid_contenders(problem, count, seed=seed, contenders=contenders)
     details: dict[str, Any] = {}
@@ -198,4 +185,10 @@ def hybrid_layout(problem: LayoutProblem, count: int, *, seed: int = 0,
     score = local_error(problem, scales=(1, 2))
     scores = {name: score.rmse(layout) for name, layout in layouts.items()}
     winner = min(sorted(scores), key=lambda n: scores[n])
-    return layouts[winner], {"winner": winner, "local_rmse_mm": scores, **details}
+    layout = layouts[winner]
+    if cover:
+        layout, swaps = cover_regions(problem, layout, region_groups(problem))
+        if swaps:
+            details["region_cover"] = [s.as_dict(problem.labels) for s in swaps]
+            details["notes"] = details.get("notes", []) + [s.note(problem.labels) for s in swaps]
+    return layout, {"winner": winner, "local_rmse_mm": scores, **details}

@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from .reconstruction import CrossValidatedError
+from .problem import LayoutProblem
+from .reconstruction import CrossValidatedError, training_frames
 
 #: Up to this many points the distances between all points are kept ((N, N), 32 MB at 2,000):
 #: a layout's nearest points are then a gather and a sort of its columns, for several layouts at once.
@@ -136,3 +137,19 @@ class LocalError:
                 total += len(self.scales) * frames * float(self.measured[layout].sum())
             out.append(float(np.sqrt(max(total, 0.0) / (self.folds.n_test_points * len(self.scales)))))
         return out
+
+
+def local_error(problem: LayoutProblem, *, scales: tuple[int, ...] = (1, 2),
+                charged: bool = True) -> LocalError:
+    """The local error of the problem's gap-free training frames, fitted and scored in-sample
+    (with ``charged``, layout markers charged the problem's ``measured_error_mm``, when it has one)."""
+    if "local-fit" not in problem.cache:
+        disp, _ = training_frames(problem)
+        every = np.arange(disp.shape[0])
+        problem.cache["local-fit"] = CrossValidatedError.from_displacements(disp, [(every, every)])
+    charged = charged and problem.measured_error_mm is not None
+    key = ("local-error", tuple(scales), charged)
+    if key not in problem.cache:  # shared, so a point's error is computed once per neighbours
+        measured = problem.measured_error_mm ** 2 if charged else None
+        problem.cache[key] = LocalError(problem.cache["local-fit"], problem.neutral, tuple(scales), measured)
+    return problem.cache[key]

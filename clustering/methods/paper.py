@@ -17,9 +17,8 @@ from mocaptk.errors import OptionError
 
 from ..correlation import consolidated_correlation
 from ..neutral import max_displacement
-from ..regions import default_regions
 from ..threshold import cluster_region, region_statistics
-from .problem import LayoutProblem
+from .problem import LayoutProblem, problem_regions
 
 
 @dataclass(frozen=True)
@@ -33,13 +32,7 @@ class PaperLayout:
 
 
 def _regions(problem: LayoutProblem) -> list[np.ndarray]:
-    if problem.regions:
-        return [np.asarray(v, dtype=np.intp) for _, v in sorted(problem.regions.items()) if len(v)]
-    labels = problem.labels or tuple(f"P{i}" for i in range(problem.n_points))
-    disp = max_displacement(problem.positions, problem.neutral)
-    named, _ = default_regions(labels, problem.neutral, disp)
-    index = {label: i for i, label in enumerate(labels)}
-    return [np.array([index[m] for m in members], dtype=np.intp) for _, members in sorted(named.items())]
+    return [np.asarray(v, dtype=np.intp) for _, v in sorted(problem_regions(problem).items()) if len(v)]
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,9 @@ import numpy as np
 from mocaptk.errors import OptionError
 from mocaptk.trajectories import Trajectories
 
-from ..neutral import neutral_pose
+from ..neutral import max_displacement, neutral_pose
+from ..regions import default_regions
+from ..symmetry import FaceSides, face_sides
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +41,9 @@ class LayoutProblem:
     measured_error_mm : (N,) float, optional
         Expected error (mm, RMS) of each point when it is a layout marker captured by the rig
         (triangulation error, :mod:`mocaptk.clustering.camera_cost`); None: measured exactly.
+    sides : tuple of str, length N (optional)
+        Each point's side of the face, ``"L"``, ``"R"`` or ``"C"`` (``cluster``'s); default:
+        :func:`problem_sides` finds them as ``cluster`` does.
     """
 
     displacements: np.ndarray
@@ -50,6 +55,7 @@ class LayoutProblem:
     mirror: np.ndarray | None = None
     candidates: np.ndarray | None = None
     measured_error_mm: np.ndarray | None = None
+    sides: tuple[str, ...] = ()
     #: derived arrays shared between methods (Gram matrices ...), filled on first use
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
@@ -63,6 +69,9 @@ class LayoutProblem:
         object.__setattr__(self, "displacements", disp)
         object.__setattr__(self, "neutral", neutral)
         object.__setattr__(self, "labels", tuple(self.labels))
+        object.__setattr__(self, "sides", tuple(self.sides))
+        if self.sides and (len(self.sides) != disp.shape[1] or not set(self.sides) <= {"L", "R", "C"}):
+            raise OptionError(f"sides must be one of L, R, C per point ({disp.shape[1]})")
         object.__setattr__(self, "regions",
                            {k: np.asarray(v, dtype=np.intp) for k, v in self.regions.items()})
         object.__setattr__(self, "segments", tuple((int(a), int(b)) for a, b in self.segments))
@@ -127,6 +136,36 @@ class LayoutProblem:
             return self.faces
         from mocaptk.surface_mesh import marker_surface_mesh
         return np.asarray(marker_surface_mesh(self.neutral)[1], dtype=np.intp)
+
+
+def problem_regions(problem: LayoutProblem) -> dict[str, np.ndarray]:
+    """{name: point indices}: the problem's regions, else ``cluster``'s default regions of its
+    points (label prefixes, else the geometric segmentation in the face's own orientation)."""
+    if problem.regions:
+        return dict(problem.regions)
+
+    def default() -> dict[str, np.ndarray]:
+        labels = _point_labels(problem)
+        named, _ = default_regions(labels, problem.neutral, max_displacement(problem.positions, problem.neutral),
+                                   frame=_face(problem).orientation.frame)
+        index = {label: i for i, label in enumerate(labels)}
+        return {name: np.array([index[m] for m in members], dtype=np.intp) for name, members in named.items()}
+
+    return problem.cached("default-regions", default)
+
+
+def problem_sides(problem: LayoutProblem) -> tuple[str, ...]:
+    """Each point's side (``"L"``, ``"R"``, ``"C"``): the problem's, else as ``cluster`` finds them
+    (:func:`~mocaptk.clustering.symmetry.face_sides`)."""
+    return problem.sides or _face(problem).sides
+
+
+def _point_labels(problem: LayoutProblem) -> tuple[str, ...]:
+    return problem.labels or tuple(f"P{i}" for i in range(problem.n_points))
+
+
+def _face(problem: LayoutProblem) -> FaceSides:
+    return problem.cached("face-sides", lambda: face_sides(_point_labels(problem), problem.positions, problem.neutral))
 
 
 #: With capture costs, a point seen by >= 2 cameras in fewer than this fraction of the frames is

@@ -7,17 +7,20 @@ the region moves on its own: a blink moves the lid 6 mm and the brow and cheek m
 less than the capture's noise, so a layout without a lid marker cannot see blinks at all (the
 identity actor's 20-marker layout: retarget's eyeBlink r 0.00). Such a region-side gets the
 marker that moves most on its own, in place of the layout marker whose loss the local error
-(:mod:`.local_fit`, the hybrid's own judge) feels least.
+(:mod:`.local_fit`, the hybrid's own judge) feels least. It is the hybrid's last step
+(:func:`~.hybrid.hybrid_layout`), so every caller of the method (``cluster``, ``compare``,
+several actors, ``batch``) gets the same layout.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
-from .hybrid import local_error
-from .problem import LayoutProblem
+from .local_fit import local_error
+from .problem import LayoutProblem, problem_regions, problem_sides
 
 #: mm: a marker moves on its own when its local fit leaves a residual at least this large (99.9th
 #: percentile over the training frames; 5x the 0.2 mm marker noise of our captures) ...
@@ -49,16 +52,46 @@ def own_motion(problem: LayoutProblem, layout: np.ndarray, points: np.ndarray) -
     return out
 
 
+@dataclass(frozen=True)
+class CoverSwap:
+    """One swap of the region cover: ``added`` (a point moving ``own_motion_mm`` on its own in the
+    region-side ``region``) in place of ``replaced``."""
+
+    region: str
+    added: int
+    replaced: int
+    own_motion_mm: float
+
+    def as_dict(self, labels: tuple[str, ...]) -> dict[str, object]:
+        """For layout.json's parameters: the region-side, both markers' labels and the motion (mm)."""
+        name = (lambda p: labels[p] if labels else str(p))
+        return {"region": self.region, "added": name(self.added), "replaced": name(self.replaced),
+                "own_motion_mm": round(self.own_motion_mm, 1)}
+
+    def note(self, labels: tuple[str, ...]) -> str:
+        d = self.as_dict(labels)
+        return (f"region cover: {self.region} had no layout marker and {d['added']} moves "
+                f"{self.own_motion_mm:.1f} mm on its own; it replaces {d['replaced']}")
+
+
+def region_groups(problem: LayoutProblem) -> dict[str, np.ndarray]:
+    """{"<region> (L)": point indices, "<region> (R)": ...}: each region's points on that side,
+    midline included (:func:`~.problem.problem_regions`, :func:`~.problem.problem_sides`)."""
+    sides = np.array(problem_sides(problem))
+    return {f"{name} ({side})": idx[np.isin(sides[idx], (side, "C"))]
+            for name, idx in problem_regions(problem).items() for side in ("L", "R")}
+
+
 def cover_regions(problem: LayoutProblem, layout: np.ndarray, groups: Mapping[str, np.ndarray]
-                  ) -> tuple[np.ndarray, list[str]]:
-    """``layout`` (sorted point indices) with a marker in every group (a region's points on one
-    side, midline included) that has none and holds a point moving on its own ≥ ``OWN_MOTION_MM``.
+                  ) -> tuple[np.ndarray, list[CoverSwap]]:
+    """``layout`` (sorted point indices) with a marker in every group (e.g. :func:`region_groups`)
+    that has none and holds a point moving on its own ≥ ``OWN_MOTION_MM``.
 
     That point (the one moving most on its own) replaces the layout marker whose loss raises the
     local error least, never the only marker of another group. Returns the layout (same size,
-    sorted) and a note per swap."""
+    sorted) and the swaps made."""
     layout = np.sort(np.asarray(layout, dtype=np.intp))
-    notes: list[str] = []
+    swaps: list[CoverSwap] = []
     allowed = set(problem.candidate_points().tolist())
     for name, points in groups.items():
         points = np.array([p for p in points if p in allowed], dtype=np.intp)
@@ -75,11 +108,9 @@ def cover_regions(problem: LayoutProblem, layout: np.ndarray, groups: Mapping[st
         trials = [np.sort(np.append(layout[layout != out], new)) for out in removable]
         errors = local_error(problem).rmse_many(trials)
         best = int(np.argmin(errors))
-        label = (lambda p: problem.labels[p] if problem.labels else str(p))
-        notes.append(f"region cover: {name} had no layout marker and {label(new)} moves "
-                     f"{moving.max():.1f} mm on its own; it replaces {label(removable[best])}")
+        swaps.append(CoverSwap(name, new, removable[best], float(moving.max())))
         layout = trials[best]
-    return layout, notes
+    return layout, swaps
 
 
-__all__ = ["cover_regions", "own_motion", "OWN_MOTION_MM", "MAX_EXPLAINED"]
+__all__ = ["CoverSwap", "cover_regions", "own_motion", "region_groups", "OWN_MOTION_MM", "MAX_EXPLAINED"]

@@ -17,7 +17,6 @@ from ..cluster_result import ClusterResult
 from ..symmetry import SagittalPlane, marker_sides, mirror_clusters
 from . import LayoutProblem, select_layout
 from .problem import camera_aware
-from .region_cover import cover_regions
 
 #: The layout method sees at most this many frames of the session; a longer session is sampled
 #: evenly (every k-th frame, the smallest k that fits; a note says so): the method's cost grows
@@ -49,10 +48,12 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
         segments = tuple((lo, hi) for lo, hi in ((int(np.searchsorted(kept, start)),
                                                   int(np.searchsorted(kept, end))) for start, end in segments)
                          if hi > lo)
-    problem = LayoutProblem(traj.positions[::stride] - neutral[None], neutral, labels=traj.labels,
-                            regions=regions, segments=segments)
     plane_info = layout.extra["sagittal_plane"]
     plane = SagittalPlane(np.asarray(plane_info["point"]), np.asarray(plane_info["normal"]))
+    trusted = layout.extra.get("orientation", {}).get("labels") != "contradict"
+    sides = dict(zip(labels, marker_sides(labels, neutral, plane, trust_labels=trusted)))
+    problem = LayoutProblem(traj.positions[::stride] - neutral[None], neutral, labels=traj.labels,
+                            regions=regions, segments=segments, sides=tuple(sides[m] for m in labels))
     if rig is not None:
         from ..camera_cost import session_costs
         costs = session_costs(traj.positions, labels, rig,
@@ -65,13 +66,6 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
         problem.cache["set_cover_shapes"] = np.where((at >= 0)[None, :, None], np.asarray(shapes[1])[:, at], 0.0)
     selected = select_layout(problem, len(measured) if count is None else count, method=method, seed=seed)
     chosen = selected.layout
-    trusted = layout.extra.get("orientation", {}).get("labels") != "contradict"
-    sides = dict(zip(labels, marker_sides(labels, neutral, plane, trust_labels=trusted)))
-    covered: list[str] = []
-    if method == "hybrid":  # the default keeps a marker where a region moves on its own (the lids)
-        groups = {f"{name} ({side})": idx[np.isin([sides[labels[i]] for i in idx], (side, "C"))]
-                  for name, idx in regions.items() for side in ("L", "R")}
-        chosen, covered = cover_regions(problem, chosen, groups)
     members: dict[int, list[tuple[int, float]]] = {int(c): [] for c in chosen}
     region_of = {int(c): next((n for n, idx in regions.items() if c in idx), "") for c in chosen}
     for name, matrix in result.matrices.items():
@@ -105,9 +99,11 @@ def relayout(result: ClusterResult, *, method: str, count: int | None = None, se
         parameters["rig"] = rig
     if shapes is not None:
         parameters["character"] = {"source": shapes_source, "shapes": int(len(shapes[1]))}
-    if "winner" in selected.details:  # which contender the hybrid chose
+    if "winner" in selected.details:  # which contender the hybrid chose ...
         parameters["winner"] = selected.details["winner"]
-    notes = result.notes + list(selected.details.get("notes", [])) + covered  # e.g. contenders skipped
+    if "region_cover" in selected.details:  # ... and the markers its region cover swapped in
+        parameters["region_cover"] = selected.details["region_cover"]
+    notes = result.notes + list(selected.details.get("notes", []))  # e.g. contenders skipped, cover swaps
     if stride > 1:
         notes.append(f"the layout method ({method}) used one frame in {stride} of the session's "
                      f"{traj.n_frames} ({kept.size} frames; at most {METHOD_MAX_FRAMES})")

@@ -85,7 +85,9 @@ def summary_text(result) -> str:
     if method != "paper":
         count = (f"--markers {params['markers']}" if "markers" in params
                  else f"the paper's rule at factor {params['factor']:g}")
-        winner = f" (hybrid contender: {params['winner']})" if "winner" in params else ""
+        winner = f" (hybrid contender: {params['winner']}" if "winner" in params else ""
+        swaps = params.get("region_cover", [])
+        winner += (f", {len(swaps)} region-cover swap{'s' * (len(swaps) > 1)})" if swaps else ")") if winner else ""
         rig = f" for the {params['rig']} rig" if "rig" in params else ""
         lines.append(f"measured markers chosen by {method}{winner}{rig}; count from {count}; "
                      "influence regions by the paper's correlations")

@@ -16,9 +16,12 @@ def summary_text(summary: dict) -> str:
     """What retarget prints (from retarget.json)."""
     frames, shapes = summary["frames"], summary["shapes"]
     moving = sum(1 for s in shapes if s["max_weight"] > 0.1)
+    blind = sum(1 for s in shapes if not s.get("observed", True))
     lines = [f"retargeted {summary['capture']['frames']} frames onto {summary['character']['source']} "
-             f"({len(shapes)} shapes, {moving} above 0.1) from {len(summary['layout_markers'])} "
-             f"layout markers; {frames['with_lost_markers']} frames with lost markers"]
+             f"({len(shapes)} shapes, {moving} above 0.1"
+             + (f", {blind} unobserved by the layout, held at 0" if blind else "")
+             + f") from {len(summary['layout_markers'])} layout markers; "
+             f"{frames['with_lost_markers']} frames with lost markers"]
     if frames["without_markers"]:
         lines.append(f"warning: {frames['without_markers']} frames without any layout marker hold "
                      "the previous weights")
