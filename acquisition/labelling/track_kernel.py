@@ -67,13 +67,14 @@ def _solve_spd(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, trans, k,
+def gauss_newton(mean, basis_t, gram, mode_std, sigma, offset, idx, points, rot, trans, k,
                  rounds):  # pragma: no cover - compiled
     """``(rot, trans, coeffs)``: see :func:`.pose.fit_frame` (``k`` expression modes used;
-    ``gram (M, K, K)``: :func:`mode_gram`). The normal equations are accumulated block by block,
-    skipping the pose rows' zeros (about half the work of the dense outer products)."""
+    ``basis_t (M, 3, K)``, ``gram (M, K, K)``: :func:`model_arrays`). The normal equations are
+    accumulated block by block, skipping the pose rows' zeros (about half the work of the dense
+    outer products)."""
     n, p = len(idx), 6 + k
-    coeffs = np.zeros(basis.shape[0])
+    coeffs = np.zeros(basis_t.shape[2])
     row = np.empty(6)
     for _ in range(rounds):
         lhs = np.zeros((p, p))
@@ -104,9 +105,9 @@ def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, t
                     for b in range(a, 6):
                         lhs[a, b] += wa * row[b]
                     for j in range(k):  # pose x expression
-                        lhs[a, 6 + j] += wa * basis[j, m, c]
+                        lhs[a, 6 + j] += wa * basis_t[m, c, j]
                 for j in range(k):
-                    rhs[6 + j] += w * basis[j, m, c] * resid
+                    rhs[6 + j] += w * basis_t[m, c, j] * resid
             for a in range(k):  # expression x expression: the marker's mode Gram matrix
                 for b in range(a, k):
                     lhs[6 + a, 6 + b] += w * gram[m, a, b]
@@ -130,8 +131,15 @@ def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, t
     return rot, trans, coeffs
 
 
+def model_arrays(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(basis_t (M, 3, K), gram (M, K, K))`` for :func:`gauss_newton`: the modes per marker in
+    one contiguous block (a fit touches a few markers' modes in any order: one block each instead of
+    K scattered rows), and per marker the sum over x, y, z of its mode vectors' outer products."""
+    return np.ascontiguousarray(basis.transpose(1, 2, 0)), _mode_gram(basis)
+
+
 @numba.njit(cache=True, nogil=True)
-def mode_gram(basis):  # pragma: no cover - compiled
+def _mode_gram(basis):  # pragma: no cover - compiled
     """``(M, K, K)``: per marker, the sum over x, y, z of its mode vectors' outer products."""
     n_modes, n_markers = basis.shape[0], basis.shape[1]
     gram = np.zeros((n_markers, n_modes, n_modes))
@@ -191,8 +199,8 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
 
 
 @numba.njit(cache=True, nogil=True)
-def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, mode_std,
-          sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
+def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, basis_t, gram,
+          mode_std, sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
           pred, new_pred):  # pragma: no cover - compiled
     """Label frames from ``f`` on while every frame has 3+ carried points and needs no matching.
 
@@ -206,8 +214,8 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
     without the marker's offset: the offset was learnt where it was last seen, and once the
     expression has changed it can hold the prediction off the marker for good (a 6 Hz capture's
     chin, 5-6 mm off after a jaw opening beyond the template, never labelled again).
-    ``rot``, ``trans`` (the pose), ``offset``, ``last``, ``seen``, ``frag_label`` and the outputs
-    are updated in place.
+    ``basis_t``, ``gram``: :func:`model_arrays`. ``rot``, ``trans`` (the pose), ``offset``,
+    ``last``, ``seen``, ``frag_label`` and the outputs are updated in place.
     """
     n_frames, n_cols = fragments.shape
     n_markers = mean.shape[0]
@@ -216,7 +224,6 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
     hits = np.zeros(n_markers, dtype=np.int64)
     choice = np.empty(n_cols, dtype=np.int64)
     idx = np.empty(n_cols, dtype=np.int64)
-    gram = mode_gram(basis)
     pts = np.empty((n_cols, 3))
     while f < n_frames:
         n = 0
@@ -241,7 +248,7 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
                     idx[a] = lab[i]
                     pts[a] = positions[f, cols[i]]
                     a += 1
-            r, t, coeffs = gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
+            r, t, coeffs = gauss_newton(mean, basis_t, gram, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
                                         k, rounds)
             rot[:, :] = r
             trans[:] = t

@@ -20,16 +20,17 @@ in chunks side by side on two threads (:func:`label_points`), the same labels on
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mocaptk.batch.engine import machine_workers
+
 from .pose import find_pose, fit_frame, model_shape
 from .template import LabelTemplate
-from .track_kernel import DONE, MATCH, finish_frame, track
+from .track_kernel import DONE, MATCH, finish_frame, model_arrays, track
 
 #: A point may be at most this fraction of its label's nearest-neighbour distance from the
 #: prediction (beyond half, it is nearer another marker's place) ...
@@ -144,8 +145,7 @@ def chunks(n_frames: int) -> list[tuple[int, int]]:
 
 def threads() -> int:
     """Threads to label with: :data:`THREADS`, or fewer when this process may use fewer CPUs."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(THREADS, cpus))
+    return max(1, min(THREADS, machine_workers()))
 
 
 class _Run:
@@ -155,6 +155,7 @@ class _Run:
     def __init__(self, template: LabelTemplate, n_cols: int, n_frag: int, *, tracked: bool) -> None:
         self.template, self.tracked = template, tracked
         self.gate, self.new_gate = gates(template), gates(template, new=True)
+        self.basis_t, self.gram = model_arrays(template.basis)
         self.frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
         self.offset = np.zeros_like(template.mean)
         self.last = np.zeros_like(template.mean)
@@ -173,7 +174,7 @@ class _Run:
         template, tracked = self.template, self.tracked
         cols, lab, carried, head, pred = self.cols, self.lab, self.carried, self.head, self.pred
         rot, trans, offset, seen = self.rot, self.trans, self.offset, self.seen
-        tpl = (template.mean, template.basis, template.mode_std, template.sigma)
+        tpl = (template.mean, template.basis, self.basis_t, self.gram, template.mode_std, template.sigma)
 
         def store(f: int, n: int, pred: np.ndarray) -> None:
             finish_frame(f, n, cols, lab, head, pred, template.sigma, fragments, label, conf, self.frag_label,
