@@ -74,6 +74,7 @@ def _link_back(positions, radius, ratio, start, stop, ids):  # pragma: no cover 
     prev, cur = np.empty(n_cols, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
     prev_pts, cur_pts = np.empty((n_cols, 3)), np.empty((n_cols, 3))
     back, nearest = np.empty(n_cols, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
+    scratch = np.empty((4, n_cols))
     first = max(start, 1)
     n_prev = _present(positions, first - 1, prev, prev_pts) if first < stop else 0
     p_order = np.argsort(prev_pts[:n_prev, 0], kind="mergesort")
@@ -81,7 +82,7 @@ def _link_back(positions, radius, ratio, start, stop, ids):  # pragma: no cover 
         n = _present(positions, f, cur, cur_pts)
         c_order = np.argsort(cur_pts[:n, 0], kind="mergesort")  # stable: see _link_frame
         if n and n_prev >= 2:
-            _link_frame(prev_pts, n_prev, p_order, cur_pts, n, c_order, radius, ratio, nearest, back)
+            _link_frame(prev_pts, n_prev, p_order, cur_pts, n, c_order, radius, ratio, nearest, back, scratch)
             for i in range(n):
                 if back[i] >= 0:
                     ids[f, cur[i]] = prev[back[i]]
@@ -89,11 +90,11 @@ def _link_back(positions, radius, ratio, start, stop, ids):  # pragma: no cover 
 
 
 @numba.njit(cache=True, nogil=True)
-def _link_frame(prev_pts, n_prev, p_order, cur_pts, n, c_order, radius, ratio, nearest,
-                back):  # pragma: no cover - compiled
+def _link_frame(prev_pts, n_prev, p_order, cur_pts, n, c_order, radius, ratio, nearest, back,
+                scratch):  # pragma: no cover - compiled
     """One frame of :func:`_link_back`: ``back[i]`` the previous point (row of ``prev_pts``) that
     current point ``i`` continues, -1 none; ``p_order``, ``c_order``: the points' order by x;
-    ``nearest`` scratch (each previous point's).
+    ``nearest`` and ``scratch (4, N)``: work space.
 
     Only points within ``ratio × radius`` of each other can decide a link (a farther nearest is
     beyond the radius, a farther second-nearest passes the ratio test), so each point is compared
@@ -101,42 +102,40 @@ def _link_frame(prev_pts, n_prev, p_order, cur_pts, n, c_order, radius, ratio, n
     exactly the same place keep their column order, so ties resolve as in a full scan).
     """
     band = 1.001 * ratio * radius
-    lo = 0
-    for jj in range(n_prev):  # each previous point's nearest current point, if clearly the nearest
-        j = p_order[jj]
-        x = prev_pts[j, 0]
-        while lo < n and cur_pts[c_order[lo], 0] < x - band:
-            lo += 1
-        best, second, nearest[j] = np.inf, np.inf, -1
-        for ii in range(lo, n):
-            i = c_order[ii]
-            if cur_pts[i, 0] > x + band:
-                break
-            d = _d2(prev_pts, j, cur_pts, i)
-            if d < best:
-                best, second, nearest[j] = d, best, i
-            elif d < second:
-                second = d
-        if second < ratio * ratio * best:  # a ghost beside the marker: either may continue it
+    # each previous point's nearest current point, if clearly the nearest
+    _two_nearest(prev_pts, p_order, n_prev, cur_pts, c_order, n, band, nearest, scratch[0], scratch[1])
+    for j in range(n_prev):
+        if scratch[1, j] < ratio * ratio * scratch[0, j]:  # a ghost beside the marker: either may continue it
             nearest[j] = -1
+    # each current point's nearest and second-nearest previous points
+    _two_nearest(cur_pts, c_order, n, prev_pts, p_order, n_prev, band, back, scratch[2], scratch[3])
+    for i in range(n):
+        near, d0, d1 = back[i], np.sqrt(scratch[2, i]), np.sqrt(scratch[3, i])
+        back[i] = near if near >= 0 and nearest[near] == i and d0 <= radius and d1 >= ratio * d0 else -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_nearest(a, a_order, n_a, b, b_order, n_b, band, near, best, second):  # pragma: no cover - compiled
+    """For each of the first ``n_a`` points of ``a``: ``near`` its nearest point of ``b`` (row, -1
+    none), ``best`` and ``second`` the squared distances to the nearest and second-nearest, among
+    ``b``'s points within ``band`` of it in x (``a_order``, ``b_order``: the points' order by x)."""
     lo = 0
-    for ii in range(n):  # each current point's nearest and second-nearest previous points
-        i = c_order[ii]
-        x = cur_pts[i, 0]
-        while lo < n_prev and prev_pts[p_order[lo], 0] < x - band:
+    for kk in range(n_a):
+        k = a_order[kk]
+        x = a[k, 0]
+        while lo < n_b and b[b_order[lo], 0] < x - band:
             lo += 1
-        d0, d1, near = np.inf, np.inf, -1
-        for jj in range(lo, n_prev):
-            j = p_order[jj]
-            if prev_pts[j, 0] > x + band:
+        d0, d1, near[k] = np.inf, np.inf, -1
+        for jj in range(lo, n_b):
+            j = b_order[jj]
+            if b[j, 0] > x + band:
                 break
-            d = _d2(cur_pts, i, prev_pts, j)
+            d = _d2(a, k, b, j)
             if d < d0:
-                d0, d1, near = d, d0, j
+                d0, d1, near[k] = d, d0, j
             elif d < d1:
                 d1 = d
-        d0, d1 = np.sqrt(d0), np.sqrt(d1)
-        back[i] = near if near >= 0 and nearest[near] == i and d0 <= radius and d1 >= ratio * d0 else -1
+        best[k], second[k] = d0, d1
 
 
 @numba.njit(cache=True, nogil=True)

@@ -175,11 +175,13 @@ def _dist(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
+def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, resid, frag_label, offset,
                  offset_rate, last, seen, tracked):  # pragma: no cover - compiled
     """Store frame ``f``'s labels ``lab[:n]`` of columns ``cols[:n]`` and their confidence; when
-    ``tracked``, move each seen marker's offset toward the capture, keep its head-coordinate
-    position in ``last`` and the frame in ``seen``, and carry the fragments' labels."""
+    ``tracked``, also each labelled point's residual from the model without its marker's offset
+    (head coordinates, ``resid (F, N, 3)``), move each seen marker's offset toward the capture, keep
+    its head-coordinate position in ``last`` and the frame in ``seen``, and carry the fragments'
+    labels."""
     for i in range(n):
         m = lab[i]
         if m >= 0:
@@ -188,6 +190,7 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
                 r = head[i, c] - pred[m, c]
                 z2 += r * r
                 if tracked:
+                    resid[f, cols[i], c] = r + offset[m, c]
                     last[m, c] = head[i, c]
                     offset[m, c] += offset_rate * r
             label[f, cols[i]] = m
@@ -200,8 +203,8 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
 
 @numba.njit(cache=True, nogil=True)
 def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, basis_t, gram,
-          mode_std, sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
-          pred, new_pred):  # pragma: no cover - compiled
+          mode_std, sigma, gate, new_gate, rounds, offset_rate, label, conf, resid, released, cols, lab, carried,
+          head, pred, new_pred):  # pragma: no cover - compiled
     """Label frames from ``f`` on while every frame has 3+ carried points and needs no matching.
 
     Returns ``(frame, code, n)``: :data:`DONE`; :data:`START_OVER` at ``frame`` (nothing done in
@@ -294,7 +297,7 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
         for i in range(n):
             if choice[i] >= 0:
                 lab[i] = choice[i]
-        finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
+        finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, resid, frag_label, offset,
                      offset_rate, last, seen, True)
         f += 1
     return f, DONE, 0
