@@ -22,7 +22,8 @@ head coordinates, no jitter (a reflection off a marker); ``mirror``, the nearest
 about the plane halfway to the ghost (a reflection in a surface: it moves against the face).
 
     python benchmarks/bench_label.py [--seed 2] [--no-memory]
-    python benchmarks/bench_label.py --seeds 1-8 [--ghosts synth,specular,mirror]
+    python benchmarks/bench_label.py --seeds 1-8 [--ghosts synth,specular,mirror] [--markers 139,40]
+        [--inputs fragments,clouds]
 """
 
 from __future__ import annotations
@@ -182,7 +183,7 @@ def other_ghosts(raw, kind: str) -> np.ndarray:
     return pos
 
 
-def seed_rows(seeds: list[int], kinds: list[str]) -> None:
+def seed_rows(seeds: list[int], kinds: list[str], sizes: list[int], inputs: list[str]) -> None:
     """Correct / wrong / ghosts-labelled % per seed, without → with the continuity step."""
     session = read_trajectories(SAMPLES / "dense_halfface.c3d")
     performance = read_trajectories(SAMPLES / "dense_halfface_performance.c3d")
@@ -190,10 +191,10 @@ def seed_rows(seeds: list[int], kinds: list[str]) -> None:
     print("| ghosts | markers | input | seed | correct % | wrong % | ghosts labelled % (without → with) |")
     print("|---|---|---|---|---|---|---|")
     for kind in kinds:
-        for count in (139, 40):
+        for count in sizes:
             keep = list(session.labels) if count == 139 else spread_subset(session, count)
             template = build_template(session.select(keep))
-            for clouds in (False, True):
+            for clouds in [kind == "clouds" for kind in inputs]:
                 total = np.zeros((2, 5))
                 for seed in seeds:
                     raw = unlabelled_capture(performance.select(keep), seed=seed, clouds=clouds and kind == "synth")
@@ -243,10 +244,13 @@ def main() -> None:
     parser.add_argument("--no-memory", action="store_true")
     parser.add_argument("--seeds", help="e.g. 1-8: accuracy per seed, without and with the continuity step")
     parser.add_argument("--ghosts", default="synth,specular,mirror", help="ghost models for --seeds")
+    parser.add_argument("--markers", default="139,40", help="layout sizes for --seeds")
+    parser.add_argument("--inputs", default="fragments,clouds", help="inputs for --seeds")
     args = parser.parse_args()
     if args.seeds:
         lo, _, hi = args.seeds.partition("-")
-        seed_rows(list(range(int(lo), int(hi or lo) + 1)), args.ghosts.split(","))
+        seed_rows(list(range(int(lo), int(hi or lo) + 1)), args.ghosts.split(","),
+                  [int(k) for k in args.markers.split(",")], args.inputs.split(","))
         return
     print(f"load average at start: {load()} on {os.cpu_count()} CPUs; labelling threads: {THREADS}\n")
     synthetic_rows(args.seed)

@@ -11,7 +11,8 @@ end of one run to the start of the next (``t`` the time from the one's last fram
 first; ``s`` the marker's model spread, or :data:`TYPICAL` times the median of its runs' moves in
 the bound's units where that is larger: where the expression goes beyond the template, or at a
 low frame rate, a marker's residual moves more from run to run, and so may it); the chain keeping the most points stands, and the runs
-left out of it are unlabelled.
+it passes over are unlabelled (not those before its first run or after its last: there only one
+side is seen).
 """
 
 from __future__ import annotations
@@ -127,8 +128,13 @@ def _chain(frame, col, labels, fragments, resid, sigma, base, growth, typical, e
     while r >= 0:
         keep[r] = True
         r = prev[r]
+    first, last = 0, runs - 1
+    while not keep[first]:
+        first += 1
+    while not keep[last]:
+        last -= 1
     dropped = 0
-    for r in range(runs):
+    for r in range(first + 1, last):  # only runs the chain passes over: both sides' evidence
         if not keep[r]:
             for i in range(start[r], start[r + 1]):
                 labels[frame[i], col[i]] = -1
