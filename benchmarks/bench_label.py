@@ -204,7 +204,8 @@ def seed_rows(seeds: list[int], kinds: list[str], sizes: list[int], inputs: list
                         if clouds:  # every frame's points shuffled, as synth's clouds
                             rng = np.random.default_rng([seed, 7])
                             order = np.argsort(rng.random(truth.shape), axis=1)
-                            pos, truth = np.take_along_axis(pos, order[:, :, None], 1), np.take_along_axis(truth, order, 1)
+                            pos = np.take_along_axis(pos, order[:, :, None], 1)
+                            truth = np.take_along_axis(truth, order, 1)
                         capture = capture.replace(positions=pos)
                     cells = []
                     for k, step in enumerate((lambda labels, *_, **__: (labels, 0), drop)):

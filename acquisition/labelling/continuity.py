@@ -10,9 +10,9 @@ when the residual moves by at most ``s × (JUMP_SIGMA + JUMP_GROWTH × √(t / T
 end of one run to the start of the next (``t`` the time from the one's last frame to the other's
 first; ``s`` the marker's model spread, or :data:`TYPICAL` times the median of its runs' moves in
 the bound's units where that is larger: where the expression goes beyond the template, or at a
-low frame rate, a marker's residual moves more from run to run, and so may it); the chain keeping the most points stands, and the runs
-it passes over are unlabelled (not those before its first run or after its last: there only one
-side is seen).
+low frame rate, a marker's residual moves more from run to run, and so may it); the chain keeping
+the most points stands, and the runs it passes over are unlabelled (not those before its first run
+or after its last: there only one side is seen).
 """
 
 from __future__ import annotations
