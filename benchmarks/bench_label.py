@@ -14,7 +14,16 @@ template is built once), the speed ratios and whether the labels are the same on
 at random, when ../shared/data is present), the swap check, and the peak memory of ``mocaptk
 label`` on a 72,000-frame capture (the performance repeated; a child process, ``ru_maxrss``).
 
+``--seeds 1-8``: instead, the accuracy on each of those seeds, with and without the continuity
+step (:mod:`mocaptk.acquisition.labelling.continuity`; without it, the labels are those of the
+code before it), for synth's ghosts and for two other ghost models made on the same captures
+(the generator must not be what the rule fits): ``specular``, rigid with the nearest marker in
+head coordinates, no jitter (a reflection off a marker); ``mirror``, the nearest marker mirrored
+about the plane halfway to the ghost (a reflection in a surface: it moves against the face).
+
     python benchmarks/bench_label.py [--seed 2] [--no-memory]
+    python benchmarks/bench_label.py --seeds 1-8 [--ghosts synth,specular,mirror] [--markers 139,40]
+        [--inputs fragments,clouds]
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import numpy as np
 from mocaptk.acquisition.formats import read_trajectories, write_trajectories
 from mocaptk.acquisition.labelling import capture as lc, tracker
 from mocaptk.acquisition.labelling.template import build_template
+from mocaptk.acquisition.runs import true_runs
 from mocaptk.acquisition.synth_unlabelled import inject_swaps, spread_subset, unlabelled_capture
 from mocaptk.trajectories import concatenate_takes
 
@@ -153,11 +163,96 @@ def memory_row(seed: int) -> None:
           f"{wall:.0f} s wall, {cpu:.0f} CPU-s (read, template, label, write), load {load()}")
 
 
+def other_ghosts(raw, kind: str) -> np.ndarray:
+    """``raw``'s positions (fragments) with every ghost fragment remade as ``kind`` from its first
+    point: ``specular`` or ``mirror`` of the marker nearest to that point (see the module doc)."""
+    pos, truth, rot = raw.trajectories.positions.copy(), raw.truth, raw.head_rotations
+    for col in range(pos.shape[1]):
+        for a, b in true_runs(truth[:, col] == -1):
+            start = pos[a, col]
+            real = np.flatnonzero(truth[a] >= 0)
+            marker = truth[a, real[np.argmin(np.linalg.norm(pos[a, real] - start, axis=1))]]
+            track = np.array([pos[f, truth[f] == marker][0] if (truth[f] == marker).any() else np.full(3, np.nan)
+                              for f in range(a, b)])
+            track = np.where(np.isnan(track), track[0], track)  # the marker occluded: held where it was
+            if kind == "specular":
+                pos[a:b, col] = track + np.einsum("fij,j->fi", rot[a:b], rot[a].T @ (start - track[0]))
+            else:
+                normal = (start - track[0]) / np.linalg.norm(start - track[0])
+                pos[a:b, col] = track - 2 * ((track - (start + track[0]) / 2) @ normal)[:, None] * normal
+    return pos
+
+
+def seed_rows(seeds: list[int], kinds: list[str], sizes: list[int], inputs: list[str]) -> None:
+    """Correct / wrong / ghosts-labelled % per seed, without → with the continuity step."""
+    session = read_trajectories(SAMPLES / "dense_halfface.c3d")
+    performance = read_trajectories(SAMPLES / "dense_halfface_performance.c3d")
+    drop = lc.drop_jumps
+    print("| ghosts | markers | input | seed | correct % | wrong % | ghosts labelled % (without → with) |")
+    print("|---|---|---|---|---|---|---|")
+    for kind in kinds:
+        for count in sizes:
+            keep = list(session.labels) if count == 139 else spread_subset(session, count)
+            template = build_template(session.select(keep))
+            for clouds in [kind == "clouds" for kind in inputs]:
+                total = np.zeros((2, 5))
+                for seed in seeds:
+                    raw = unlabelled_capture(performance.select(keep), seed=seed, clouds=clouds and kind == "synth")
+                    capture, truth = raw.trajectories, raw.truth
+                    if kind != "synth":
+                        pos = other_ghosts(raw, kind)
+                        if clouds:  # every frame's points shuffled, as synth's clouds
+                            rng = np.random.default_rng([seed, 7])
+                            order = np.argsort(rng.random(truth.shape), axis=1)
+                            pos = np.take_along_axis(pos, order[:, :, None], 1)
+                            truth = np.take_along_axis(truth, order, 1)
+                        capture = capture.replace(positions=pos)
+                    cells = []
+                    for k, step in enumerate((lambda labels, *_, **__: (labels, 0), drop)):
+                        lc.drop_jumps = step
+                        try:
+                            result = lc.label_capture(template, capture)
+                        finally:
+                            lc.drop_jumps = drop
+                        cells.append(counts(result.labels, truth, raw.labels, template))
+                        total[k] += cells[-1]
+                    print(f"| {kind} | {count} | {'clouds' if clouds else 'fragments'} | {seed} | "
+                          + " | ".join(f"{pct(cells[0], i)} → {pct(cells[1], i)}" for i in range(3)) + " |")
+                print(f"| {kind} | {count} | {'clouds' if clouds else 'fragments'} | all | "
+                      + " | ".join(f"**{pct(total[0], i)} → {pct(total[1], i)}**" for i in range(3)) + " |",
+                      flush=True)
+
+
+def counts(labels: np.ndarray, truth: np.ndarray, names, template) -> np.ndarray:
+    """(correct, wrong, visible, ghosts labelled, ghosts) point counts."""
+    idx = np.array([template.labels.index(label) for label in names])
+    truth = np.where(truth >= 0, idx[np.maximum(truth, 0)], truth)
+    visible, ghost, found = truth >= 0, truth == -1, labels >= 0
+    correct = visible & (labels == truth)
+    return np.array([correct.sum(), (visible & found & ~correct).sum(), visible.sum(), (ghost & found).sum(),
+                     ghost.sum()], dtype=float)
+
+
+def pct(c: np.ndarray, i: int) -> str:
+    """Correct, wrong (of the visible points) or ghosts labelled (of the ghosts), in %."""
+    value = (c[0] / c[2], c[1] / c[2], c[3] / max(c[4], 1))[i] * 100
+    return f"{value:.2f}" if i == 0 else f"{value:.3f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--no-memory", action="store_true")
+    parser.add_argument("--seeds", help="e.g. 1-8: accuracy per seed, without and with the continuity step")
+    parser.add_argument("--ghosts", default="synth,specular,mirror", help="ghost models for --seeds")
+    parser.add_argument("--markers", default="139,40", help="layout sizes for --seeds")
+    parser.add_argument("--inputs", default="fragments,clouds", help="inputs for --seeds")
     args = parser.parse_args()
+    if args.seeds:
+        lo, _, hi = args.seeds.partition("-")
+        seed_rows(list(range(int(lo), int(hi or lo) + 1)), args.ghosts.split(","),
+                  [int(k) for k in args.markers.split(",")], args.inputs.split(","))
+        return
     print(f"load average at start: {load()} on {os.cpu_count()} CPUs; labelling threads: {THREADS}\n")
     synthetic_rows(args.seed)
     real_rows()

@@ -1,7 +1,8 @@
 """Label a whole capture (fragments or per-frame clouds), or check the labels of a labelled one.
 
 ``label_capture``: fragments (or clouds linked into fragments, :mod:`.fragments`) → per-frame
-labels (:mod:`.tracker`) → fragment voting (:mod:`.vote`) → a capture with the template's labels,
+labels (:mod:`.tracker`) → fragment voting (:mod:`.vote`) → each label's runs chained in time
+(:mod:`.continuity`) → a capture with the template's labels,
 the points left over kept as ``*N`` columns. ``check_labels``: the capture's own columns are the
 fragments; where the labeller puts a column's points under another label for 2 frames or more,
 that run is reported (a swap when two columns trade places), and ``fix`` moves those points.
@@ -18,6 +19,7 @@ from mocaptk.errors import source_error
 from mocaptk.trajectories import Trajectories
 
 from ..runs import true_runs
+from .continuity import drop_jumps
 from .fragments import column_fragments, link_clouds, looks_untracked
 from .template import LabelTemplate
 from .tracker import PointLabels, label_points, threads
@@ -67,6 +69,8 @@ def label_capture(template: LabelTemplate, capture: Trajectories, *, clouds: boo
         fragments = np.where(seen, 0, -1)
     found: PointLabels = label_points(template, pos, fragments, tracked=tracked)
     labels, split = vote(found.label, found.confidence, fragments) if tracked else (found.label, 0)
+    if tracked:  # a run the label's marker could not have made: a ghost on an occluded marker's place
+        labels, _ = drop_jumps(labels, fragments, found.residual, template.sigma, rate=capture.rate)
     confidence = np.where(labels >= 0, found.confidence, 0.0).astype(np.float32)
     return Labelled(labels, confidence, fragments, split, "clouds" if clouds else "fragments")
 

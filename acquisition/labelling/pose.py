@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from ..stabilize import kabsch
 from .template import LabelTemplate
-from .track_kernel import gauss_newton, mode_gram
+from .track_kernel import gauss_newton, model_arrays
 
 #: Triangles of pose markers tried by :func:`find_pose` (the largest ones: the best-conditioned).
 TRIANGLES = 6
@@ -46,7 +46,7 @@ def fit_frame(template: LabelTemplate, idx: np.ndarray, points: np.ndarray, rot:
     (MAP); without ``expression`` a rigid fit only.
     """
     k = len(template.mode_std) if expression else 0
-    return gauss_newton(template.mean, template.basis, mode_gram(template.basis), template.mode_std,
+    return gauss_newton(template.mean, *model_arrays(template.basis), template.mode_std,
                         template.sigma, offset,
                         np.asarray(idx, dtype=np.int64), np.ascontiguousarray(points, dtype=np.float64),
                         np.asarray(rot, dtype=np.float64), np.asarray(trans, dtype=np.float64), k, rounds)

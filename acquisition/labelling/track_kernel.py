@@ -67,13 +67,14 @@ def _solve_spd(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, trans, k,
+def gauss_newton(mean, basis_t, gram, mode_std, sigma, offset, idx, points, rot, trans, k,
                  rounds):  # pragma: no cover - compiled
     """``(rot, trans, coeffs)``: see :func:`.pose.fit_frame` (``k`` expression modes used;
-    ``gram (M, K, K)``: :func:`mode_gram`). The normal equations are accumulated block by block,
-    skipping the pose rows' zeros (about half the work of the dense outer products)."""
+    ``basis_t (M, 3, K)``, ``gram (M, K, K)``: :func:`model_arrays`). The normal equations are
+    accumulated block by block, skipping the pose rows' zeros (about half the work of the dense
+    outer products)."""
     n, p = len(idx), 6 + k
-    coeffs = np.zeros(basis.shape[0])
+    coeffs = np.zeros(basis_t.shape[2])
     row = np.empty(6)
     for _ in range(rounds):
         lhs = np.zeros((p, p))
@@ -104,9 +105,9 @@ def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, t
                     for b in range(a, 6):
                         lhs[a, b] += wa * row[b]
                     for j in range(k):  # pose x expression
-                        lhs[a, 6 + j] += wa * basis[j, m, c]
+                        lhs[a, 6 + j] += wa * basis_t[m, c, j]
                 for j in range(k):
-                    rhs[6 + j] += w * basis[j, m, c] * resid
+                    rhs[6 + j] += w * basis_t[m, c, j] * resid
             for a in range(k):  # expression x expression: the marker's mode Gram matrix
                 for b in range(a, k):
                     lhs[6 + a, 6 + b] += w * gram[m, a, b]
@@ -130,8 +131,15 @@ def gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx, points, rot, t
     return rot, trans, coeffs
 
 
+def model_arrays(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(basis_t (M, 3, K), gram (M, K, K))`` for :func:`gauss_newton`: the modes per marker in
+    one contiguous block (a fit touches a few markers' modes in any order: one block each instead of
+    K scattered rows), and per marker the sum over x, y, z of its mode vectors' outer products."""
+    return np.ascontiguousarray(basis.transpose(1, 2, 0)), _mode_gram(basis)
+
+
 @numba.njit(cache=True, nogil=True)
-def mode_gram(basis):  # pragma: no cover - compiled
+def _mode_gram(basis):  # pragma: no cover - compiled
     """``(M, K, K)``: per marker, the sum over x, y, z of its mode vectors' outer products."""
     n_modes, n_markers = basis.shape[0], basis.shape[1]
     gram = np.zeros((n_markers, n_modes, n_modes))
@@ -167,11 +175,13 @@ def _dist(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
+def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, resid, frag_label, offset,
                  offset_rate, last, seen, tracked):  # pragma: no cover - compiled
     """Store frame ``f``'s labels ``lab[:n]`` of columns ``cols[:n]`` and their confidence; when
-    ``tracked``, move each seen marker's offset toward the capture, keep its head-coordinate
-    position in ``last`` and the frame in ``seen``, and carry the fragments' labels."""
+    ``tracked``, also each labelled point's residual from the model without its marker's offset
+    (head coordinates, ``resid (F, N, 3)``), move each seen marker's offset toward the capture, keep
+    its head-coordinate position in ``last`` and the frame in ``seen``, and carry the fragments'
+    labels."""
     for i in range(n):
         m = lab[i]
         if m >= 0:
@@ -180,6 +190,7 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
                 r = head[i, c] - pred[m, c]
                 z2 += r * r
                 if tracked:
+                    resid[f, cols[i], c] = r + offset[m, c]
                     last[m, c] = head[i, c]
                     offset[m, c] += offset_rate * r
             label[f, cols[i]] = m
@@ -191,9 +202,9 @@ def finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, fra
 
 
 @numba.njit(cache=True, nogil=True)
-def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, mode_std,
-          sigma, gate, new_gate, rounds, offset_rate, label, conf, released, cols, lab, carried, head,
-          pred, new_pred):  # pragma: no cover - compiled
+def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, mean, basis, basis_t, gram,
+          mode_std, sigma, gate, new_gate, rounds, offset_rate, label, conf, resid, released, cols, lab, carried,
+          head, pred, new_pred):  # pragma: no cover - compiled
     """Label frames from ``f`` on while every frame has 3+ carried points and needs no matching.
 
     Returns ``(frame, code, n)``: :data:`DONE`; :data:`START_OVER` at ``frame`` (nothing done in
@@ -206,8 +217,8 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
     without the marker's offset: the offset was learnt where it was last seen, and once the
     expression has changed it can hold the prediction off the marker for good (a 6 Hz capture's
     chin, 5-6 mm off after a jaw opening beyond the template, never labelled again).
-    ``rot``, ``trans`` (the pose), ``offset``, ``last``, ``seen``, ``frag_label`` and the outputs
-    are updated in place.
+    ``basis_t``, ``gram``: :func:`model_arrays`. ``rot``, ``trans`` (the pose), ``offset``,
+    ``last``, ``seen``, ``frag_label`` and the outputs are updated in place.
     """
     n_frames, n_cols = fragments.shape
     n_markers = mean.shape[0]
@@ -216,7 +227,6 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
     hits = np.zeros(n_markers, dtype=np.int64)
     choice = np.empty(n_cols, dtype=np.int64)
     idx = np.empty(n_cols, dtype=np.int64)
-    gram = mode_gram(basis)
     pts = np.empty((n_cols, 3))
     while f < n_frames:
         n = 0
@@ -241,7 +251,7 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
                     idx[a] = lab[i]
                     pts[a] = positions[f, cols[i]]
                     a += 1
-            r, t, coeffs = gauss_newton(mean, basis, gram, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
+            r, t, coeffs = gauss_newton(mean, basis_t, gram, mode_std, sigma, offset, idx[:a], pts[:a], rot, trans,
                                         k, rounds)
             rot[:, :] = r
             trans[:] = t
@@ -287,7 +297,7 @@ def track(f, positions, fragments, frag_label, offset, last, seen, rot, trans, m
         for i in range(n):
             if choice[i] >= 0:
                 lab[i] = choice[i]
-        finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, frag_label, offset,
+        finish_frame(f, n, cols, lab, head, pred, sigma, fragments, label, conf, resid, frag_label, offset,
                      offset_rate, last, seen, True)
         f += 1
     return f, DONE, 0

@@ -20,16 +20,17 @@ in chunks side by side on two threads (:func:`label_points`), the same labels on
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mocaptk.batch.engine import machine_workers
+
 from .pose import find_pose, fit_frame, model_shape
 from .template import LabelTemplate
-from .track_kernel import DONE, MATCH, finish_frame, track
+from .track_kernel import DONE, MATCH, finish_frame, model_arrays, track
 
 #: A point may be at most this fraction of its label's nearest-neighbour distance from the
 #: prediction (beyond half, it is nearer another marker's place) ...
@@ -69,10 +70,13 @@ THREADS = 2
 class PointLabels:
     """Per input point: ``label (F, N)`` template index or -1; ``confidence (F, N)`` in [0, 1]
     (``exp(-z²/2)``, z the distance to the label's prediction in model spreads; 0 unlabelled);
+    ``residual (F, N, 3)`` float32 mm, a labelled point's offset from the model fitted in its frame
+    (head coordinates, without its marker's learnt offset; 0 unlabelled or untracked);
     ``released (F, N)`` True where a carried label was dropped (a fragment split)."""
 
     label: np.ndarray
     confidence: np.ndarray
+    residual: np.ndarray
     released: np.ndarray
 
 
@@ -93,9 +97,8 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
     previous frame), in one run.
     """
     n_frames, n_cols = fragments.shape
-    label = np.full((n_frames, n_cols), -1, dtype=np.int32)
-    conf = np.zeros((n_frames, n_cols), dtype=np.float32)
-    released = np.zeros((n_frames, n_cols), dtype=bool)
+    out = _outputs(n_frames, n_cols)
+    label = out[0]
     positions = np.ascontiguousarray(positions, dtype=np.float64)
     fragments = np.ascontiguousarray(fragments, dtype=np.int32)
     n_frag = int(fragments.max()) + 1 if fragments.size else 0
@@ -107,24 +110,28 @@ def label_points(template: LabelTemplate, positions: np.ndarray, fragments: np.n
         start, stop = bounds[k]
         run_ = _Run(template, n_cols, n_frag, tracked=tracked)
         warm = max(start - WARMUP, 0)
-        seam = np.full((start - warm, n_cols), -1, dtype=np.int32)
+        seam = _outputs(start - warm, n_cols)
         # the frames before the chunk set its pose, offsets and carried labels
-        run_.frames(positions[warm:start], fragments[warm:start], seam, np.zeros(seam.shape, np.float32),
-                    np.zeros(seam.shape, bool))
-        run_.frames(positions[start:stop], fragments[start:stop], label[start:stop], conf[start:stop],
-                    released[start:stop])
-        runs[k], overlap[k] = run_, seam
+        run_.frames(positions[warm:start], fragments[warm:start], seam)
+        run_.frames(positions[start:stop], fragments[start:stop], [a[start:stop] for a in out])
+        runs[k], overlap[k] = run_, seam[0]
 
     with ThreadPoolExecutor(min(threads(), len(bounds))) as pool:
         list(pool.map(run, range(len(bounds))))
     for k in range(1, len(bounds)):  # a chunk that started wrong is labelled again, continuing the one before
         start, stop = bounds[k]
         if not _agree(label[start - len(overlap[k]):start], overlap[k]):
-            label[start:stop], conf[start:stop], released[start:stop] = -1, 0.0, False
-            runs[k - 1].frames(positions[start:stop], fragments[start:stop], label[start:stop], conf[start:stop],
-                               released[start:stop])
+            for a, blank in zip(out, _outputs(1, 1)):
+                a[start:stop] = blank[0, 0]
+            runs[k - 1].frames(positions[start:stop], fragments[start:stop], [a[start:stop] for a in out])
             runs[k] = runs[k - 1]
-    return PointLabels(label, conf, released)
+    return PointLabels(*out)
+
+
+def _outputs(n_frames: int, n_cols: int) -> list[np.ndarray]:
+    """Empty ``label``, ``confidence``, ``residual``, ``released`` arrays (see :class:`PointLabels`)."""
+    return [np.full((n_frames, n_cols), -1, dtype=np.int32), np.zeros((n_frames, n_cols), dtype=np.float32),
+            np.zeros((n_frames, n_cols, 3), dtype=np.float32), np.zeros((n_frames, n_cols), dtype=bool)]
 
 
 def _agree(before: np.ndarray, warm: np.ndarray) -> bool:
@@ -144,8 +151,7 @@ def chunks(n_frames: int) -> list[tuple[int, int]]:
 
 def threads() -> int:
     """Threads to label with: :data:`THREADS`, or fewer when this process may use fewer CPUs."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(THREADS, cpus))
+    return max(1, min(THREADS, machine_workers()))
 
 
 class _Run:
@@ -155,6 +161,7 @@ class _Run:
     def __init__(self, template: LabelTemplate, n_cols: int, n_frag: int, *, tracked: bool) -> None:
         self.template, self.tracked = template, tracked
         self.gate, self.new_gate = gates(template), gates(template, new=True)
+        self.basis_t, self.gram = model_arrays(template.basis)
         self.frag_label = np.full(max(n_frag, 1), -1, dtype=np.int64)
         self.offset = np.zeros_like(template.mean)
         self.last = np.zeros_like(template.mean)
@@ -167,17 +174,17 @@ class _Run:
         self.pred = np.empty_like(template.mean)
         self.new_pred = np.empty_like(template.mean)
 
-    def frames(self, positions: np.ndarray, fragments: np.ndarray, label: np.ndarray, conf: np.ndarray,
-               released: np.ndarray) -> None:
-        """Label ``positions (F, N, 3)`` into ``label``, ``conf``, ``released`` (F, N) in place."""
+    def frames(self, positions: np.ndarray, fragments: np.ndarray, out: list[np.ndarray]) -> None:
+        """Label ``positions (F, N, 3)`` into ``out``: :func:`_outputs`' arrays, in place."""
+        label, conf, resid, released = out
         template, tracked = self.template, self.tracked
         cols, lab, carried, head, pred = self.cols, self.lab, self.carried, self.head, self.pred
         rot, trans, offset, seen = self.rot, self.trans, self.offset, self.seen
-        tpl = (template.mean, template.basis, template.mode_std, template.sigma)
+        tpl = (template.mean, template.basis, self.basis_t, self.gram, template.mode_std, template.sigma)
 
         def store(f: int, n: int, pred: np.ndarray) -> None:
-            finish_frame(f, n, cols, lab, head, pred, template.sigma, fragments, label, conf, self.frag_label,
-                         offset, OFFSET_RATE, self.last, seen, tracked)
+            finish_frame(f, n, cols, lab, head, pred, template.sigma, fragments, label, conf, resid,
+                         self.frag_label, offset, OFFSET_RATE, self.last, seen, tracked)
 
         n_frames = len(fragments)
         f = 0
@@ -185,7 +192,7 @@ class _Run:
             if tracked:  # the compiled kernel runs until a frame needs a start-over or a matching
                 f, code, n = track(f, positions, fragments, self.frag_label, offset, self.last, seen, rot, trans,
                                    *tpl, self.gate, self.new_gate, TRACK_ROUNDS, OFFSET_RATE, label, conf,
-                                   released, cols, lab, carried, head, pred, self.new_pred)
+                                   resid, released, cols, lab, carried, head, pred, self.new_pred)
                 if code == DONE:
                     break
                 if code == MATCH:
