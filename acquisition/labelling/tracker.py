@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocaptk.batch.engine import machine_workers
+from mocaptk.threads import machine_workers
 
 from .pose import find_pose, fit_frame, model_shape
 from .template import LabelTemplate
