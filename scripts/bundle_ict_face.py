@@ -85,10 +85,18 @@ def face_parts(obj: str) -> dict[str, np.ndarray]:
         material.append(np.where(iris, 1, kind))
         attach.append(np.where(source < FACE_VERTEX_COUNT, source, -1))
         count += small.n_points
-    return {"vertices": np.concatenate(vertices).astype(np.float32),
-            "triangles": np.concatenate(faces).astype(np.int32),
-            "material": np.concatenate(material).astype(np.int8),
-            "attach": np.concatenate(attach).astype(np.int32)}
+    vertices, faces, material, attach = (np.concatenate(a) for a in (vertices, faces, material, attach))
+    # each material's vertices together, in material order: a glTF importer that splits the
+    # mesh by primitive (Blender) then keeps the vertex order
+    kind = np.zeros(len(vertices), dtype=np.int64)
+    kind[faces.ravel()] = np.repeat(material, 3)
+    order = np.argsort(kind, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return {"vertices": vertices[order].astype(np.float32),
+            "triangles": rank[faces].astype(np.int32),
+            "material": material.astype(np.int8),
+            "attach": attach[order].astype(np.int32)}
 
 
 def _source_vertices(points: np.ndarray, kept: np.ndarray) -> np.ndarray:
