@@ -50,8 +50,9 @@ SOCKET_REACH_MM = 10.0
 @dataclass(frozen=True, eq=False)
 class FaceParts:
     """The fitted parts: ``vertices`` (P, 3) mm (rig frame), ``faces`` (Tp, 3) into them,
-    ``material`` (Tp,) index into :data:`~mocaptk.retarget.face_materials.MATERIALS`, ``attach`` (P,) the face vertex a socket
-    vertex is (-1: none) and ``mirror`` (P,) each vertex's mirror vertex (None: not symmetric)."""
+    ``material`` (Tp,) index into :data:`~mocaptk.retarget.face_materials.MATERIALS`,
+    ``attach`` (P,) the face vertex a socket vertex is (-1: none) and ``mirror`` (P,) each
+    vertex's mirror vertex (None: not symmetric)."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -63,17 +64,18 @@ class FaceParts:
 @lru_cache(maxsize=1)
 def template_parts() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The bundled parts in the template's frame: vertices (P, 3) mm, triangles (Tp, 3),
-    materials (Tp,) (:data:`~mocaptk.retarget.face_materials.MATERIALS` index: the bundle's + 1), ``attach`` (P,) and the rigid groups (P,) (0 right
-    eyeball, 1 left, 2 upper teeth, 3 lower teeth, -1 the socket)."""
+    materials (Tp,) (:data:`~mocaptk.retarget.face_materials.MATERIALS` index: the bundle's + 1),
+    ``attach`` (P,) and the rigid groups (P,) (0 right eyeball, 1 left, 2 upper teeth, 3 lower
+    teeth, -1 the socket)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
     with resources.files(__package__).joinpath(PARTS_FILE).open("rb") as handle:
         with np.load(handle, allow_pickle=False) as data:
             vertices = data["vertices"].astype(np.float64)
             faces = data["triangles"].astype(np.int64)
             material = data["material"].astype(np.int64) + 1
             attach = data["attach"].astype(np.int64)
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     kind = np.zeros(len(vertices), dtype=np.int64)
     kind[faces.ravel()] = np.repeat(material, 3)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
