@@ -41,7 +41,9 @@ from .align import Alignment, SurfaceProximity, align_mesh_to_markers
 from .animate import SkinningError, distance_error, skin_vertices, skinning_error
 from .bake import RigAnimation, bake_animation, concatenate_animations, head_pose_between
 from .default_face import (CORNER_JOINTS_MM, CORNER_LEFT_OUT_FADE_MM, CORNER_PIN_FADE_MM,
-                           EYE_CORNER_MM, MOUTH_CORNER_MM, default_face)
+                           EYE_CORNER_MM, MOUTH_CORNER_MM, DefaultFace, default_face)
+from .face_materials import mesh_materials
+from .face_parts import socket_rows, template_parts
 from .eye_openings import cut_eye_openings, template_eye_loops
 from .face_template import FittedTemplate, fit_template
 from .face_weights import face_anchors, face_rows
@@ -49,6 +51,7 @@ from .guide import GuideMarker, guide_markers, write_guide_pdf
 from .influence import anchor_vertices, distinct_vertices, edge_graph, main_influence_regions
 from .lid_joints import LidJoints, lid_joints
 from .mesh_openings import CORNERS, OpenedMesh, fill_sockets, open_mesh, parts_follow, weighted_faces
+from .mesh_parts import head_jaw_rows, nose_height, part_weights
 from .mesh_space import animation_in_space, inverse, rig_in_space
 from .rig import Rig
 from .rig_hierarchy import RigHierarchy, fit_jaw_pivot, hierarchical_animation, jaw_members, rig_hierarchy
@@ -93,7 +96,9 @@ class RigOptions:
     ``ks``/``kb``: thin-shell stretching/bending stiffness;
     ``surface``: the mesh without ``--mesh``: ``"face"`` (the ICT-FaceKit face fitted to the
     markers, :mod:`~mocaptk.retarget.default_face`; the marker surface where it does not fit)
-    or ``"markers"`` (the surface through the dense markers).
+    or ``"markers"`` (the surface through the dense markers);
+    ``face_parts``: the default face with its eyeballs and mouth interior
+    (:mod:`~mocaptk.retarget.face_parts`; False: the skin alone).
     """
 
     max_influences: int = 4
@@ -104,6 +109,7 @@ class RigOptions:
     ks: float = 1.0
     kb: float = 10.0
     surface: str = "face"
+    face_parts: bool = True
 
 
 #: What ``RigOptions.surface`` (and ``solve --surface``) chooses from.
@@ -477,7 +483,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
     opened = None  # a user's mesh with its openings
     if mesh is None and options.surface == "face":
         say("fitting the face")
-        face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud))
+        face = default_face(cloud.neutral, spacing=spacing, plane=_rig_plane(layout, cloud),
+                            parts=options.face_parts)
     if face is not None:
         vertices, faces, texcoords = face.vertices, face.faces, face.uv
         mouth_corners = np.array([face.upper_lip[0], face.upper_lip[-1]])
@@ -590,6 +597,12 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
             mirror = (mirror[0], np.concatenate([mirror[1], lid_mirror]))
     if opened is not None:  # teeth, eyeballs, lashes: with the head, the jaw or the lids
         weights = _part_weights(weights, opened, layout, cloud, rep_idx, template, options, spacing)
+    if face is not None and face.parts is not None:  # the default face's eyeballs and mouth
+        (vertices, faces, texcoords, weights, nearest, lid_rows,
+         mirror) = _with_face_parts(face, weights, nearest, lid_rows, mirror,
+                                    _face_part_rows(weights, layout, cloud, rep_idx, options),
+                                    joint_positions)
+        regions = np.concatenate([regions, np.full(len(vertices) - len(regions), -1)])  # no joint's
     if mirror is not None:
         weights = symmetric_weights(weights, *mirror)
         nearest = np.where(mirror[0] < np.arange(len(nearest)), mirror[1][nearest[mirror[0]]],
@@ -605,7 +618,8 @@ def build_rig(layout: Layout, session: Trajectories, *, mesh: SurfaceMesh | None
                                continuous=lid_rows)
     rig = Rig.from_markers(vertices, faces, marker_labels=labels, marker_positions=joint_positions,
                            marker_sides=sides, marker_regions=regions_of,
-                           weight_index=index, weight_value=value, texcoords=texcoords)
+                           weight_index=index, weight_value=value, texcoords=texcoords,
+                           materials=_materials(face, opened, vertices, faces))
     quality = mesh_quality(vertices, faces)
     report = {
         "mesh": {"kind": mesh_kind, "vertices": len(vertices), "triangles": len(faces),
@@ -643,13 +657,69 @@ def _part_weights(weights: np.ndarray, opened: OpenedMesh, layout: Layout, cloud
                   spacing: float) -> np.ndarray:
     """A user mesh's skin beyond the markers and its parts other than the skin
     (:func:`~mocaptk.retarget.mesh_openings.parts_follow`): the head's row is the layout joint
-    that moves least in the session, the jaw's the (up to ``max_influences``) lowest jaw joints."""
+    that moves least in the session (:func:`_least_moving`), the jaw's the (up to
+    ``max_influences``) lowest jaw joints."""
+    return parts_follow(weights, opened, cloud.neutral, head=_least_moving(cloud, rep_idx),
+                        regions=[c.region for c in layout.clusters], positions=cloud.neutral[rep_idx],
+                        jaw_count=options.max_influences, spacing=spacing, template=template)
+
+
+def _least_moving(cloud: DenseCloud, rep_idx: np.ndarray) -> int:
+    """The layout joint (index into ``rep_idx``) that moves least in the session: the parts' head."""
     bind = cloud.neutral[rep_idx]
     moved = np.nanmax(np.linalg.norm(cloud.trajectories[:, rep_idx] - bind, axis=2), axis=0)
-    return parts_follow(weights, opened, cloud.neutral,
-                        head=int(np.argmin(np.nan_to_num(moved, nan=np.inf))),
-                        regions=[c.region for c in layout.clusters], positions=bind,
-                        jaw_count=options.max_influences, spacing=spacing, template=template)
+    return int(np.argmin(np.nan_to_num(moved, nan=np.inf)))
+
+
+def _face_part_rows(weights: np.ndarray, layout: Layout, cloud: DenseCloud, rep_idx: np.ndarray,
+                    options: RigOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The default face's parts' head and jaw rows (J,) over the columns of ``weights`` (the
+    layout's joints, then the lids', which get nothing), as a user mesh's parts get them
+    (:func:`~mocaptk.retarget.mesh_parts.head_jaw_rows`)."""
+    head, jaw = head_jaw_rows(_least_moving(cloud, rep_idx), [c.region for c in layout.clusters],
+                              cloud.neutral[rep_idx], count=options.max_influences)
+    extra = np.zeros(weights.shape[1] - len(rep_idx))
+    return np.concatenate([head, extra]), np.concatenate([jaw, extra])
+
+
+def _with_face_parts(face: DefaultFace, weights: np.ndarray, nearest: np.ndarray, lid_rows: Any,
+                     mirror: tuple[np.ndarray, np.ndarray] | None,
+                     rows: tuple[np.ndarray, np.ndarray], joint_positions: np.ndarray) -> tuple:
+    """The default face's mesh with its eyeballs and mouth interior after its skin
+    (:mod:`~mocaptk.retarget.face_parts`): ``(vertices, faces, texcoords, weights, nearest,
+    lid_rows, mirror)`` each extended over the parts' vertices. They move as a user mesh's
+    parts (:func:`~mocaptk.retarget.mesh_parts.part_weights`, ``rows`` the head's and the
+    jaw's), the socket with the lips where it meets them (:func:`~mocaptk.retarget.face_parts.socket_rows`)."""
+    parts, count = face.parts, len(face.vertices)
+    vertices = np.vstack([face.vertices, parts.vertices])
+    faces = np.vstack([face.faces, parts.faces + count])
+    weights = np.vstack([weights, np.zeros((len(parts.vertices), weights.shape[1]))])
+    weights = part_weights(weights, vertices, faces, len(face.faces), head=rows[0], jaw=rows[1],
+                           mouth_y=float(face.vertices[face.upper_lip, 1].mean()),
+                           nose_y=nose_height(vertices, faces, len(face.faces)))
+    weights = socket_rows(weights, parts, count)
+    near = np.argmin(np.linalg.norm(parts.vertices[:, None] - joint_positions[None], axis=2), axis=1)
+    # the socket is blended from several rows: capped continuously; its lip vertices as their lip
+    continuous = np.concatenate([np.broadcast_to(lid_rows, count), template_parts()[4] < 0])
+    on = np.flatnonzero(parts.attach >= 0)
+    continuous[count + on] = continuous[parts.attach[on]]
+    nearest = np.concatenate([nearest, near])
+    nearest[count + on] = nearest[parts.attach[on]]
+    if mirror is not None and parts.mirror is not None:
+        mirror = (np.concatenate([mirror[0], count + parts.mirror]), mirror[1])
+    return (vertices, faces, np.vstack([face.uv, np.full((len(parts.vertices), 2), 0.5)]), weights,
+            nearest, continuous, mirror)
+
+
+def _materials(face: DefaultFace | None, opened: OpenedMesh | None, vertices: np.ndarray,
+               faces: np.ndarray) -> np.ndarray | None:
+    """Each triangle's material (:mod:`~mocaptk.retarget.face_materials`): the default face's
+    skin and parts' own, a user mesh's by its parts' kinds; None (all skin) otherwise."""
+    if face is not None and face.parts is not None:
+        return np.concatenate([np.zeros(len(face.faces), np.int64), face.parts.material])
+    if opened is not None:
+        return mesh_materials(vertices, faces, opened.skin)
+    return None
 
 
 def with_check(build: RigBuild, check: SkinningError, by_region: dict[str, Any]) -> RigBuild:

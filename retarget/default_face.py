@@ -30,6 +30,7 @@ from importlib import resources
 import numpy as np
 
 from .align import SurfaceProximity
+from .face_parts import FaceParts, fit_parts
 from .face_template import MAX_FIT_POINTS, TEMPLATE_FILE, fit_template
 
 __all__ = ["CORNER_JOINTS_MM", "CORNER_LEFT_OUT_FADE_MM", "CORNER_PIN_FADE_MM", "EYE_CORNER_MM", "MOUTH_CORNER_MM", "DefaultFace",
@@ -118,6 +119,7 @@ class DefaultFace:
     lower_lip: np.ndarray
     lids: tuple[Lid, ...]
     mirror: np.ndarray | None
+    parts: FaceParts | None = None
 
 
 @lru_cache(maxsize=1)
@@ -197,11 +199,12 @@ def split_loop(vertices: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.n
 def default_face(points: np.ndarray, *, spacing: float,
                  plane: tuple[np.ndarray, np.ndarray] | None = None,
                  lid_reach_mm: float = LID_REACH_MM,
-                 sense_reach_mm: float | None = None) -> DefaultFace | None:
+                 sense_reach_mm: float | None = None, parts: bool = True) -> DefaultFace | None:
     """The ICT-FaceKit face fitted to the dense neutral ``points`` (N, 3) mm (rig frame: Y up,
     facing +Z; ``spacing`` their marker spacing, mm); ``plane`` ``(point, unit normal)`` makes it
     mirror-symmetric; ``lid_reach_mm`` how far the blink reaches from an eye, ``sense_reach_mm``
-    that of the lids' ``sensed`` blink (None: the same field). None when the
+    that of the lids' ``sensed`` blink (None: the same field); ``parts`` fits
+    the eyeballs and mouth interior too (:mod:`~mocaptk.retarget.face_parts`). None when the
     template does not fit (see :func:`fit_template`)."""
     points = np.asarray(points, dtype=float)
     template = fit_template(points, spacing=spacing)
@@ -229,8 +232,13 @@ def default_face(points: np.ndarray, *, spacing: float,
                                                - 2.0 * (field[mirror] @ normal)[:, None] * normal)
 
         lids[1] = Lid(lids[1].upper, lids[1].lower, image(lids[0].blink), image(lids[0].sensed))
+    fitted_parts = None
+    if parts:
+        fitted_parts = fit_parts(_template()[0], vertices, closed, faces, [lid.blink for lid in lids],
+                                 symmetric=None if plane is None else
+                                 (lambda p, m: _symmetric(p, m, *plane)))
     return DefaultFace(closed, vertices, faces, uv, upper, lower, tuple(lids),
-                       None if plane is None else mirror)
+                       None if plane is None else mirror, fitted_parts)
 
 
 def lip_anchors(face: DefaultFace, anchors: np.ndarray, points: np.ndarray,

@@ -23,6 +23,7 @@ from mocaptk import __version__
 from mocaptk.atomic import write_bytes
 
 from .bake import RigAnimation
+from .face_materials import LOOKS, MATERIALS, groups, material_name
 from .fbx_binary import CREATION_TIME, FILE_ID, Int64, Node, Property, encode_fbx
 from .rig import Rig
 
@@ -33,9 +34,6 @@ MESH_NAME = "face_mesh"
 # Fixed object ids: files are deterministic and ids stay readable in a dump.
 _GEOMETRY_ID, _MESH_MODEL_ID, _SKIN_ID, _POSE_ID, _DOCUMENT_ID = 1000, 1001, 1002, 1003, 1004
 _MATERIAL_ID = 1005
-MATERIAL_NAME = "face_skin"
-#: Diffuse colour of the one material (linear RGB; a neutral skin tone).
-SKIN_COLOUR = (0.80, 0.62, 0.52)
 _JOINT_MODEL_BASE, _ATTRIBUTE_BASE, _CLUSTER_BASE = 100_000, 200_000, 300_000
 _ANIMATION_BASE = 1_000_000  # stacks, layers, curve nodes and curves: counted up from here
 #: FBX time units per second (KTime).
@@ -165,7 +163,8 @@ def _documents(active_stack: str) -> Node:
 def _definitions(rig: Rig, anim: _Animation | None) -> Node:
     joints = rig.joint_count
     counts = [("GlobalSettings", 1), ("Geometry", 1), ("Model", 1 + joints),
-              ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1), ("Material", 1)]
+              ("NodeAttribute", joints), ("Deformer", 1 + joints), ("Pose", 1),
+              ("Material", len(groups(rig.materials, len(rig.faces))))]
     if anim is not None:
         counts += list(anim.counts.items())
     return definitions(counts)
@@ -188,7 +187,7 @@ def definitions(counts: list[tuple[str, int]]) -> Node:
 def _objects(rig: Rig) -> Node:
     world_cm = rig.joint_positions * MM_TO_CM
     objects = Node("Objects", [], [_geometry(rig), _model(_MESH_MODEL_ID, MESH_NAME, "Mesh"),
-                                   _material()])
+                                   *_materials(rig)])
     for joint, name in enumerate(rig.joint_names):
         parent = int(rig.joint_parents[joint])
         local = world_cm[joint] - (world_cm[parent] if parent >= 0 else 0.0)
@@ -259,11 +258,15 @@ def _geometry(rig: Rig) -> Node:
         Node("ReferenceInformationType", ["Direct"]),
         Node("UV", [rig.uv().astype(np.float64)]),
     ])
+    used = groups(rig.materials, len(rig.faces))
+    per_polygon = np.zeros(len(rig.faces), dtype=np.int32)  # the k-th material linked to the model
+    for k, (_, tris) in enumerate(used):
+        per_polygon[tris] = k
     material = Node("LayerElementMaterial", [0], [
         Node("Version", [101]), Node("Name", [""]),
-        Node("MappingInformationType", ["AllSame"]),
+        Node("MappingInformationType", ["AllSame" if len(used) == 1 else "ByPolygon"]),
         Node("ReferenceInformationType", ["IndexToDirect"]),
-        Node("Materials", [np.zeros(1, dtype=np.int32)]),
+        Node("Materials", [per_polygon[:1] if len(used) == 1 else per_polygon]),
     ])
     layer = Node("Layer", [0], [Node("Version", [100])] + [
         Node("LayerElement", [], [Node("Type", [kind]), Node("TypedIndex", [0])])
@@ -277,13 +280,28 @@ def _geometry(rig: Rig) -> Node:
     ])
 
 
-def _material() -> Node:
-    """The one material of the mesh: Lambert, skin-coloured."""
-    return Node("Material", [Int64(_MATERIAL_ID), f"{MATERIAL_NAME}\x00\x01Material", ""], [
+def _materials(rig: Rig) -> list[Node]:
+    """The mesh's materials (:mod:`~mocaptk.retarget.face_materials`), one per kind used."""
+    return [_material(_material_id(k), m) for k, (m, _) in enumerate(groups(rig.materials, len(rig.faces)))]
+
+
+def _material(object_id: int = _MATERIAL_ID, material: int = 0) -> Node:
+    """Material ``material`` (:data:`~mocaptk.retarget.face_materials.MATERIALS`; default the
+    skin): Lambert, its colour; a translucent one (lash cards) with its opacity."""
+    colour, opacity = LOOKS[MATERIALS[material]]
+    see_through = [_p("TransparentColor", "Color", "", "A", 1.0, 1.0, 1.0),
+                   _p("TransparencyFactor", "Number", "", "A", 1.0 - opacity),
+                   _p("Opacity", "Number", "", "A", opacity)] if opacity < 1 else []
+    return Node("Material", [Int64(object_id), f"{material_name(material)}\x00\x01Material", ""], [
         Node("Version", [102]), Node("ShadingModel", ["lambert"]), Node("MultiLayer", [0]),
         Node("Properties70", [], [
-            _p("DiffuseColor", "Color", "", "A", *SKIN_COLOUR),
-            _p("DiffuseFactor", "Number", "", "A", 1.0)])])
+            _p("DiffuseColor", "Color", "", "A", *colour),
+            _p("DiffuseFactor", "Number", "", "A", 1.0), *see_through])])
+
+
+def _material_id(k: int) -> int:
+    """The object id of the mesh's ``k``-th material (the first: :data:`_MATERIAL_ID`)."""
+    return _MATERIAL_ID + 100 * k
 
 
 def _model(model_id: int, name: str, kind: str, *, translation: np.ndarray | None = None,
@@ -306,8 +324,8 @@ def _model(model_id: int, name: str, kind: str, *, translation: np.ndarray | Non
 
 def _links(rig: Rig) -> list[tuple]:
     """Object-object connections ``("OO", child id, parent id)`` of the rig."""
-    links = [(_MESH_MODEL_ID, 0), (_GEOMETRY_ID, _MESH_MODEL_ID), (_SKIN_ID, _GEOMETRY_ID),
-             (_MATERIAL_ID, _MESH_MODEL_ID)]
+    links = [(_MESH_MODEL_ID, 0), (_GEOMETRY_ID, _MESH_MODEL_ID), (_SKIN_ID, _GEOMETRY_ID)]
+    links += [(_material_id(k), _MESH_MODEL_ID) for k in range(len(groups(rig.materials, len(rig.faces))))]
     for joint in range(rig.joint_count):
         parent = int(rig.joint_parents[joint])
         model = _JOINT_MODEL_BASE + joint

@@ -15,6 +15,7 @@ time 0 (an excerpt from frame 700 says 700).
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from mocaptk import __version__
 from mocaptk.atomic import write_bytes
 
 from .bake import RigAnimation
-from .export_fbx import SKIN_COLOUR
+from .face_materials import LOOKS, MATERIALS, groups, material_name
 from .rig import Rig
 
 #: Millimetres to glTF metres.
@@ -70,7 +71,11 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
         setattr(attributes, f"WEIGHTS_{pair}",
                 builder.add(np.ascontiguousarray(weights[:, columns]), target=_ARRAY_BUFFER))
     index_type = np.uint16 if rig.vertex_count <= 65535 else np.uint32
-    indices = builder.add(rig.faces.astype(index_type).ravel(), target=_ELEMENT_ARRAY_BUFFER)
+    used = groups(rig.materials, len(rig.faces))  # one primitive per material
+    primitives = [pygltflib.Primitive(attributes=attributes, mode=_TRIANGLES, material=k,
+                                      indices=builder.add(rig.faces[tris].astype(index_type).ravel(),
+                                                          target=_ELEMENT_ARRAY_BUFFER))
+                  for k, (_, tris) in enumerate(used)]
 
     positions_m = rig.joint_positions * MM_TO_M
     inverse_bind = np.tile(np.eye(4), (rig.joint_count, 1, 1))
@@ -95,9 +100,8 @@ def rig_glb_bytes(rig: Rig, *, animation: RigAnimation | None = None) -> bytes:
         scenes=[pygltflib.Scene(name="rig", nodes=[0, 1 + rig.root], extras=(
             {"frames_per_second": animation.rate} if animation is not None else None))],
         nodes=nodes,
-        meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=[pygltflib.Primitive(
-            attributes=attributes, indices=indices, mode=_TRIANGLES, material=0)])],
-        **skin_material(builder),
+        meshes=[pygltflib.Mesh(name=MESH_NAME, primitives=primitives)],
+        **face_materials(builder, [m for m, _ in used]),
         skins=[pygltflib.Skin(name="face_skin", inverseBindMatrices=ibm, skeleton=1 + rig.root,
                               joints=[1 + j for j in range(rig.joint_count)])],
         animations=[pygltflib.Animation(**a) for a in animations],
@@ -176,24 +180,30 @@ CHECKER_SQUARES = 16
 CHECKER_PIXELS = 256
 
 
-def skin_material(builder: _BufferBuilder) -> dict:
-    """The one material of every face glTF and its texture, as pygltflib.GLTF2 keyword
-    arguments: a skin-tone UV checker (so TEXCOORD_0 is used and the UV layout shows), not
-    metallic."""
+def face_materials(builder: _BufferBuilder, used: Sequence[int] = (0,)) -> dict:
+    """The materials ``used`` (:data:`~mocaptk.retarget.face_materials.MATERIALS` indices, in
+    order) of a face glTF and their texture, as pygltflib.GLTF2 keyword arguments: each its
+    colour (:data:`~mocaptk.retarget.face_materials.LOOKS`) times a grey UV checker (so
+    TEXCOORD_0 is used and the skin's UV layout shows), not metallic; a translucent one (lash
+    cards) blended and double-sided."""
     import cv2
     import pygltflib
 
     cell = CHECKER_PIXELS // CHECKER_SQUARES
     squares = (np.add.outer(np.arange(CHECKER_PIXELS) // cell, np.arange(CHECKER_PIXELS) // cell)
                % 2).astype(bool)
-    light = np.round(np.array(SKIN_COLOUR[::-1]) * 255).astype(np.uint8)  # OpenCV is BGR
-    image = np.where(squares[..., None], light, (light * 0.88).astype(np.uint8))
+    image = np.where(squares[..., None], np.uint8(255), np.uint8(224)).repeat(3, axis=2)
     png = cv2.imencode(".png", image)[1].tobytes()
-    return {"materials": [pygltflib.Material(
-                name="face_skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                    baseColorTexture=pygltflib.TextureInfo(index=0, texCoord=0),
-                    metallicFactor=0.0, roughnessFactor=0.6))],
-            "textures": [pygltflib.Texture(sampler=0, source=0, name="face_skin_uv_checker")],
+    materials = []
+    for m in used:
+        colour, opacity = LOOKS[MATERIALS[m]]
+        materials.append(pygltflib.Material(
+            name=material_name(m), pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                baseColorTexture=pygltflib.TextureInfo(index=0, texCoord=0),
+                baseColorFactor=[*colour, opacity], metallicFactor=0.0, roughnessFactor=0.6),
+            **({"alphaMode": "BLEND", "doubleSided": True} if opacity < 1 else {})))
+    return {"materials": materials,
+            "textures": [pygltflib.Texture(sampler=0, source=0, name="face_uv_checker")],
             "images": [pygltflib.Image(bufferView=builder.add_bytes(png), mimeType="image/png",
-                                       name="face_skin_uv_checker")],
+                                       name="face_uv_checker")],
             "samplers": [pygltflib.Sampler()]}

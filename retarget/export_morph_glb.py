@@ -31,7 +31,8 @@ from mocaptk.trajectories import Take
 
 from .bake import continuous, rotation_to_quaternion
 from .export_glb import (_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER, _TRIANGLES, MM_TO_M, _BufferBuilder,
-                         skin_material)
+                         face_materials)
+from .face_materials import groups
 
 __all__ = ["MAX_TARGETS", "MorphBasis", "TOLERANCE_MM", "morph_basis", "morph_glb_bytes",
            "write_morph_glb"]
@@ -124,15 +125,18 @@ def write_morph_glb(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np
                     frames: np.ndarray, rate: float, uv: np.ndarray | None = None,
                     head: tuple[np.ndarray, np.ndarray] | None = None, takes: Sequence[Take] = (),
                     first_frame: int = 0, tolerance_mm: float = TOLERANCE_MM,
+                    materials: np.ndarray | None = None,
                     force: bool = True) -> tuple[Path, dict[str, object]]:
     """Atomically write the animation ``frames`` (F, V, 3) mm (NaN frames: neutral) of the mesh
     ``rest`` (V, 3) mm, ``faces`` (T, 3) at ``rate`` Hz; ``uv`` (V, 2) its texture coordinates
     (V up); ``head`` ``(R (F, 3, 3), t (F, 3))`` the head pose (frames = R y + t for
     head-relative y; NaN: held); ``takes`` the clips (default one); ``first_frame`` the
-    capture's. Returns the path and a summary (targets, largest error)."""
+    capture's; ``materials`` (T,) each triangle's
+    (:data:`~mocaptk.retarget.face_materials.MATERIALS`; with ``uv``, None: all skin). Returns
+    the path and a summary (targets, largest error)."""
     data, summary = morph_glb_bytes(rest=rest, faces=faces, frames=frames, rate=rate, uv=uv,
                                     head=head, takes=takes, first_frame=first_frame,
-                                    tolerance_mm=tolerance_mm)
+                                    tolerance_mm=tolerance_mm, materials=materials)
     return write_bytes(path, data, force=force), summary
 
 
@@ -140,7 +144,8 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
                     uv: np.ndarray | None = None,
                     head: tuple[np.ndarray, np.ndarray] | None = None,
                     takes: Sequence[Take] = (), first_frame: int = 0,
-                    tolerance_mm: float = TOLERANCE_MM) -> tuple[bytes, dict[str, object]]:
+                    tolerance_mm: float = TOLERANCE_MM,
+                    materials: np.ndarray | None = None) -> tuple[bytes, dict[str, object]]:
     """The .glb file (deterministic bytes) and its summary; see :func:`write_morph_glb`."""
     import pygltflib  # ~0.2 s to import: only when writing glTF
 
@@ -167,7 +172,10 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
         attributes.TEXCOORD_0 = builder.add((np.asarray(uv) * (1.0, -1.0) + (0.0, 1.0))
                                             .astype(np.float32), target=_ARRAY_BUFFER)
     index_type = np.uint16 if len(rest) <= 65535 else np.uint32
-    indices = builder.add(np.asarray(faces).astype(index_type).ravel(), target=_ELEMENT_ARRAY_BUFFER)
+    faces = np.asarray(faces)
+    used = groups(materials, len(faces)) if uv is not None else [(None, np.arange(len(faces)))]
+    indices = [builder.add(faces[tris].astype(index_type).ravel(), target=_ELEMENT_ARRAY_BUFFER)
+               for _, tris in used]  # one primitive per material
     targets = [{"POSITION": builder.add((shape * 2.0 * a * MM_TO_M).astype(np.float32),
                                         target=_ARRAY_BUFFER, bounds=True)}
                for shape, a in zip(basis.targets, half)]
@@ -202,9 +210,10 @@ def morph_glb_bytes(*, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray, 
                                extras={"targetNames": [f"component_{k:03d}"
                                                        for k in range(len(targets))]},
                                primitives=[pygltflib.Primitive(
-                                   attributes=attributes, indices=indices, mode=_TRIANGLES,
-                                   material=None if uv is None else 0, targets=targets)])],
-        **(skin_material(builder) if uv is not None else {}),
+                                   attributes=attributes, indices=index, mode=_TRIANGLES,
+                                   material=None if uv is None else k, targets=targets)
+                                   for k, index in enumerate(indices)])],
+        **(face_materials(builder, [m for m, _ in used]) if uv is not None else {}),
         animations=animations,
         accessors=[pygltflib.Accessor(**a) for a in builder.accessors],
         bufferViews=[pygltflib.BufferView(**v) for v in builder.views],

@@ -39,7 +39,7 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
                    frames: Iterable[np.ndarray], n_frames: int, rate: float,
                    uv: np.ndarray | None = None, first_frame: int = 0,
                    takes: Sequence[Take] = (), clip_frames: int | None = None,
-                   force: bool = True) -> Path:
+                   materials: np.ndarray | None = None, force: bool = True) -> Path:
     """Write the mesh animation to ``path`` (``.usd``/``.usdc``; ``.usda`` for text).
 
     Parameters
@@ -54,6 +54,8 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
         one's ``startTimeCode`` and ``endTimeCode``
     clip_frames : when set and below ``n_frames``, the points' time samples go into value clips of
         this many frames in the folder ``<stem>_clips`` beside ``path`` (replaced whole)
+    materials : (T,) each triangle's (:data:`~mocaptk.retarget.face_materials.MATERIALS`; None:
+        all skin): one ``UsdPreviewSurface`` each, bound to a ``materialBind`` GeomSubset
     """
     from pxr import Sdf, Vt  # ~0.3 s to import: only when writing USD
 
@@ -68,7 +70,8 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
         # the clips land before the file that names them (exits run in reverse)
         clip_tmp = stack.enter_context(staged_folder(clip_dir, force=force)) if clipped else None
         layer = _mesh_layer(tmp, path, rest=rest, faces=faces, uv=uv, rate=rate, n_frames=n_frames,
-                            first_frame=first_frame, takes=takes, rest_points=not clipped)
+                            first_frame=first_frame, takes=takes, rest_points=not clipped,
+                            materials=materials)
         if clipped:
             starts = list(range(first_frame, first_frame + n_frames, clip_frames))
             low, high = _write_clips(clip_tmp, path.stem, frames, rest=rest, starts=starts,
@@ -88,7 +91,7 @@ def write_mesh_usd(path: str | os.PathLike[str], *, rest: np.ndarray, faces: np.
 
 def _mesh_layer(tmp: Path, path: Path, *, rest: np.ndarray, faces: np.ndarray, uv: np.ndarray | None,
                 rate: float, n_frames: int, first_frame: int, takes: Sequence[Take],
-                rest_points: bool):
+                rest_points: bool, materials: np.ndarray | None = None):
     """The layer at ``tmp`` holding the mesh (topology, normals, UVs, material; the rest pose as
     the points' default when ``rest_points``), its stage already released so that later edits
     do not recompose it."""
@@ -96,7 +99,7 @@ def _mesh_layer(tmp: Path, path: Path, *, rest: np.ndarray, faces: np.ndarray, u
 
     from mocaptk.surface_mesh import vertex_normals
 
-    from .export_fbx import SKIN_COLOUR
+    from .face_materials import LOOKS, MATERIALS, groups, material_name
 
     layer, stage = new_stage(tmp, path, rate=rate, n_frames=n_frames, first_frame=first_frame)
     if takes:
@@ -119,13 +122,27 @@ def _mesh_layer(tmp: Path, path: Path, *, rest: np.ndarray, faces: np.ndarray, u
         st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
                                                      UsdGeom.Tokens.vertex)
         st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, dtype=np.float32)))
-    material = UsdShade.Material.Define(stage, "/Face/face_skin")
-    shader = UsdShade.Shader.Define(stage, "/Face/face_skin/surface")
-    shader.CreateIdAttr("UsdPreviewSurface")
-    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*SKIN_COLOUR))
-    shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
-    material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    used = groups(materials, len(faces))
+    for m, tris in used:
+        name = material_name(m)
+        colour, opacity = LOOKS[MATERIALS[m]]
+        material = UsdShade.Material.Define(stage, f"/Face/{name}")
+        shader = UsdShade.Shader.Define(stage, f"/Face/{name}/surface")
+        shader.CreateIdAttr("UsdPreviewSurface")
+        shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*colour))
+        shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+        if opacity < 1:  # lash cards, eye-occlusion shells
+            shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(opacity)
+        material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+        if len(used) == 1:  # one material: bound to the mesh
+            UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+        else:  # one GeomSubset a material, together a partition of the faces
+            subset = UsdGeom.Subset.CreateGeomSubset(
+                mesh, MATERIALS[m], UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(tris.astype(np.int32)),
+                UsdShade.Tokens.materialBind, UsdGeom.Tokens.partition)
+            UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+    if len(used) > 1:
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim())
     if rest_points:  # with clips a default would override every clip: rest is mesh_neutral.obj's
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(rest))
     return layer

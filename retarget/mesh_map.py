@@ -79,7 +79,8 @@ class MeshMap:
     """The animated mesh: ``vertices`` (V, 3) mm neutral, ``faces`` (T, 3), ``matrix`` the linear
     map and ``offset`` (V, 3) mm: vertex positions = matrix @ dense markers + offset (unseen dense
     markers have no column weight); ``uv`` (V, 2) texture coordinates when the mesh has them,
-    ``mirror`` the reflected columns of a half-face session, ``blinks`` the lids' shapes. ``matrix`` is (V, M) dense float32 when x, y and z share the
+    ``mirror`` the reflected columns of a half-face session, ``blinks`` the lids' shapes,
+    ``materials`` (T,) each triangle's (:mod:`~mocaptk.retarget.face_materials`; None: all skin). ``matrix`` is (V, M) dense float32 when x, y and z share the
     weights (one GEMM per chunk: ~15x a sparse product of the same map), else (3V, 3M) sparse on
     the flattened coordinates (x, y, z per point)."""
 
@@ -90,10 +91,12 @@ class MeshMap:
     uv: np.ndarray | None = None
     mirror: Mirror | None = None
     blinks: tuple[Blink, ...] = ()
+    materials: np.ndarray | None = None
 
     @classmethod
     def face(cls, neutral: np.ndarray, *, plane: tuple[np.ndarray, np.ndarray] | None = None,
-             mirrored: bool = False, jaw_following: np.ndarray | None = None) -> MeshMap | None:
+             mirrored: bool = False, jaw_following: np.ndarray | None = None, head: int | None = None,
+             regions: Sequence[str] | None = None) -> MeshMap | None:
         """The default face (:mod:`~mocaptk.retarget.default_face`) fitted to the dense neutral
         ``neutral`` (M, 3) mm (NaN = unseen; head-relative session frame), following the dense
         markers pinned to it (:meth:`anchored`) with the rig's fixes
@@ -102,6 +105,9 @@ class MeshMap:
 
         ``plane`` ``(point, unit normal)``: the sagittal plane (the subject's left); with
         ``mirrored`` (a half-face session) the face is completed by the markers' mirror images.
+        With ``head`` (the dense marker that moves least) and ``regions`` (M,) (each dense
+        marker's) the face has its eyeballs and mouth interior, moving as the rig's
+        (:meth:`_with_face_parts`); else the skin alone.
         """
         from mocaptk.surface_mesh import marker_spacing
 
@@ -126,8 +132,9 @@ class MeshMap:
         points = columns[used] @ rotation.T  # the rig frame: Y up, facing +Z
         rig_plane = None if mirror is None else (rotation @ mirror.point, rotation @ mirror.normal)
         spacing = marker_spacing(points)
-        face = default_face(points, spacing=spacing, plane=rig_plane,
-                            lid_reach_mm=LID_REACH_MM, sense_reach_mm=SOLVE_LID_REACH_MM)
+        with_parts = head is not None and regions is not None and bool(np.isfinite(neutral[head]).all())
+        face = default_face(points, spacing=spacing, plane=rig_plane, lid_reach_mm=LID_REACH_MM,
+                            sense_reach_mm=SOLVE_LID_REACH_MM, parts=with_parts)
         if face is None:
             return None
         follows = None if jaw_following is None else np.asarray(jaw_following, bool)[used % len(neutral)]
@@ -145,7 +152,44 @@ class MeshMap:
                            support=masked_support(np.asarray(mesh.matrix)[:, pinned], masks))
         mesh = replace(mesh, matrix=matrix)._with_openings(face.vertices, None, face.lids, anchors,
                                                            columns, rotation)
-        return replace(mesh, uv=face.uv, mirror=mirror)
+        mesh = replace(mesh, uv=face.uv, mirror=mirror)
+        if face.parts is not None:
+            own = [regions[m] for m in (seen if mirror is None else np.concatenate([seen, seen]))]
+            mesh = mesh._with_face_parts(face, rotation, columns, used, int(head), own, points)
+        return mesh
+
+    def _with_face_parts(self, face, rotation: np.ndarray, columns: np.ndarray, used: np.ndarray,
+                         head: int, regions: Sequence[str], points: np.ndarray) -> MeshMap:
+        """This map of the default ``face`` with its eyeballs and mouth interior's rows after the
+        skin's, as the rig weights them (:func:`~mocaptk.retarget.mesh_parts.part_weights`, the
+        socket's lip vertices with their lips, :func:`~mocaptk.retarget.face_parts.socket_rows`):
+        ``rotation`` session -> rig, ``columns`` (C, 3) mm as :meth:`anchored`, ``used`` (U,)
+        the columns placed, ``points`` (U, 3) mm them in the rig frame, ``regions`` (U,) theirs,
+        ``head`` the column that moves least."""
+        from .build import RigOptions
+        from .face_parts import socket_rows
+        from .mesh_parts import head_jaw_rows, nose_height, part_weights
+
+        parts, count = face.parts, len(face.vertices)
+        head_row, jaw_row = head_jaw_rows(int(np.flatnonzero(used == head)[0]), regions, points,
+                                          count=RigOptions().max_influences)  # as the rig's jaw row
+        wide = np.zeros((2, self.matrix.shape[1]))
+        wide[:, used] = head_row, jaw_row
+        vertices = np.vstack([face.vertices, parts.vertices])
+        faces = np.vstack([face.faces, parts.faces + count])
+        matrix = np.vstack([np.asarray(self.matrix, dtype=np.float64),
+                            np.zeros((len(parts.vertices), self.matrix.shape[1]))])
+        matrix = part_weights(matrix, vertices, faces, len(face.faces), head=wide[0], jaw=wide[1],
+                              mouth_y=float(face.vertices[face.upper_lip, 1].mean()),
+                              nose_y=nose_height(vertices, faces, len(face.faces)))
+        matrix = socket_rows(matrix, parts, count)
+        placed = vertices @ rotation  # the session frame
+        blinks = tuple(replace(b, shape=np.vstack([b.shape, np.zeros((len(parts.vertices), 3))]))
+                       for b in self.blinks)
+        return replace(self, vertices=placed, faces=faces, matrix=matrix.astype(np.float32),
+                       offset=placed - matrix @ np.nan_to_num(columns), blinks=blinks,
+                       uv=np.vstack([self.uv, np.full((len(parts.vertices), 2), 0.5)]),
+                       materials=np.concatenate([np.zeros(len(face.faces), np.int64), parts.material]))
 
     def _with_openings(self, rig_vertices: np.ndarray, mouth: np.ndarray | None, lids: tuple,
                        anchors: np.ndarray, columns: np.ndarray, rotation: np.ndarray, *,
@@ -247,6 +291,7 @@ class MeshMap:
         from mocaptk.surface_mesh import marker_spacing
 
         from .build import rig_frame_rotation
+        from .face_materials import mesh_materials
         from .face_template import fit_template
         from .mesh_openings import fill_sockets, open_mesh, weighted_faces
 
@@ -276,6 +321,7 @@ class MeshMap:
         if head is not None and regions is not None:
             mesh = mesh._with_parts(opened, points, seen, head, [regions[m] for m in seen],
                                     template, neutral)
+        mesh = replace(mesh, materials=mesh_materials(opened.vertices, opened.faces, opened.skin))
         return mesh, alignment, int(close.sum()), opened
 
     def _with_parts(self, opened: OpenedMesh, points: np.ndarray, seen: np.ndarray, head: int,

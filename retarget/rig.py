@@ -72,6 +72,9 @@ class Rig:
     texcoords : (V, 2) float64, optional
         Texture coordinates in [0, 1] (the default face's own layout); default: :meth:`uv`'s
         front projection.
+    materials : (T,) int64, optional
+        Each triangle's material, an index into
+        :data:`~mocaptk.retarget.face_materials.MATERIALS` (0 skin); default: all skin.
     """
 
     vertices: np.ndarray
@@ -85,6 +88,7 @@ class Rig:
     weight_index: np.ndarray
     weight_value: np.ndarray
     texcoords: np.ndarray | None = None
+    materials: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: object) -> None:
@@ -137,6 +141,12 @@ class Rig:
                 raise RigError("texcoords must be finite")
             uv.setflags(write=False)
             put("texcoords", uv)
+        if self.materials is not None:
+            kinds = _array(self.materials, np.int64, "materials", (len(faces),))
+            if kinds.size and kinds.min() < 0:
+                raise RigError("materials must be >= 0")
+            kinds.setflags(write=False)
+            put("materials", kinds)
 
         for name, array in (("vertices", vertices), ("faces", faces),
                             ("joint_positions", positions), ("joint_parents", parents),
@@ -210,7 +220,8 @@ class Rig:
                      marker_sides: Sequence[str], marker_regions: Sequence[str],
                      weight_index: np.ndarray, weight_value: np.ndarray,
                      root_position: np.ndarray | None = None,
-                     root_name: str = ROOT_NAME, texcoords: np.ndarray | None = None) -> Rig:
+                     root_name: str = ROOT_NAME, texcoords: np.ndarray | None = None,
+                     materials: np.ndarray | None = None) -> Rig:
         """Build a rig with one joint per marker under a root joint.
 
         Parameters
@@ -244,7 +255,7 @@ class Rig:
             joint_regions=("", *marker_regions),
             joint_markers=("", *marker_labels),
             weight_index=np.asarray(weight_index) + 1,
-            weight_value=weight_value, texcoords=texcoords,
+            weight_value=weight_value, texcoords=texcoords, materials=materials,
         )
 
 

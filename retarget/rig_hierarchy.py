@@ -175,7 +175,7 @@ def rig_hierarchy(flat: Rig, *, lower: np.ndarray, pivot: JawPivot,
         joint_regions=("", "", "", *flat.joint_regions[1:], *([STABILIZATION_REGION] * markers)),
         joint_markers=("", "", "", *flat.joint_markers[1:], *(m for m, _, _ in stabilization)),
         weight_index=joint_of[flat.weight_index], weight_value=flat.weight_value,
-        texcoords=flat.texcoords)
+        texcoords=flat.texcoords, materials=flat.materials)
     return RigHierarchy(rig, joint_of, joint_of[1:][lower], pivot)
 
 

@@ -29,6 +29,7 @@ from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
 from .consistency import capture_screen, stabilization_residuals
+from .face_template import template_face
 from .head_pose import HeadPoses
 from .build import check_surface
 from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
@@ -55,7 +56,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                         staging: Path, *, formats: Sequence[str] = SOLVE_FORMATS,
                         subdivisions: int = 0, mesh_path: str | os.PathLike[str] | None = None,
                         landmarks: Mapping[str, int] | None = None,
-                        layout: Layout | None = None, surface: str = "face",
+                        layout: Layout | None = None, surface: str = "face", face_parts: bool = True,
                         stabilize: bool = True, save_trained: bool = True,
                         chunk: int = CHUNK_FRAMES, notes: Sequence[str] = (),
                         adapt: bool = False, rest_frames: np.ndarray | None = None,
@@ -63,8 +64,9 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     """Solve ``capture`` and write every output into ``staging`` (a fresh folder); returns the
     summary written to ``solve.json`` (``notes`` go into it). The mesh is the mesh file
     ``mesh_path`` aligned to the dense neutral, else ``surface``: ``"face"`` the default face
-    (:meth:`MeshMap.face`; the whole face for a half-face ``layout``) or ``"markers"`` the marker
-    surface (``subdivisions``; also where the face does not fit)."""
+    (:meth:`MeshMap.face`; the whole face for a half-face ``layout``; with its eyeballs and mouth
+    interior unless ``face_parts`` is False) or ``"markers"`` the marker surface
+    (``subdivisions``; also where the face does not fit)."""
     say = progress or (lambda _: None)
     unknown = [f for f in formats if f not in SOLVE_FORMATS]
     if unknown:
@@ -117,8 +119,9 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
                                     head=parts_head(solver))
     elif surface == "face":
         say("fitting the face to the dense neutral")
-        mesh = face_mesh(solver, layout)
-        mesh_info = {"kind": "face", "whole_face_mirrored": mesh is not None and mesh.mirror is not None}
+        mesh = face_mesh(solver, layout, parts=face_parts)
+        mesh_info = {"kind": "face", "whole_face_mirrored": mesh is not None and mesh.mirror is not None,
+                     "parts": mesh is not None and len(mesh.faces) > len(template_face()[1])}
     if mesh is None:
         mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
         mesh_info = {"kind": "marker surface", "subdivisions": subdivisions}
@@ -175,7 +178,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         write_mesh_usd(staging / "mesh.usd", rest=mesh.vertices, faces=mesh.faces, n_frames=n_frames,
                        frames=(frames_file[s:s + chunk] for s in range(0, n_frames, chunk)),
                        rate=capture.rate, uv=mesh.uv, first_frame=capture.first_frame,
-                       takes=capture.takes, clip_frames=clip_frames)
+                       takes=capture.takes, clip_frames=clip_frames, materials=mesh.materials)
         written += ["mesh.usd"] + (["mesh_clips/"] if n_frames > clip_frames else [])
     if "glb" in formats:
         say("writing mesh.glb")
@@ -184,7 +187,8 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         _, mesh_info["glb"] = write_morph_glb(
             staging / "mesh.glb", rest=mesh.vertices, faces=mesh.faces, frames=frames_file,
             rate=capture.rate, uv=mesh.uv, takes=capture.takes, first_frame=capture.first_frame,
-            head=None if poses is None else (poses.rotations, poses.translations))
+            head=None if poses is None else (poses.rotations, poses.translations),
+            materials=mesh.materials)
         written.append("mesh.glb")
     if frames_file is not None:
         del frames_file
@@ -200,15 +204,22 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
     return summary
 
 
-def face_mesh(solver: FaceSolver, layout: Layout | None) -> MeshMap | None:
+def face_mesh(solver: FaceSolver, layout: Layout | None, *, parts: bool = True) -> MeshMap | None:
     """The default face on ``solver``'s dense neutral (:meth:`MeshMap.face`), mirrored to the
     whole face when ``layout`` has mirrored markers, its lip markers each on its own lip
-    (:func:`jaw_following`); None where it does not fit."""
+    (:func:`jaw_following`); None where it does not fit. With ``parts`` and ``layout``, its
+    eyeballs and mouth interior move with the jaw and the head's marker (:func:`parts_head`)."""
     plane = None if layout is None else layout.extra.get("sagittal_plane")
     plane = None if not isinstance(plane, dict) else (np.asarray(plane["point"], float),
                                                       np.asarray(plane["normal"], float))
     mirrored = layout is not None and any(c.mirrored_from for c in layout.clusters)
-    return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored,
+    index = {label: i for i, label in enumerate(solver.labels)}
+    head = index.get(parts_head(solver))
+    regions = None
+    if parts and layout is not None and head is not None:
+        region_of = {m: c.region for c in layout.clusters for m in c.members}
+        regions = [region_of.get(label, "") for label in solver.labels]
+    return MeshMap.face(solver.model.neutral, plane=plane, mirrored=mirrored, head=head, regions=regions,
                         jaw_following=None if layout is None else jaw_following(
                             solver, layout, lateral=None if plane is None else plane[1]))
 

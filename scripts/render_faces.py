@@ -10,13 +10,11 @@ width, smallest eye aperture) and used for every face. Usage (from the repositor
     python scripts/render_faces.py [out folder, default docs/renders] [--mesh-only | --default-only]
 
 ``--mesh-only``: the ``--mesh`` faces only (the poses still come from the default rig);
-``--default-only``: the default rig and solve's mesh only. A
-mesh's parts other than its skin (teeth, eyeballs) are drawn in a lighter colour; the open
-pieces around its eyes (:func:`~mocaptk.retarget.mesh_parts.parts` ``"lid"``: the ICT-FaceKit
-head's lash cards, eye-occlusion and eye-blend shells and wet rims, alpha-textured or
-transparent in their own material) dark and translucent, as a renderer with their materials
-shows them: drawn opaque they hid the lids and stood out past the brow. Each view is framed to
-fit the face in all four poses.
+``--default-only``: the default rig and solve's mesh only. Each triangle is drawn in its
+material's colour and opacity (:mod:`~mocaptk.retarget.face_materials`, as the exported files
+carry them): the default face's eyeballs, teeth and mouth socket, a user head's teeth, eyeballs
+and gums, and its lash cards and eye shells dark and translucent (drawn opaque they hid the lids
+and stood out past the brow). Each view is framed to fit the skin in all four poses.
 """
 
 from __future__ import annotations
@@ -33,9 +31,6 @@ REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "sample_c3d"
 VIEWS = {"front": (0.0, 0.0, 1.0), "three-quarter": (0.62, 0.05, 0.78)}
 POSES = ("rest", "widest jaw", "strongest smile", "full blink")
-SKIN = (0.80, 0.62, 0.52)
-PARTS = (0.93, 0.91, 0.86)
-OVERLAY = ((0.12, 0.08, 0.06), 0.35)  # colour, opacity
 WINDOW = (480, 560)
 VIEW_ANGLE_DEG = 22.0
 
@@ -68,19 +63,19 @@ def main(argv: list[str]) -> None:
     print("frames (rest, jaw, smile, blink):", frames)
     if not mesh_only:
         render(skinned(build, perf, frames), build.rig.faces, out / "default_rig.png",
-               "default rig (rig.fbx / rig.glb)")
+               "default rig (rig.fbx / rig.glb)", materials=build.rig.materials)
         solver = train_solver(layout, session, {"path": "sample", "sha256": None})
         mesh = face_mesh(solver, layout)
         dense = np.concatenate([c.positions for c in solve_chunks(
             solver, layout_frames(solver, perf, "performance")[frames[1:]])])
         poses = np.concatenate([mesh.vertices[None], mesh.apply(dense)])
         render(poses @ build.cloud.rotation.T, mesh.faces, out / "solve_mesh.png",
-               "solve's mesh (mesh.usd / mesh.glb)")
+               "solve's mesh (mesh.usd / mesh.glb)", materials=mesh.materials)
     with tempfile.TemporaryDirectory() as tmp:
         for name, path, title in ([] if default_only else user_meshes(Path(tmp))):
             user = build_rig(layout, session, mesh=load_mesh(path), check=False)
             render(skinned(user, perf, frames), user.rig.faces, out / f"{name}.png", title,
-                   kinds=face_kinds(user.rig.vertices, user.rig.faces))
+                   materials=user.rig.materials)
 
 
 def user_meshes(tmp: Path) -> list[tuple[str, Path, str]]:
@@ -124,17 +119,6 @@ def pose_frames(build, posed: np.ndarray) -> list[int]:
             int(np.argmin(eye))]
 
 
-def face_kinds(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Each triangle's kind (T,) of a user mesh's rig (its skin's triangles first): 0 skin, 1 a
-    part drawn opaque (teeth, eyeballs, gums), 2 a translucent piece around the eyes."""
-    from mocaptk.retarget.mesh_parts import nose_height, parts, skin_faces
-
-    count = int(skin_faces(faces).sum())
-    kinds = np.where(np.arange(len(faces)) < count, 0, 1)
-    for members, kind in parts(vertices, faces, count, nose_y=nose_height(vertices, faces, count)):
-        if kind == "lid":
-            kinds[np.isin(faces[:, 0], members)] = 2
-    return kinds
 
 
 def camera_distance(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> float:
@@ -152,20 +136,23 @@ def camera_distance(points: np.ndarray, centre: np.ndarray, direction: np.ndarra
 
 
 def render(poses: np.ndarray, faces: np.ndarray, path: Path, title: str, *,
-           kinds: np.ndarray | None = None) -> None:
+           materials: np.ndarray | None = None) -> None:
     """A 2 x 4 grid (views x poses) of ``poses`` (4, V, 3) mm, rig frame, into ``path``;
-    ``kinds`` (T,) as :func:`face_kinds` (default: all skin)."""
+    ``materials`` (T,) each triangle's, drawn in its colour and opacity (default: all skin)."""
     import matplotlib.pyplot as plt
     import pyvista as pv
 
+    from mocaptk.retarget.face_materials import LOOKS, MATERIALS
+
     pv.OFF_SCREEN = True
-    kinds = np.zeros(len(faces), int) if kinds is None else kinds
-    looks = [(0, SKIN, 1.0), (1, PARTS, 1.0), (2, *OVERLAY)]
-    centre = poses[0].mean(axis=0)
+    kinds = np.zeros(len(faces), int) if materials is None else np.asarray(materials)
+    looks = [(k, *LOOKS[name]) for k, name in enumerate(MATERIALS)]
+    skin = faces[kinds == 0]
+    centre = poses[0][np.unique(skin)].mean(axis=0)
     fig, axes = plt.subplots(2, 4, figsize=(12, 7.6))
     for row, (view, direction) in enumerate(VIEWS.items()):
         direction = np.array(direction) / np.linalg.norm(direction)
-        distance = camera_distance(poses.reshape(-1, 3), centre, direction)  # every pose in view
+        distance = camera_distance(poses[:, np.unique(skin)].reshape(-1, 3), centre, direction)
         for col, (pose, points) in enumerate(zip(POSES, poses)):
             plotter = pv.Plotter(off_screen=True, window_size=WINDOW)
             plotter.set_background("white")

@@ -35,14 +35,16 @@ def test_solve_mesh_is_the_whole_face_with_uvs(solved):
     from mocaptk.retarget.default_face import template_openings
 
     layout, _, mesh, _ = solved
-    assert mesh is not None and mesh.mirror is not None and mesh.vertices.shape == (9409, 3)
+    # the skin, then its eyeballs and mouth interior (2,864 vertices, tests/test_face_parts.py)
+    assert mesh is not None and mesh.mirror is not None and mesh.vertices.shape == (9409 + 2864, 3)
+    skin = mesh.vertices[:9409]
     plane = layout.extra["sagittal_plane"]
     normal, point = np.asarray(plane["normal"]), np.asarray(plane["point"])
-    side = (mesh.vertices - point) @ normal
+    side = (skin - point) @ normal
     assert side.min() < -80 and side.max() > 80  # ear to ear, the captured half is one side
-    image = mesh.vertices - 2 * side[:, None] * normal
-    assert np.abs(image[template_openings()[2]] - mesh.vertices).max() < 1e-6
-    assert mesh.uv.shape == (9409, 2) and 0 <= mesh.uv.min() and mesh.uv.max() <= 1
+    image = skin - 2 * side[:, None] * normal
+    assert np.abs(image[template_openings()[2]] - skin).max() < 1e-6
+    assert mesh.uv.shape == (9409 + 2864, 2) and 0 <= mesh.uv.min() and mesh.uv.max() <= 1
 
 
 def test_solve_mesh_closes_lips_and_lids(solved):
@@ -82,7 +84,7 @@ def test_solve_mesh_neither_folds_nor_tears_at_the_mouth(solved):
     from mocaptk.retarget.default_face import template_openings
 
     _, _, mesh, frames = solved
-    faces = mesh.faces
+    faces = mesh.faces[mesh.materials == 0]  # the skin (its parts: tests/test_face_parts.py)
     rest = mesh.vertices
 
     def normals(points):
@@ -168,3 +170,36 @@ def test_solve_finds_the_lip_markers_that_follow_the_jaw(solved):
     assert ours <= theirs and len(ours) >= 0.75 * len(theirs), (ours, theirs)
     assert {"MOUTH_12_C", "MOUTH_15_C"} <= ours
     assert not any(label.startswith(("NOSE", "CHEEK", "EYE", "FOREHEAD")) for label in ours)
+
+
+def test_solve_mesh_has_eyeballs_and_a_mouth_behind_the_skin(solved):
+    """solve's face carries the default face's eyeballs, teeth and socket (their own materials):
+    along the face's view no eyeball or tooth vertex is in front of the skin at rest, at the
+    widest jaw or at either full blink (measured: 0.45 mm behind at least over the performance),
+    the socket's lip vertices move with the lips, the lower teeth with the jaw (20 mm down)."""
+    from mocaptk.acquisition.synth_session import load_ground_truth
+    from mocaptk.geometry import similarity_transform
+    from mocaptk.retarget.default_face import loop_area, template_openings
+    from mocaptk.retarget.face_parts import in_front, template_parts
+    from mocaptk.retarget.face_template import template_face
+
+    _, _, mesh, frames = solved
+    _, _, _, attach, group = template_parts()
+    count = 9409
+    assert np.bincount(mesh.materials).tolist()[1:] == np.bincount(template_parts()[2]).tolist()[1:]
+    skin = mesh.faces[mesh.materials == 0]
+    view = similarity_transform(template_face()[0], mesh.vertices[:count]).rotation[:, 2]
+    (upper, lower), _, _ = template_openings()
+    widest = int(np.nanargmax(loop_area(frames[:, np.concatenate([upper, lower[::-1][1:-1]])])))
+    truth = load_ground_truth(SAMPLES / "dense_halfface_performance_truth.npz")
+    names = list(truth.blendshape_names)
+    blinks = [int(np.argmax(truth.weights[:, names.index(b)])) for b in ("eyeBlink_R", "eyeBlink_L")]
+    for points in [mesh.vertices] + [frames[f].astype(float) for f in [widest, *blinks]]:
+        for g in range(4):
+            depth = in_front(points[count:][group == g], points[:count], skin, view=view)
+            assert depth.max() < -0.3, (g, depth.max())
+    on = attach >= 0
+    np.testing.assert_allclose(frames[:, count:][:, on], frames[:, attach[on]], atol=1e-4)
+    drop = (frames[widest, count:][group == 3] - mesh.vertices[count:][group == 3]) @ np.cross(
+        view, np.cross((0.0, 1.0, 0.0), view))  # along the face's up
+    assert drop.max() < -15.0

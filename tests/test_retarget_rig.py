@@ -163,7 +163,8 @@ def test_cli_rig_writes_rig_and_guide(sample, tmp_path, run_cli):
     rigid = (layout.extra.get("stabilization") or {}).get("rigid_labels") or []
     # face_root, head, jaw, the layout's joints, the two lids, one locator per stabilization marker
     assert rig.joint_count == 3 + len(layout.clusters) + 2 + len(rigid)
-    assert rig.texcoords is not None and rig.vertex_count == 9409  # the face, its UVs kept
+    # the face (its UVs kept), then its eyeballs, teeth and mouth socket (2,864 vertices)
+    assert rig.texcoords is not None and rig.vertex_count == 9409 + 2864
     report = json.loads((out / "rig_report.json").read_text())
     assert report["skinning_check"]["rmse_mm"] < 1.5
     # existing outputs are refused without --force, in one line
@@ -477,14 +478,15 @@ def test_mirrored_layout_gives_mirrored_weights_and_names(sample):
     assert build.report["weights"]["mirror_symmetric"]
     plane = _sagittal_plane(build.layout)
     normal, point = build.cloud.rotation @ plane.normal, build.cloud.rotation @ plane.point
-    image = rig.vertices - 2 * ((rig.vertices - point) @ normal)[:, None] * normal
     mirror = template_openings()[2]  # ICT-FaceKit's own pairs (the lips' seam has twins)
-    assert np.abs(rig.vertices[mirror] - image).max() < 1e-9
+    skin = rig.vertices[:len(mirror)]  # the skin; its eyeballs and mouth interior after it
+    image = skin - 2 * ((skin - point) @ normal)[:, None] * normal
+    assert np.abs(skin[mirror] - image).max() < 1e-9
     flip = {"L": "R", "R": "L", "C": "C"}
     names = list(rig.joint_names)
     assert all(n[:-1] + flip[n[-1]] in names for n in names[1:])
     swap = [0] + [names.index(n[:-1] + flip[n[-1]]) for n in names[1:]]
-    weights = rig.dense_weights()
+    weights = rig.dense_weights()[:len(mirror)]
     assert np.abs(weights - weights[mirror][:, swap]).max() < 1e-6
 
 
@@ -628,7 +630,8 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     _, posed = _performance_skin(build, perf)
     _, eyes, _ = template_openings()
     rims = rig.vertices[np.concatenate([np.concatenate(eye) for eye in eyes])]
-    faces = rig.faces[cKDTree(rims).query(rig.vertices[rig.faces].mean(axis=1))[0] < 15.0]
+    skin = rig.faces[rig.materials == 0]  # the eyeballs and mouth interior: tests/test_face_parts.py
+    faces = skin[cKDTree(rims).query(rig.vertices[skin].mean(axis=1))[0] < 15.0]
     edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
 
     def normals(points):
@@ -640,7 +643,7 @@ def test_default_face_lids_neither_fold_nor_tear_on_the_performance(sample):
     stretch = np.linalg.norm(posed[:, edges[:, 0]] - posed[:, edges[:, 1]], axis=2) / rest
     assert len(faces) > 2000 and backward.sum(axis=1).max() == 0
     assert stretch.max() <= 2.0, stretch.max()
-    faces = rig.faces
+    faces = skin
     edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     assert (np.einsum("ftk,tk->ft", normals(posed), normals(rig.vertices)) < 0).sum() == 0
     rest = np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1)

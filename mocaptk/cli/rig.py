@@ -32,7 +32,7 @@ def read_landmarks(path: Path) -> dict[str, int]:
 
 
 def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: bool,
-                subdivisions: int, surface: str = "face"):
+                subdivisions: int, surface: str = "face", face_parts: bool = True):
     """Validated :class:`~mocaptk.retarget.build.RigOptions` from command-line values."""
     from mocaptk.retarget.build import RigOptions
 
@@ -43,7 +43,8 @@ def rig_options(max_influences: int, falloff: float | None, pure_thin_shell: boo
     if subdivisions < 0 or subdivisions > 3:
         raise OptionError(f"--subdivisions must be 0..3, got {subdivisions}")
     return RigOptions(max_influences=max_influences, falloff_mm=falloff,
-                      pure_thin_shell=pure_thin_shell, subdivisions=subdivisions, surface=surface)
+                      pure_thin_shell=pure_thin_shell, subdivisions=subdivisions, surface=surface,
+                      face_parts=face_parts)
 
 
 def animation_captures(layout, session, relative, performances, *, no_stabilize: bool = False,
@@ -87,6 +88,8 @@ def rig(
     surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
                                 "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
                                 "the whole face) or markers (a surface through the dense markers)."),
+    no_face_parts: bool = typer.Option(False, "--no-face-parts", help="The default face's skin "
+                                       "alone, without its eyeballs, teeth and mouth socket."),
     landmarks: Path = typer.Option(None, "--landmarks", help="JSON {marker label: mesh vertex "
                                    "index} (>= 3) to start the mesh alignment (default: ICP); keys "
                                    "mouth_R, mouth_L, eye_R_outer, eye_R_inner, eye_L_inner, "
@@ -125,7 +128,8 @@ def rig(
     from mocaptk.retarget.build import write_rig_outputs
     from mocaptk.clustering.layout import layout_rigid_set
 
-    options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions, surface)
+    options = rig_options(max_influences, falloff, pure_thin_shell, subdivisions, surface,
+                          not no_face_parts)
     chosen = parse_formats(formats)
     # refused (read-only, exists) and locked before any work; rig_report.json: written by every run
     claim_output((out or layout.parent) / "rig_report.json", force=force)

@@ -82,6 +82,8 @@ def solve(
     surface: str = typer.Option("face", "--surface", help="The mesh without --mesh: face (the "
                                 "ICT-FaceKit face fitted to the actor: closed lips, blinking lids, "
                                 "the whole face) or markers (the marker surface)."),
+    no_face_parts: bool = typer.Option(False, "--no-face-parts", help="The default face's skin "
+                                       "alone, without its eyeballs, teeth and mouth socket."),
     subdivisions: int = typer.Option(1, "--subdivisions", help="Subdivide the marker surface mesh "
                                      "this many times (0-4; 3 gives ~7,700 vertices)."),
     mesh: Path = typer.Option(None, "--mesh", help="Animate this face mesh (OBJ, PLY, glTF/GLB, STL, "
@@ -201,6 +203,7 @@ def solve(
                                               subdivisions=subdivisions, mesh_path=mesh,
                                               landmarks=pairs,
                                               layout=lay, surface=surface,
+                                              face_parts=not no_face_parts,
                                               stabilize=not no_stabilize,
                                               adapt=adapt_neutral or rest is not None,
                                               rest_frames=None if rest is None else list(rest),

@@ -84,6 +84,8 @@ def main(path: str) -> None:
         "joints": joints,
         "clusters": clusters,
         "bind_pose": bind_pose,
+        "materials": [held(m).name for m in held(mesh.materials)],
+        "face_material": [int(i) for i in held(mesh.face_material)],
     }
     json.dump(out, sys.stdout)
     sys.stdout.flush()
