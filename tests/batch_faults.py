@@ -88,9 +88,10 @@ def tree_hashes(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def runners_alive() -> list[int]:
+def runners_alive(*, parents: set[int] | None = None) -> list[int]:
     """PIDs of session runners of this venv (python or python3: ``dask worker``'s shebang): none
-    may outlive a batch."""
+    may outlive a batch. ``parents``: only runners started by these worker PIDs (their argv names
+    it, so an orphan still counts), not another test's batch running beside this one."""
     pids = []
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -101,7 +102,8 @@ def runners_alive() -> list[int]:
         except OSError:
             continue
         venv = Path(cmd[0].decode()).parent == Path(sys.executable).parent
-        if state != "Z" and len(cmd) > 2 and venv and cmd[2] == b"mocaptk.batch.runner":
+        if state != "Z" and len(cmd) > 4 and venv and cmd[2] == b"mocaptk.batch.runner" and (
+                parents is None or int(cmd[4]) in parents):
             pids.append(int(proc.name))
     return pids
 
@@ -145,7 +147,7 @@ def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng:
     random time in ``window`` (seconds), then SIGKILL one worker (``kill``), SIGINT the batch (``interrupt``,
     as Ctrl-C) or SIGTERM it (``terminate``)."""
     trial = Trial(kind, out, delay=rng.uniform(*window))
-    workers = _worker_pids(scheduler) if kind == "kill" else {}
+    workers = _worker_pids(scheduler)
     process = subprocess.Popen([*MOCAPTK, "batch", *sessions, "--do", "cluster", "--formats", "none",
                                 "--out", str(out), "--scheduler", scheduler, *extra],
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -163,7 +165,7 @@ def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng:
     trial.stop_seconds = trial.returned - fault
     trial.exit_code = process.returncode
     trial.hashes = tree_hashes(out)
-    trial.runners_left = runners_alive()
+    trial.runners_left = runners_alive(parents=set(workers.values()))
     batch_json = out / "batch.json"
     if batch_json.exists():
         trial.records = {r["session"]: r for r in json.loads(batch_json.read_text())["sessions"]}
