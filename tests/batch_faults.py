@@ -91,7 +91,7 @@ def tree_hashes(folder: Path) -> dict[str, str]:
 def runners_alive(*, parents: set[int] | None = None) -> list[int]:
     """PIDs of session runners of this venv (python or python3: ``dask worker``'s shebang): none
     may outlive a batch. ``parents``: only runners started by these worker PIDs (their argv names
-    it, so an orphan still counts), not another test's batch running beside this one."""
+    it) or orphaned (that worker gone), not those of another test's batch running beside this one."""
     pids = []
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -103,7 +103,7 @@ def runners_alive(*, parents: set[int] | None = None) -> list[int]:
             continue
         venv = Path(cmd[0].decode()).parent == Path(sys.executable).parent
         if state != "Z" and len(cmd) > 4 and venv and cmd[2] == b"mocaptk.batch.runner" and (
-                parents is None or int(cmd[4]) in parents):
+                parents is None or int(cmd[4]) in parents or not Path(f"/proc/{int(cmd[4])}").exists()):
             pids.append(int(proc.name))
     return pids
 
@@ -124,7 +124,8 @@ class Trial:
     stderr: str = ""
 
 
-def _worker_pids(scheduler: str) -> dict[str, int]:
+def worker_pids(scheduler: str) -> dict[str, int]:
+    """The PID of each worker of the dask ``scheduler``, by worker address."""
     from distributed import Client
 
     with Client(scheduler, timeout=30) as client:
@@ -147,7 +148,7 @@ def run_trial(kind: str, *, sessions: list[str], out: Path, scheduler: str, rng:
     random time in ``window`` (seconds), then SIGKILL one worker (``kill``), SIGINT the batch (``interrupt``,
     as Ctrl-C) or SIGTERM it (``terminate``)."""
     trial = Trial(kind, out, delay=rng.uniform(*window))
-    workers = _worker_pids(scheduler)
+    workers = worker_pids(scheduler)
     process = subprocess.Popen([*MOCAPTK, "batch", *sessions, "--do", "cluster", "--formats", "none",
                                 "--out", str(out), "--scheduler", scheduler, *extra],
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
