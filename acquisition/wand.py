@@ -72,7 +72,7 @@ def wand_from_blobs(points2d: np.ndarray, rig: CameraRig, length: float) -> Wand
         candidates = np.isfinite(measured)
         seen = (f"; their median length is {np.median(measured[candidates]):.1f} mm"
                 if candidates.any() else "")
-        raise ValueError(f"the wand was not found: {candidates.sum()} of {n_frames} frames show two blobs "
+        raise ValueError(f"the wand was not found: {int(usable.sum())} of {n_frames} frames show two blobs "
                          f"in >= {MIN_CAMERAS} cameras{seen}, none within {LENGTH_TOLERANCE:.0%} of "
                          f"{length:g} mm")
     return Wand(pixels=pixels[:, good], length=float(length))

@@ -29,7 +29,6 @@ from mocaptk.trajectories import Trajectories
 
 from .actor_adaptation import NeutralMismatch, adapt_to_capture, neutral_mismatch, neutral_offset
 from .consistency import capture_screen, stabilization_residuals
-from .face_template import template_face
 from .head_pose import HeadPoses
 from .build import check_surface
 from .solve import (CHUNK_FRAMES, POSE_FROM_RIGID, FaceSolver, MeshMap, head_poses, layout_frames,
@@ -121,7 +120,7 @@ def write_solve_outputs(solver: FaceSolver, capture: Trajectories, capture_sourc
         say("fitting the face to the dense neutral")
         mesh = face_mesh(solver, layout, parts=face_parts)
         mesh_info = {"kind": "face", "whole_face_mirrored": mesh is not None and mesh.mirror is not None,
-                     "parts": mesh is not None and len(mesh.faces) > len(template_face()[1])}
+                     "parts": mesh is not None and mesh.materials is not None}
     if mesh is None:
         mesh = MeshMap.marker_surface(solver.model.neutral, subdivisions=subdivisions)
         mesh_info = {"kind": "marker surface", "subdivisions": subdivisions}

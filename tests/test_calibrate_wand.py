@@ -216,6 +216,7 @@ def test_calibrate_refuses_a_wand_file_of_another_camera_count(run_cli, tmp_path
     (("--wand", "w.npz"), "--wand and --wand-length go together"),
     (("--wand-length", "400"), "--wand and --wand-length go together"),
     (("--wand", "w.npz", "--wand-length", "-4"), "--wand-length must be > 0 mm, got -4"),
+    (("--wand", "w.npz", "--wand-length", "inf"), "--wand-length must be > 0 mm, got inf"),
 ])
 def test_calibrate_wand_options_are_checked_first(run_cli, tmp_path, args, message):
     result = run_cli("calibrate", *_tiny_cameras(tmp_path, 2), *BOARD_ARGS, *args, "--out", tmp_path / "r.json")

@@ -12,6 +12,7 @@ for the wand footage, the same cameras in the same order.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -78,7 +79,7 @@ def calibrate(
         raise OptionError("--wand and --wand-length go together (the wand's detections and its length in mm)")
     if wand_file is not None and not synced:
         raise OptionError("--wand needs --synced: the wand refines the rig's extrinsics")
-    if wand_length is not None and not wand_length > 0:
+    if wand_length is not None and not (math.isfinite(wand_length) and wand_length > 0):
         raise OptionError(f"--wand-length must be > 0 mm, got {wand_length:g}")
     try:
         board = Board(board_kind, parse_corners(corners), square,

@@ -175,7 +175,8 @@ def solve(
         if pairs:  # before the solve, and blamed on the landmarks file, not on --model
             from mocaptk.retarget.mesh_openings import CORNERS
 
-            strange = [k for k in pairs if k not in CORNERS and k not in set(solver.labels)]
+            known = set(solver.labels)
+            strange = [k for k in pairs if k not in CORNERS and k not in known]
             if strange:
                 raise InputFileError(landmarks, f"not dense markers of the model: {', '.join(strange[:6])}")
         notes = []
